@@ -1,0 +1,228 @@
+"""World configuration: every constant of the simulated world, in one frozen dataclass.
+
+Units inside kiloforge are millimetres, seconds and radians. A :class:`WorldConfig` travels with
+every policy artifact, and the exporter takes every sensing constant (communication radius, RBF
+centres and width, normalisers, wall-light threshold, control period, motor schedule) from it, so a
+policy can never be rendered with a world other than the one it was trained in.
+
+Two presets:
+
+``thesis``
+    The world of the thesis (§4.1–4.3), converted with 1 unit = 1 cm = 10 mm: arena ±100 mm,
+    communication radius 40 mm, 11 RBF centres equally spaced over [0, 40] mm with σ = 2.5 mm,
+    10 mm/s, 45 deg/s, ΔT = 1 s, point robots without collisions, 200-step episodes, the reward of
+    §4.2. Messages: every robot within the radius is heard exactly once per control period, with
+    the exact (float) distance, no loss.
+
+``kilobot``
+    What real Kilobots see (``../shared/reference/kilobot-platform.md``): 33 mm discs that cannot
+    overlap, distances as ``estimate_distance`` reports them (integer mm, ≥ 33, ≤ 255), an IR range of
+    85 mm (platform notes: 70–100 mm, surface dependent), one message per robot every 16 kilo_ticks
+    (≈1.9/s) with a random phase and loss, Gaussian distance noise, a control period of 31 kilo_ticks
+    (30.52 Hz ⇒ 1.016 s), motion by the straight / pivot motor schedule of :mod:`sim.motion`, and a
+    500 × 500 mm arena (a common Kilobot table size; 5.9 communication radii wide, close to the
+    thesis's 5 radii).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+# Observation layout (DESIGN.md control-step contract, step 2; thesis §4.1). One definition, used
+# by the simulator, the trainer, the emulator and the renderer.
+OBS_WALL = 0  #: 1.0 when the ambient-light reading says a wall is near, else 0.0
+OBS_TARGET = 1  #: distance to the target / comm radius in [0, 1] when heard this period, else -1
+OBS_NBR_SENSING = 2  #: 1.0 when a heard searcher's latest message says it senses the target
+OBS_RBF = 3  #: first of the ``n_rbf`` histogram bins
+ACTION_DIM = 2  #: (u_left, u_right), each in [0, 1]
+
+ROLE_SEARCHER = 0
+ROLE_TARGET = 1
+
+KILO_TICK_HZ = 30.52  #: kilo_ticks per second, measured (platform notes: 305 ticks in 10 s)
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """The simulated world. Frozen: derive variants with :func:`dataclasses.replace`."""
+
+    name: str = "thesis"  #: preset name (free text, shown in plots and manifests)
+    # --- arena and bodies -------------------------------------------------------------------
+    arena_half_mm: float = 100.0  #: the arena is the square [-a, a]²; robot centres stay inside
+    robot_radius_mm: float = 0.0  #: 0 = point robots (thesis); 16.5 = Kilobot discs
+    collisions: bool = False  #: True: discs never overlap (pushed apart after every move)
+    # --- motion -----------------------------------------------------------------------------
+    v_max_mm_s: float = 10.0  #: straight speed at k_linear = 1 (thesis v_linear,max = 1 cm/s)
+    omega_max_rad_s: float = math.pi / 4  #: turn rate at |k_angular| = 1 (thesis 45 deg/s)
+    control_period_s: float = 1.0  #: ΔT; for tick-level worlds period_ticks / KILO_TICK_HZ
+    tick_level: bool = False  #: False: thesis kinematics once per period; True: motor schedule per tick
+    period_ticks: int = 31  #: control period in kilo_ticks (firmware rate limit; tick-level motion)
+    # --- radio ------------------------------------------------------------------------------
+    comm_radius_mm: float = 40.0  #: messages are received when centres are at most this far apart
+    msg_period_ticks: int = 0  #: 0: every robot is heard once per period (thesis); else tx interval
+    msg_loss: float = 0.0  #: probability that one message is lost at one receiver
+    dist_noise_mm: float = 0.0  #: std of Gaussian noise on measured distance
+    dist_integer: bool = False  #: True: measured distances are rounded to integer mm (estimate_distance)
+    dist_min_mm: float = 0.0  #: measured distances are clipped to [dist_min_mm, dist_max_mm]
+    dist_max_mm: float = 255.0
+    neighbour_table_size: int = 16  #: firmware neighbour-table capacity (searchers per period)
+    target_uid: int = 0  #: kilo_uid of the target beacon; searcher i has kilo_uid i + 1
+    # --- sensing ----------------------------------------------------------------------------
+    n_rbf: int = 11  #: number of RBF bins in the distance histogram
+    rbf_lo_mm: float = 0.0  #: first RBF centre
+    rbf_hi_mm: float = 40.0  #: last RBF centre (centres equally spaced)
+    rbf_sigma_mm: float = 2.5  #: RBF width σ
+    rbf_norm: float = 4.0  #: histogram bins are divided by this (≈ the most neighbours per bin)
+    wall_sense_mm: float = 10.0  #: the light reading is high when a wall is at most this far
+    light_floor: int = 200  #: ambient-light reading away from walls (10-bit ADC counts)
+    light_wall: int = 800  #: ambient-light reading near a wall (walls are lit)
+    light_threshold: int = 500  #: firmware: wall flag = reading >= threshold
+    light_dropout: float = 0.0  #: probability a reading is -1 (busy receiving); firmware keeps the last flag
+    # --- task -------------------------------------------------------------------------------
+    episode_steps: int = 200  #: control periods per episode
+    reward_scale: float = 5.0  #: thesis §4.2 factor 5
+    action_penalty: float = 0.01  #: thesis §4.2 weight of the squared action norm
+    spawn_margin_mm: float = 0.0  #: robots and target spawn this far inside the walls
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, msg: str) -> None:
+            if not cond:
+                raise ValueError(f"WorldConfig '{self.name}': {msg}")
+
+        need(self.arena_half_mm > 0, f"arena_half_mm must be > 0, got {self.arena_half_mm}")
+        need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
+        need(self.spawn_margin_mm >= 0 and self.spawn_margin_mm < self.arena_half_mm,
+             f"spawn_margin_mm must be in [0, arena_half_mm), got {self.spawn_margin_mm}")
+        need(self.v_max_mm_s >= 0, f"v_max_mm_s must be >= 0, got {self.v_max_mm_s}")
+        need(self.omega_max_rad_s >= 0, f"omega_max_rad_s must be >= 0, got {self.omega_max_rad_s}")
+        need(self.control_period_s > 0, f"control_period_s must be > 0, got {self.control_period_s}")
+        need(1 <= self.period_ticks <= 255, f"period_ticks must be in 1..255, got {self.period_ticks}")
+        need(self.comm_radius_mm > 0, f"comm_radius_mm must be > 0, got {self.comm_radius_mm}")
+        need(self.comm_radius_mm <= 255, f"comm_radius_mm must be <= 255 (uint8 mm), got {self.comm_radius_mm}")
+        need(self.msg_period_ticks >= 0, f"msg_period_ticks must be >= 0, got {self.msg_period_ticks}")
+        need(0.0 <= self.msg_loss < 1.0, f"msg_loss must be in [0, 1), got {self.msg_loss}")
+        need(self.dist_noise_mm >= 0, f"dist_noise_mm must be >= 0, got {self.dist_noise_mm}")
+        need(0 <= self.dist_min_mm <= self.dist_max_mm <= 255,
+             f"need 0 <= dist_min_mm <= dist_max_mm <= 255, got {self.dist_min_mm}, {self.dist_max_mm}")
+        need(1 <= self.neighbour_table_size <= 64,
+             f"neighbour_table_size must be in 1..64, got {self.neighbour_table_size}")
+        need(0 <= self.target_uid <= 0xFFFF, f"target_uid must be a uint16, got {self.target_uid}")
+        need(1 <= self.n_rbf <= 32, f"n_rbf must be in 1..32, got {self.n_rbf}")
+        need(self.rbf_hi_mm >= self.rbf_lo_mm >= 0, "need 0 <= rbf_lo_mm <= rbf_hi_mm")
+        need(self.rbf_sigma_mm > 0, f"rbf_sigma_mm must be > 0, got {self.rbf_sigma_mm}")
+        need(self.rbf_norm > 0, f"rbf_norm must be > 0, got {self.rbf_norm}")
+        need(0 <= self.light_floor <= 1023 and 0 <= self.light_wall <= 1023
+             and 0 <= self.light_threshold <= 1023, "light readings and threshold must be in 0..1023")
+        need(0.0 <= self.light_dropout < 1.0, f"light_dropout must be in [0, 1), got {self.light_dropout}")
+        need(self.episode_steps >= 1, f"episode_steps must be >= 1, got {self.episode_steps}")
+        if self.tick_level:
+            need(self.msg_period_ticks >= 1, "tick-level worlds need msg_period_ticks >= 1")
+
+    # --- derived constants (one definition each) --------------------------------------------
+    @property
+    def obs_dim(self) -> int:
+        """Length of one observation: wall, target distance, neighbour-sensing flag, RBF bins."""
+        return OBS_RBF + self.n_rbf
+
+    @property
+    def tuple_dim(self) -> int:
+        """Length of one history tuple (previous action, observation)."""
+        return ACTION_DIM + self.obs_dim
+
+    def history_dim(self, t_prev: int) -> int:
+        """Actor input width for a history of ``t_prev`` tuples (oldest first)."""
+        return t_prev * self.tuple_dim
+
+    @property
+    def rbf_centres_mm(self) -> np.ndarray:
+        """RBF centres μ_k, shape (n_rbf,)."""
+        return np.linspace(self.rbf_lo_mm, self.rbf_hi_mm, self.n_rbf)
+
+    @property
+    def tick_s(self) -> float:
+        """Length of one kilo_tick in seconds."""
+        return 1.0 / KILO_TICK_HZ
+
+    @property
+    def state_dim_per_robot(self) -> int:
+        return 3
+
+    def state_dim(self, n_robots: int) -> int:
+        """Critic state width: target (x, y) and every robot's (x, y, φ), all normalised."""
+        return 2 + 3 * n_robots
+
+    @property
+    def state_scale(self) -> tuple[float, float]:
+        """Normalisers of the critic state: positions / arena_half_mm, headings / π."""
+        return (self.arena_half_mm, math.pi)
+
+    # --- serialisation ----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "WorldConfig":
+        """Build from a dict (e.g. policy metadata); unknown keys are an error that names them."""
+        if not isinstance(d, dict):
+            raise ValueError(f"world config must be a JSON object, got {type(d).__name__}")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown world config field(s): {', '.join(unknown)}")
+        return cls(**d)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+
+THESIS = WorldConfig()
+
+KILOBOT = WorldConfig(
+    name="kilobot",
+    arena_half_mm=250.0,
+    robot_radius_mm=16.5,  # 33 mm body (platform notes)
+    collisions=True,
+    v_max_mm_s=10.0,  # ≈1 cm/s (platform notes)
+    omega_max_rad_s=math.pi / 4,  # ≈45 deg/s pivot (platform notes)
+    control_period_s=31 / KILO_TICK_HZ,
+    tick_level=True,
+    period_ticks=31,  # ≈1.016 s at 30.52 Hz
+    comm_radius_mm=85.0,  # IR range 70–100 mm, surface dependent (platform notes)
+    msg_period_ticks=16,  # kilolib asks for a message every ~16 ticks (0.524 s, ≈1.9/s)
+    msg_loss=0.15,  # assumption: collisions + floor reflections; tune to your surface
+    dist_noise_mm=3.0,  # assumption: estimate_distance scatter after calibration
+    dist_integer=True,  # estimate_distance returns uint8 mm
+    dist_min_mm=33.0,  # touching discs (platform notes)
+    dist_max_mm=255.0,  # estimate_distance clips at 255
+    neighbour_table_size=16,
+    n_rbf=11,
+    rbf_lo_mm=33.0,  # no distance below 33 mm is ever reported
+    rbf_hi_mm=85.0,
+    rbf_sigma_mm=3.25,  # same σ / spacing ratio as the thesis (2.5 / 4)
+    rbf_norm=4.0,
+    wall_sense_mm=40.0,
+    light_dropout=0.02,  # get_ambientlight() returns -1 while a message is being received
+    episode_steps=300,
+    spawn_margin_mm=16.5,
+)
+
+PRESETS: dict[str, WorldConfig] = {"thesis": THESIS, "kilobot": KILOBOT}
+
+
+def preset(name: str, **overrides: Any) -> WorldConfig:
+    """Return the named preset, optionally with fields replaced.
+
+    >>> preset("thesis").comm_radius_mm
+    40.0
+    >>> preset("kilobot", msg_loss=0.0).msg_loss
+    0.0
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset '{name}'; choose one of: {', '.join(sorted(PRESETS))}")
+    cfg = PRESETS[name]
+    return dataclasses.replace(cfg, **overrides) if overrides else cfg
