@@ -1,0 +1,93 @@
+"""Atomic file output: temp file in the target directory, fsync, then ``os.replace``.
+
+:func:`write_files_atomic` writes several files all-or-nothing: every temp file is written first;
+only when all succeeded are they renamed into place, and if a rename fails the files already
+renamed are put back as they were (restored from a backup, or removed when they did not exist).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping
+
+from .errors import OutputError
+
+
+def _check_dir(path: Path) -> None:
+    d = path.parent if str(path.parent) else Path(".")
+    if not d.exists():
+        raise OutputError(f"cannot write '{path}': directory '{d}' does not exist")
+    if not d.is_dir():
+        raise OutputError(f"cannot write '{path}': '{d}' is not a directory")
+    if path.is_dir():
+        raise OutputError(f"cannot write '{path}': it is a directory")
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write '{path}': directory '{d}' is not writable")
+
+
+def check_writable(paths: list[Path]) -> None:
+    """Raise :class:`OutputError` unless every path's directory exists and is writable."""
+    for p in paths:
+        _check_dir(Path(p))
+
+
+def _write_temp(path: Path, data: bytes) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return Path(tmp)
+
+
+def write_files_atomic(files: Mapping[str | os.PathLike, bytes | str]) -> list[Path]:
+    """Write every ``path -> content`` (str is UTF-8 encoded) all-or-nothing; returns the paths."""
+    items = [(Path(p), c.encode("utf-8") if isinstance(c, str) else bytes(c)) for p, c in files.items()]
+    check_writable([p for p, _ in items])
+    temps: list[tuple[Path, Path]] = []
+    try:
+        for p, data in items:
+            temps.append((_write_temp(p, data), p))
+    except OSError as e:
+        for t, _ in temps:
+            t.unlink(missing_ok=True)
+        raise OutputError(f"cannot write '{items[len(temps)][0]}': {e.strerror or e}") from None
+    done: list[tuple[Path, Path | None]] = []  # (target, backup or None)
+    try:
+        for t, p in temps:
+            backup = None
+            if p.exists():
+                backup = p.with_name(f".{p.name}.bak")
+                os.replace(p, backup)
+            done.append((p, backup))
+            os.replace(t, p)
+    except OSError as e:
+        for p, backup in reversed(done):
+            try:
+                if backup is not None:
+                    os.replace(backup, p)
+                else:
+                    p.unlink(missing_ok=True)
+            except OSError:
+                pass
+        for t, _ in temps:
+            t.unlink(missing_ok=True)
+        raise OutputError(f"cannot write '{p}': {e.strerror or e}") from None
+    for _, backup in done:
+        if backup is not None:
+            backup.unlink(missing_ok=True)
+    return [p for p, _ in items]
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write one file atomically."""
+    return write_files_atomic({path: data})[0]

@@ -1,0 +1,135 @@
+"""Evaluation: deterministic episodes of a policy, task metrics, comparison with the baselines.
+
+* :class:`Evaluator` — what the trainer calls every ``eval_every`` transitions: ``episodes``
+  deterministic episodes (actions clipped to [0, 1], no noise) from fixed seeds, so successive
+  evaluations of one run see the same starting positions and are directly comparable.
+* :func:`evaluate_policies` — ``python -m learn evaluate``: policy artifacts and the random and
+  hand-written baselines at several swarm sizes (thesis §5.1.2: 16 and 32 robots, 500 steps,
+  500 episodes), with the thesis's plots (mean reward over time, return box plots), a coverage
+  plot, a printed table, a JSON of the numbers and a GIF of one episode.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sim.baselines import make_policy
+from sim.config import WorldConfig
+from sim.env import SwarmEnv
+from sim.metrics import EpisodeMetrics, compare
+from sim.rollout import HistoryActor, RolloutResult, rollout
+
+MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache friendly)
+
+
+class Evaluator:
+    """Deterministic evaluation episodes of an actor function, always from the same seeds."""
+
+    def __init__(self, world: WorldConfig, n_robots: int, t_prev: int, episodes: int, seed: int) -> None:
+        assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
+        self.world, self.t_prev, self.episodes, self.seed = world, t_prev, episodes, seed
+        # the largest batch that divides the episodes, so no env is simulated for nothing
+        b = min(episodes, MAX_EVAL_ENVS)
+        while episodes % b:
+            b -= 1
+        self.env = SwarmEnv(world, n_envs=b, n_robots=n_robots, seed=seed)
+
+    def __call__(self, act_fn: Callable[[np.ndarray], np.ndarray]) -> EpisodeMetrics:
+        """``act_fn(history (..., history_dim)) -> (..., 2)`` (clipped to [0, 1] here)."""
+        policy = HistoryActor(act_fn, self.t_prev, self.world)
+        return rollout(self.env, policy, self.episodes, seed=self.seed).metrics()
+
+
+@dataclass
+class Contender:
+    """One policy of an evaluation: a name and a SwarmPolicy factory."""
+
+    name: str
+    make: Callable[[], object]
+
+
+def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes: int, steps: int,
+                      out_dir: Path, seed: int = 0, n_envs: int = 50, baselines: bool = True,
+                      gif: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> dict:
+    """Evaluate policy artifacts (name → ``export.artifact.Policy``) and the baselines.
+
+    All policies must share one world (the first's). Every policy sees the same episode seeds.
+    Writes to ``out_dir``: ``reward_over_time_{M}.png``, ``returns_box_{M}.png``,
+    ``coverage_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``;
+    returns the JSON-ready results.
+    """
+    from .plots import plot_returns_box, plot_reward_over_time
+    from sim.render import animate_episode, plot_coverage
+
+    assert policies or baselines, "nothing to evaluate"
+    worlds = {p.world.to_json() for p in policies.values()}
+    if len(worlds) > 1:
+        raise ValueError("the policies were trained in different worlds; evaluate them separately")
+    first = next(iter(policies.values()), None)
+    world = first.world if first is not None else None
+    assert world is not None, "evaluate_policies needs at least one policy (its world is used)"
+    world = WorldConfig.from_dict({**world.to_dict(), "episode_steps": steps})
+
+    contenders: list[Contender] = [
+        Contender(name, (lambda p=p: HistoryActor(p.act, p.t_prev, world))) for name, p in policies.items()]
+    if baselines:
+        contenders += [Contender("hand-written", lambda: make_policy("baseline", world)),
+                       Contender("random", lambda: make_policy("random", world))]
+
+    results: dict = {"world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
+                     "policies": {n: {"hash": p.hash, "t_prev": p.t_prev, "hidden": p.hidden,
+                                      "provenance": p.provenance} for n, p in policies.items()},
+                     "robots": {}}
+    for M in robots:
+        b = max(1, min(n_envs, episodes))
+        env = SwarmEnv(world, n_envs=b, n_robots=M, seed=seed)
+        runs: dict[str, RolloutResult] = {}
+        for c in contenders:
+            if progress:
+                log(f"evaluating {c.name} with {M} robots: {episodes} episodes of {steps} steps")
+            runs[c.name] = rollout(env, c.make(), episodes, seed=seed, record=1, progress=progress)
+        metrics = {n: r.metrics() for n, r in runs.items()}
+        table = compare(metrics)
+        log(f"\n{M} robots, {steps} steps, {episodes} episodes (mean ± 95 % CI)\n{table}\n")
+        plot_reward_over_time({n: r.rewards for n, r in runs.items()}, out_dir / f"reward_over_time_{M}.png",
+                              title=f"mean reward over time, {M} robots ({world.name} world)")
+        plot_returns_box({n: r.rewards.sum(axis=1) for n, r in runs.items()}, out_dir / f"returns_box_{M}.png",
+                         title=f"returns, {M} robots, {steps} steps ({world.name} world)")
+        plot_coverage({n: r.coverage for n, r in runs.items()}, out_dir / f"coverage_{M}.png",
+                      title=f"coverage of the target, {M} robots")
+        if gif and contenders:
+            name = contenders[0].name
+            tr = runs[name].trajectories
+            animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
+                            out_dir / f"episode_{_slug(name)}_{M}.gif", title=f"{name}: {M} robots")
+        results["robots"][str(M)] = {
+            "table": table,
+            "metrics": {n: m.to_dict(per_episode=False) for n, m in metrics.items()},
+            "mean_reward_over_time": {n: r.rewards.mean(axis=0).round(6).tolist() for n, r in runs.items()},
+            "returns": {n: r.rewards.sum(axis=1).round(6).tolist() for n, r in runs.items()},
+        }
+    from .checkpoint import write_text_atomic
+
+    write_text_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
+    return results
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def metrics_row(m: EpisodeMetrics) -> dict[str, float]:
+    """The evaluation columns of the trainer's metrics CSV."""
+    s = m.summary()
+    return {"eval_return": s["return"].mean, "eval_return_std": s["return"].std,
+            "eval_final_coverage": s["final_coverage"].mean, "eval_mean_coverage": s["mean_coverage"].mean,
+            "eval_time_to_find": s["time_to_find"].mean, "eval_found_rate": s["found_rate"].mean}
+
+
+def nan_to_none(x: float) -> float | None:
+    return None if x is None or (isinstance(x, float) and math.isnan(x)) else x

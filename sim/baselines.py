@@ -1,0 +1,197 @@
+"""Baseline policies: uniform random commands, and a hand-written searcher (the bar to beat).
+
+:class:`HandWrittenSearcher` uses only what one robot has: its own observation vector (wall flag,
+target distance or -1, "a neighbour senses the target" flag, RBF histogram of neighbour distances)
+and a few bytes of its own state (timers, the previous level and score). Every rule is a comparison
+or a counter, so it ports directly to a Kilobot. Vectorised over (B envs, M robots): no Python loop
+over robots.
+
+Behaviour, per robot and control period, by *level* of what it senses:
+
+* level 2 — the target is heard: climb the target-distance gradient (run and tumble: keep going
+  while the distance shrinks, turn a random amount when it grows); stop for good once the distance is
+  at most ``stop_dist`` of the comm radius, or after ``settle_patience`` non-improving periods. A
+  stopped robot leaves only after missing the target ``settle_hold`` periods in a row (message loss).
+* level 1 — no target, but a neighbour says it senses the target (so the target is within two comm
+  radii): run and tumble on a neighbour-proximity score (RBF histogram weighted towards near bins).
+* level 0 — nothing: explore with a correlated random walk (straight runs, Lévy-like or
+  exponential lengths, random tumbles) and turn away when the wall flag is set.
+* whenever the level drops (the robot has just left the target's or the neighbour's range) it makes a
+  U-turn, which takes it straight back in.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
+
+
+class RandomPolicy:
+    """Independent uniform commands in [0, 1]² for every robot and step."""
+
+    def __init__(self) -> None:
+        self.rng: np.random.Generator | None = None
+
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
+        self.rng = rng
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        assert self.rng is not None, "RandomPolicy.act before reset"
+        return self.rng.random(obs.shape[:2] + (ACTION_DIM,))
+
+
+@dataclass(frozen=True)
+class SearcherParams:
+    """Constants of :class:`HandWrittenSearcher` (each one a byte or two in firmware)."""
+
+    speed: float = 1.0  #: command of both motors on a straight run
+    run_min_steps: float = 6.0  #: exploration: shortest straight run (periods)
+    run_alpha: float = 1.5  #: Pareto tail exponent of run lengths (Lévy-like); 0 = exponential, mean run_min
+    run_max_steps: int = 60  #: runs are cut at this length
+    tumble_max_steps: int = 4  #: a tumble pivots 1..this many periods (≈45° each at full turn)
+    wall_turn_min: int = 2  #: a wall turn pivots between these many periods ...
+    wall_turn_max: int = 4  #: ... (≈90°–180°), direction random
+    wall_cooldown: int = 2  #: straight periods after a wall turn before the wall flag counts again
+    uturn_steps: int = 4  #: pivot periods of the U-turn made on losing the target / neighbour (≈180°)
+    stop_dist: float = 1.0  #: stop once the target is heard at <= this fraction of the comm radius
+    settle_patience: int = 6  #: ... or after this many non-improving periods inside the target range
+    settle_hold: int = 3  #: a stopped robot moves on after missing the target this many periods in a row
+    nbr_gradient: bool = True  #: level 1: run and tumble on neighbour proximity (else keep going)
+
+    def __post_init__(self) -> None:
+        assert 0.0 < self.speed <= 1.0, f"speed must be in (0, 1], got {self.speed}"
+        assert self.run_min_steps >= 1, f"run_min_steps must be >= 1, got {self.run_min_steps}"
+        assert self.run_alpha >= 0, f"run_alpha must be >= 0, got {self.run_alpha}"
+        assert self.run_max_steps >= self.run_min_steps, "run_max_steps must be >= run_min_steps"
+        assert self.tumble_max_steps >= 1, "tumble_max_steps must be >= 1"
+        assert 1 <= self.wall_turn_min <= self.wall_turn_max, "need 1 <= wall_turn_min <= wall_turn_max"
+        assert self.wall_cooldown >= 0 and self.uturn_steps >= 0, "wall_cooldown, uturn_steps must be >= 0"
+        assert 0.0 <= self.stop_dist <= 1.0, f"stop_dist must be in [0, 1], got {self.stop_dist}"
+        assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
+
+
+#: tuned defaults per world preset (see the sim-tools report for the numbers)
+TUNED: dict[str, SearcherParams] = {
+    "thesis": SearcherParams(),
+    "kilobot": SearcherParams(),
+}
+
+
+class HandWrittenSearcher:
+    """A run-and-tumble searcher that a Kilobot could run; see the module docstring."""
+
+    def __init__(self, cfg: WorldConfig, params: SearcherParams | None = None) -> None:
+        self.cfg = cfg
+        self.p = params if params is not None else TUNED.get(cfg.name, SearcherParams())
+        n = cfg.n_rbf
+        # neighbour proximity weights: nearest bin 1, farthest 1/n (a constant table in firmware)
+        self.prox_w = (n - np.arange(n)) / n  # (n_rbf,)
+        self.rng: np.random.Generator | None = None
+
+    # --- state --------------------------------------------------------------------------------
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
+        shape = (n_envs, n_robots)
+        self.rng = rng
+        self.turn_left = np.zeros(shape, np.int32)  # pivot periods still to do
+        self.turn_dir = np.ones(shape, np.int8)  # +1 left (counter-clockwise), -1 right
+        self.run_left = np.zeros(shape, np.int32)  # straight periods still to do (exploration)
+        self.wall_cool = np.zeros(shape, np.int32)  # periods during which the wall flag is ignored
+        self.prev_level = np.zeros(shape, np.int8)  # 0 nothing, 1 neighbour senses target, 2 target heard
+        self.prev_score = np.zeros(shape)  # gradient signal of the previous period
+        self.fails = np.zeros(shape, np.int32)  # non-improving periods in the target range
+        self.settled = np.zeros(shape, bool)  # stopped at the target
+        self.miss = np.zeros(shape, np.int32)  # consecutive periods a settled robot missed the target
+
+    def _run_lengths(self, shape: tuple[int, ...]) -> np.ndarray:
+        p, u = self.p, self.rng.random(shape)
+        if p.run_alpha > 0:
+            r = p.run_min_steps * (1.0 - u) ** (-1.0 / p.run_alpha)  # Pareto(α), ≥ run_min
+        else:
+            r = -p.run_min_steps * np.log1p(-u)  # exponential, mean run_min
+        return np.minimum(np.ceil(r), p.run_max_steps).astype(np.int32)
+
+    # --- decision -----------------------------------------------------------------------------
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        assert self.rng is not None, "HandWrittenSearcher.act before reset"
+        p, rng = self.p, self.rng
+        B, M, _ = obs.shape
+        shape = (B, M)
+        wall = obs[..., OBS_WALL] > 0.5
+        tdist = obs[..., OBS_TARGET]  # distance / comm radius, -1 when not heard
+        heard = tdist >= 0
+        nbr = obs[..., OBS_NBR_SENSING] > 0.5
+        prox = obs[..., OBS_RBF:] @ self.prox_w  # (B, M) neighbour proximity
+        level = np.where(heard, 2, np.where(nbr, 1, 0)).astype(np.int8)
+        score = np.where(heard, -tdist, prox)
+
+        # random draws for every robot every period (fixed consumption ⇒ reproducible streams)
+        dirs = np.where(rng.random(shape) < 0.5, 1, -1).astype(np.int8)
+        tumble = rng.integers(1, p.tumble_max_steps + 1, shape)
+        wall_turn = rng.integers(p.wall_turn_min, p.wall_turn_max + 1, shape)
+        runs = self._run_lengths(shape)
+
+        # settled robots: hold position through short target dropouts
+        self.miss = np.where(self.settled & ~heard, self.miss + 1, 0)
+        leave = self.settled & (self.miss >= p.settle_hold)
+        holding = self.settled & ~leave
+        level = np.where(holding, 2, level).astype(np.int8)  # a holding robot still counts as at the target
+        self.settled = holding
+
+        turning = self.turn_left > 0
+        same = (level == self.prev_level) & (level >= 1) & ~holding  # a gradient to compare
+        improved = same & (score > self.prev_score)
+        worse = same & ~improved & ~turning
+        entered = level > self.prev_level
+        lost = (level < self.prev_level) | leave
+
+        def start_turn(mask: np.ndarray, steps: np.ndarray, run: np.ndarray | int) -> None:
+            self.turn_left = np.where(mask, steps, self.turn_left)
+            self.turn_dir = np.where(mask, dirs, self.turn_dir)
+            self.run_left = np.where(mask, run, self.run_left)
+
+        big = np.int32(1 << 20)
+        # level 0: exploration tumbles when a run ends
+        start_turn((level == 0) & ~turning & (self.run_left <= 0), tumble, runs)
+        # levels 1–2: gradient run and tumble
+        grad = (level == 2) | ((level == 1) & p.nbr_gradient)
+        start_turn(grad & worse, tumble, big)
+        self.run_left = np.where(grad & improved & ~turning, big, self.run_left)
+        self.fails = np.where((level == 2) & worse, self.fails + 1, np.where(level == 2, self.fails, 0))
+        # walls: turn away (any moving robot), then ignore the flag for a few straight periods
+        hit_wall = wall & (self.wall_cool <= 0) & ~turning
+        start_turn(hit_wall, wall_turn, np.maximum(self.run_left, p.wall_cooldown))
+        self.wall_cool = np.where(hit_wall, wall_turn + p.wall_cooldown, self.wall_cool - 1)
+        # entering a higher level: head on straight (we are pointing inwards)
+        start_turn(entered, 0, big)
+        # dropping a level: U-turn straight back in
+        start_turn(lost & ~entered, p.uturn_steps, runs)
+        self.fails = np.where(lost | entered, 0, self.fails)
+        # settle at the target
+        self.settled |= (level == 2) & heard & ((tdist <= p.stop_dist) | (self.fails >= p.settle_patience))
+
+        # motor commands
+        turn_now = (self.turn_left > 0) & ~self.settled
+        straight = ~turn_now & ~self.settled
+        a = np.zeros(shape + (ACTION_DIM,))
+        left = turn_now & (self.turn_dir > 0)
+        right = turn_now & (self.turn_dir < 0)
+        a[..., 0] = np.where(left, 1.0, np.where(straight, p.speed, 0.0))  # u_left
+        a[..., 1] = np.where(right, 1.0, np.where(straight, p.speed, 0.0))  # u_right
+        self.turn_left = np.where(turn_now, self.turn_left - 1, self.turn_left)
+        self.run_left = np.where(straight, self.run_left - 1, self.run_left)
+        self.prev_level = level
+        self.prev_score = score
+        return a
+
+
+def make_policy(name: str, cfg: WorldConfig, **params) -> "RandomPolicy | HandWrittenSearcher":
+    """``"random"`` or ``"baseline"`` (the hand-written searcher, tuned defaults for ``cfg.name``)."""
+    if name == "random":
+        return RandomPolicy()
+    if name == "baseline":
+        base = TUNED.get(cfg.name, SearcherParams())
+        return HandWrittenSearcher(cfg, dataclasses.replace(base, **params) if params else base)
+    raise ValueError(f"unknown baseline policy '{name}'; choose 'random' or 'baseline'")

@@ -1,0 +1,359 @@
+"""SwarmEnv: B synchronised swarm worlds of M searchers and one target beacon, on NumPy arrays.
+
+One control period per :meth:`SwarmEnv.step`:
+
+1. **Act.** Thesis worlds: the thesis kinematics on the float command (:func:`sim.kinematics.thesis_move`).
+   Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
+   motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
+   collision worlds are pushed apart (the target is a fixed disc).
+2. **Hear.** The radio stage of :mod:`sim.radio` (thesis or tick-level mode) gives the period's
+   messages; messages carry each sender's ``sensing`` flag of its last control step.
+3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
+   fast path) gives the observation and each robot's new ``sensing`` flag.
+4. **Reward** (thesis §4.2): ``scale * ((Σ_i δ_i / M)² - (1/M) Σ_i penalty · ||a_i||²)`` with δ_i =
+   true robot–target distance <= comm radius after the move and a_i the command actually applied
+   (the float action in thesis worlds, q / 255 in tick-level worlds and in :meth:`step_u8`).
+
+Random numbers: every env owns three generators (init, radio, light) from its own
+``SeedSequence``; env e of ``SwarmEnv(..., seed=s)`` uses ``SeedSequence(s, spawn_key=(e,))``
+(= ``SeedSequence(s).spawn(B)[e]``), see :func:`env_seed_sequences`. So an env of a batch behaves
+exactly like a single-env run seeded with that env's sequence, and the global NumPy RNG is never
+used.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from .config import OBS_WALL, WorldConfig
+from .kinematics import Collider, thesis_move, tick_move, wrap_angle
+from .motion import action_to_u8
+from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
+                    thesis_radio, tick_radio)
+
+ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clipped)
+MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
+_STREAMS = ("init", "radio", "light")
+
+SeedLike = "int | None | np.random.SeedSequence | Sequence[np.random.SeedSequence]"
+
+
+def _child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
+    """The k-th child of ``ss`` without mutating it (same as a fresh ``ss.spawn(k + 1)[k]``)."""
+    return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (k,), pool_size=ss.pool_size)
+
+
+def env_seed_sequences(seed: Any, n_envs: int) -> list[np.random.SeedSequence]:
+    """Per-env seed sequences: env e gets ``SeedSequence(seed, spawn_key=(e,))``.
+
+    ``seed`` may be None (fresh OS entropy), a non-negative int, a ``SeedSequence`` (its children
+    are used) or a list of exactly ``n_envs`` SeedSequences (used as they are: this is how one env
+    of a batch is replayed alone, ``SwarmEnv(cfg, 1, M, seed=[env_seed_sequences(s, B)[e]])``).
+    """
+    if isinstance(seed, (list, tuple)):
+        if len(seed) != n_envs or not all(isinstance(s, np.random.SeedSequence) for s in seed):
+            raise ValueError(f"a seed list must hold exactly n_envs={n_envs} numpy SeedSequences")
+        return list(seed)
+    if isinstance(seed, np.random.SeedSequence):
+        root = seed
+    elif seed is None:
+        root = np.random.SeedSequence()
+    elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) and seed >= 0:
+        root = np.random.SeedSequence(int(seed))
+    else:
+        raise ValueError(f"seed must be None, a non-negative int or SeedSequence(s), got {seed!r}")
+    return [_child(root, e) for e in range(n_envs)]
+
+
+class StepInfo(dict):
+    """The ``info`` dict. Lazy entries (``events``) are computed on first access and then kept."""
+
+    def __init__(self, lazy: dict[str, Callable[[], Any]], **items: Any) -> None:
+        super().__init__(**items)
+        self._lazy = dict(lazy)
+
+    def _load(self, key: Any) -> None:
+        fn = self._lazy.pop(key, None)
+        if fn is not None:
+            dict.__setitem__(self, key, fn())
+
+    def _load_all(self) -> None:
+        for k in list(self._lazy):
+            self._load(k)
+
+    def __getitem__(self, key: Any) -> Any:
+        self._load(key)
+        return dict.__getitem__(self, key)
+
+    def get(self, key: Any, default: Any = None) -> Any:
+        self._load(key)
+        return dict.get(self, key, default)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._lazy or dict.__contains__(self, key)
+
+    def __len__(self) -> int:
+        return dict.__len__(self) + len(self._lazy)
+
+    def __iter__(self):
+        self._load_all()
+        return dict.__iter__(self)
+
+    def keys(self):
+        self._load_all()
+        return dict.keys(self)
+
+    def values(self):
+        self._load_all()
+        return dict.values(self)
+
+    def items(self):
+        self._load_all()
+        return dict.items(self)
+
+    def pop(self, key: Any, *default: Any) -> Any:
+        self._load(key)
+        return dict.pop(self, key, *default)
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        self._lazy.pop(key, None)
+        dict.__setitem__(self, key, value)
+
+    def __delitem__(self, key: Any) -> None:
+        self._load(key)
+        dict.__delitem__(self, key)
+
+    def copy(self) -> dict:
+        self._load_all()
+        return dict(self)
+
+    def __repr__(self) -> str:
+        self._load_all()
+        return dict.__repr__(self)
+
+    def __reduce__(self):
+        self._load_all()
+        return (dict, (dict(self),))
+
+
+class SwarmEnv:
+    """B synchronised envs of M searchers and a target (see the module doc for one step).
+
+    Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm,
+    ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
+    ``fast_observe=False`` forces the general events path (for tests); ``neighbour_method``
+    ('auto', 'dense', 'grid') picks the neighbour search.
+    """
+
+    def __init__(self, cfg: WorldConfig, n_envs: int, n_robots: int, seed: Any = None, *,
+                 fast_observe: bool = True, neighbour_method: str = "auto") -> None:
+        if not isinstance(cfg, WorldConfig):
+            raise ValueError(f"cfg must be a WorldConfig (e.g. sim.config.preset('thesis')), got {type(cfg).__name__}")
+        for name, v in (("n_envs", n_envs), ("n_robots", n_robots)):
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+        if neighbour_method not in ("auto", "dense", "grid"):
+            raise ValueError(f"neighbour_method must be auto, dense or grid, got {neighbour_method!r}")
+        self.cfg = cfg
+        self.n_envs, self.n_robots = int(n_envs), int(n_robots)
+        self.fast_observe = fast_observe
+        self.neighbour_method = neighbour_method
+        self._check_spawn_room()
+        self._collider = Collider(cfg) if cfg.collisions and cfg.robot_radius_mm > 0 else None
+        self._seed(seed)
+        self.pos: np.ndarray | None = None
+        self.heading: np.ndarray | None = None
+        self.target: np.ndarray | None = None
+        self.sensing: np.ndarray | None = None
+        self.phase: np.ndarray | None = None  # (B, M + 1) transmit phases (tick-level radio)
+        self.t = 0
+        self._started = False
+
+    # --- properties ----------------------------------------------------------------------------
+    @property
+    def obs_dim(self) -> int:
+        return self.cfg.obs_dim
+
+    @property
+    def state_dim(self) -> int:
+        return self.cfg.state_dim(self.n_robots)
+
+    @property
+    def tick_radio(self) -> bool:
+        """True when messages follow the tick-level model (``msg_period_ticks >= 1``)."""
+        return self.cfg.msg_period_ticks >= 1
+
+    # --- seeding and spawning ------------------------------------------------------------------
+    def _seed(self, seed: Any) -> None:
+        seqs = env_seed_sequences(seed, self.n_envs)
+        self.seed_sequences = seqs
+        streams = [[np.random.default_rng(_child(ss, k)) for ss in seqs] for k in range(len(_STREAMS))]
+        self._rng_init, self._rng_radio, self._rng_light = streams
+
+    def _spawn_box(self) -> float:
+        return self.cfg.arena_half_mm - max(self.cfg.spawn_margin_mm, self.cfg.robot_radius_mm)
+
+    def _check_spawn_room(self) -> None:
+        cfg = self.cfg
+        if self._spawn_box() <= 0:
+            raise ValueError(f"no room to spawn: arena_half_mm {cfg.arena_half_mm} <= spawn margin / robot radius")
+        if cfg.collisions and cfg.robot_radius_mm > 0:
+            frac = (self.n_robots + 1) * math.pi * cfg.robot_radius_mm ** 2 / (2 * self._spawn_box()) ** 2
+            if frac > MAX_PACKING:
+                side = math.sqrt((self.n_robots + 1) * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
+                raise ValueError(
+                    f"{self.n_robots} robots of radius {cfg.robot_radius_mm} mm cover {frac:.0%} of the "
+                    f"spawn area (max {MAX_PACKING:.0%}); use arena_half_mm >= {side / 2 + cfg.robot_radius_mm:.0f}")
+
+    def _spawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Target (B, 2), positions (B, M, 2), headings (B, M) from each env's init stream."""
+        B, M, cfg = self.n_envs, self.n_robots, self.cfg
+        h = self._spawn_box()
+        target = np.empty((B, 2))
+        pos = np.empty((B, M, 2))
+        heading = np.empty((B, M))
+        for e, rng in enumerate(self._rng_init):  # loop over envs: each owns its generator
+            target[e] = rng.uniform(-h, h, 2)
+            pos[e] = rng.uniform(-h, h, (M, 2))
+            heading[e] = rng.uniform(-math.pi, math.pi, M)
+        heading = wrap_angle(heading)
+        if cfg.collisions and cfg.robot_radius_mm > 0:
+            self._separate_spawn(pos, target, h)
+        return target, pos, heading
+
+    def _separate_spawn(self, pos: np.ndarray, target: np.ndarray, h: float) -> None:
+        """Rejection: redraw (in index order, from the env's init stream) each robot that overlaps
+        an earlier robot or the target, until no disc overlaps (vectorised overlap test)."""
+        from . import grid
+
+        B, M = self.n_envs, self.n_robots
+        diam = 2.0 * self.cfg.robot_radius_mm
+        for _ in range(10_000):
+            allpos = np.concatenate([pos, target[:, None, :]], axis=1)  # (B, M + 1, 2)
+            p = grid.pairs_within(allpos, diam, self.cfg.arena_half_mm)
+            p_bad = p.dist < diam  # touching exactly is allowed
+            if not p_bad.any():
+                return
+            redo = np.where(p.j[p_bad] == M, p.i[p_bad], p.j[p_bad])  # the later robot of the pair
+            bad = np.zeros((B, M), bool)
+            bad[p.env[p_bad], redo] = True
+            for e in np.flatnonzero(bad.any(1)):  # loop over envs with overlaps
+                idx = np.flatnonzero(bad[e])
+                pos[e, idx] = self._rng_init[e].uniform(-h, h, (idx.size, 2))
+        raise ValueError("could not place non-overlapping robots; enlarge arena_half_mm")
+
+    # --- episode -------------------------------------------------------------------------------
+    def reset(self, seed: Any = None) -> tuple[np.ndarray, StepInfo]:
+        """Start new episodes in all envs; ``seed`` re-seeds as in the constructor."""
+        if seed is not None:
+            self._seed(seed)
+        B, M = self.n_envs, self.n_robots
+        self.target, self.pos, self.heading = self._spawn()
+        self.sensing = np.zeros((B, M), np.uint8)
+        self._prev_wall = np.zeros((B, M), np.float32)
+        self.t = 0
+        self._tick0 = 0
+        if self.tick_radio:
+            self.phase = draw_phases(self._rng_radio, M, self.cfg)
+        if self._collider is not None:
+            self._collider.invalidate()
+        P = self.cfg.period_ticks
+        still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_radio else None  # no movement
+        dt = target_distance(self.pos, self.target)
+        obs, info = self._sense(self._hear(still, dt), dt)
+        self._started = True
+        return obs, info
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
+        """Advance one control period with float actions (B, M, 2) in [0, 1]."""
+        a = self._check_actions(actions)
+        if self.cfg.tick_level:
+            return self.step_u8(action_to_u8(a))
+        return self._advance(a, None)
+
+    def step_u8(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
+        """Advance one control period with uint8 motor commands (B, M, 2); u = q / 255."""
+        q = np.asarray(commands)
+        shape = (self.n_envs, self.n_robots, 2)
+        if q.shape != shape:
+            raise ValueError(f"commands must have shape (B, M, 2) = {shape}, got {q.shape}")
+        if not np.issubdtype(q.dtype, np.integer):
+            raise ValueError(f"commands must be uint8 motor commands 0..255, got dtype {q.dtype}; "
+                             "use step() for float actions")
+        if q.size and (q.min() < 0 or q.max() > 255):
+            raise ValueError(f"commands must lie in 0..255, got min {q.min()}, max {q.max()}")
+        q = q.astype(np.uint8)
+        return self._advance(q / 255.0, q)
+
+    # --- internals -----------------------------------------------------------------------------
+    def _check_actions(self, actions: np.ndarray) -> np.ndarray:
+        a = np.asarray(actions)
+        shape = (self.n_envs, self.n_robots, 2)
+        if a.shape != shape:
+            raise ValueError(f"actions must have shape (B, M, 2) = {shape}, got {a.shape}")
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"actions must be floats in [0, 1], got dtype {a.dtype}")
+        a = np.asarray(a, np.float64)  # no copy for float64 input (never written to)
+        lo, hi = a.min(), a.max()  # NaN propagates through min / max
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise ValueError(f"actions contain {int(np.size(a) - np.isfinite(a).sum())} NaN/inf entries")
+        if lo < -ACTION_TOL or hi > 1.0 + ACTION_TOL:
+            raise ValueError(f"actions must lie in [0, 1], got min {lo:.6g}, max {hi:.6g}")
+        return np.clip(a, 0.0, 1.0) if lo < 0.0 or hi > 1.0 else a
+
+    def _advance(self, u: np.ndarray, q: np.ndarray | None):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        if self.t >= self.cfg.episode_steps:
+            raise RuntimeError(f"the episode ended after {self.cfg.episode_steps} steps; call reset()")
+        cfg = self.cfg
+        B, M = self.n_envs, self.n_robots
+        record = None
+        if cfg.tick_level:
+            assert q is not None
+            record = np.empty((cfg.period_ticks, B, M, 2)) if self.tick_radio else None
+            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record)
+        else:
+            thesis_move(self.pos, self.heading, u, cfg)
+            if self._collider is not None:
+                self._collider.resolve(self.pos, self.target)
+            if self.tick_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
+                record = np.broadcast_to(self.pos, (cfg.period_ticks, B, M, 2))
+        dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
+        obs, info = self._sense(self._hear(record, dt), dt)
+        in_range = info["in_range"]
+        cover = in_range.sum(1) / M  # (B,)
+        effort = np.mean(np.sum(u * u, axis=-1), axis=1)  # (B,) (1/M) Σ ||a_i||²
+        reward = (cfg.reward_scale * (cover * cover - cfg.action_penalty * effort)).astype(np.float32)
+        self.t += 1
+        self._tick0 += cfg.period_ticks
+        truncated = np.full(B, self.t >= cfg.episode_steps)
+        terminated = np.zeros(B, bool)
+        return obs, reward, terminated, truncated, info
+
+    def _hear(self, record: np.ndarray | None, dt: np.ndarray) -> RadioPeriod:
+        if self.tick_radio:
+            return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
+                              self._rng_radio, self.neighbour_method)
+        return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
+                            self.neighbour_method)
+
+    def _sense(self, period: RadioPeriod, dt: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        light = light_readings(self.pos, self.cfg, self._rng_light)
+        obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
+        self.sensing = flags
+        self._prev_wall = obs[..., OBS_WALL].copy()
+        in_range = dt <= self.cfg.comm_radius_mm
+        info = StepInfo({"events": period.events}, in_range=in_range, light=light,
+                        coverage=in_range.mean(1))
+        return obs, info
+
+    def state(self) -> np.ndarray:
+        """Critic state (B, 2 + 3M) float32: target xy, then each robot's x, y, φ, normalised."""
+        if not self._started:
+            raise RuntimeError("call reset() before state()")
+        a, B, M = self.cfg.arena_half_mm, self.n_envs, self.n_robots
+        robots = np.concatenate([self.pos / a, self.heading[..., None] / math.pi], axis=-1)  # (B, M, 3)
+        return np.concatenate([self.target / a, robots.reshape(B, 3 * M)], axis=1).astype(np.float32)

@@ -1,0 +1,174 @@
+"""Task metrics of the cooperative-localisation task, besides the reward.
+
+Per episode (arrays over E episodes of T steps):
+
+* coverage curve: fraction of robots within the communication radius of the target after each step;
+* time to find: the first step t (1..T) after which at least one robot is within range;
+  ``T`` when no robot ever is (check ``found`` to tell the two apart);
+* final coverage: mean coverage over the last 25 % of the episode (the last ``ceil(T / 4)`` steps);
+* return: the sum of the team rewards.
+
+:func:`summarise` gives mean, sample std and a 95 % confidence half-width (Student t) over episodes;
+:func:`compare` prints several policies side by side.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+FINAL_FRACTION = 0.25  #: final coverage averages over this trailing fraction of the episode
+
+# two-sided 95 % Student-t quantiles t_{0.975, df} for df = 1..30; beyond that 1.96 is within 2 %
+_T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160,
+         2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056,
+         2.052, 2.048, 2.045, 2.042)
+
+
+def coverage_from_in_range(in_range: np.ndarray) -> np.ndarray:
+    """(..., M) bool → (...) fraction of robots in range.
+
+    >>> coverage_from_in_range(np.array([[True, False], [True, True]])).tolist()
+    [0.5, 1.0]
+    """
+    return np.asarray(in_range, bool).mean(axis=-1)
+
+
+def time_to_find(coverage: np.ndarray) -> np.ndarray:
+    """(E, T) coverage → (E,) int: first step (1-based) with any robot in range, T if never.
+
+    >>> time_to_find(np.array([[0, 0, 0.5, 0], [0, 0, 0, 0], [1, 1, 1, 1]])).tolist()
+    [3, 4, 1]
+    """
+    c = np.asarray(coverage, np.float64)
+    assert c.ndim == 2, f"coverage must be (episodes, steps), got {c.shape}"
+    hit = c > 0
+    return np.where(hit.any(axis=1), hit.argmax(axis=1) + 1, c.shape[1]).astype(np.int64)
+
+
+def final_window(steps: int, fraction: float = FINAL_FRACTION) -> int:
+    """Number of trailing steps averaged by :func:`final_coverage` (at least 1).
+
+    >>> final_window(200), final_window(10), final_window(1)
+    (50, 3, 1)
+    """
+    return max(1, math.ceil(steps * fraction - 1e-9))
+
+
+def final_coverage(coverage: np.ndarray, fraction: float = FINAL_FRACTION) -> np.ndarray:
+    """(E, T) → (E,): mean coverage over the last ``final_window(T)`` steps.
+
+    >>> final_coverage(np.array([[0, 0, 0, 0, 0, 0, 1, 0.5]])).tolist()
+    [0.75]
+    """
+    c = np.asarray(coverage, np.float64)
+    assert c.ndim == 2, f"coverage must be (episodes, steps), got {c.shape}"
+    return c[:, -final_window(c.shape[1], fraction):].mean(axis=1)
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Mean, sample standard deviation and 95 % confidence half-width over n episodes."""
+
+    mean: float
+    std: float
+    ci95: float
+    n: int
+
+    def to_dict(self) -> dict:
+        return {"mean": self.mean, "std": self.std, "ci95": self.ci95, "n": self.n}
+
+    def __str__(self) -> str:
+        return f"{self.mean:.3f} ± {self.ci95:.3f}"
+
+
+def summarise(x: np.ndarray) -> Summary:
+    """Summary of a 1-D sample; std and CI are 0 for a single value.
+
+    >>> s = summarise(np.array([1.0, 2.0, 3.0]))
+    >>> (s.mean, s.std, round(s.ci95, 3), s.n)
+    (2.0, 1.0, 2.484, 3)
+    """
+    x = np.asarray(x, np.float64).ravel()
+    assert x.size >= 1, "summarise needs at least one value"
+    n = int(x.size)
+    if n == 1:
+        return Summary(float(x[0]), 0.0, 0.0, 1)
+    std = float(x.std(ddof=1))
+    t = _T975[n - 2] if n - 1 <= len(_T975) else 1.96
+    return Summary(float(x.mean()), std, t * std / math.sqrt(n), n)
+
+
+@dataclass
+class EpisodeMetrics:
+    """Per-episode task metrics (E episodes) and the coverage curves they came from."""
+
+    coverage: np.ndarray  # (E, T) fraction of robots in range after each step
+    returns: np.ndarray  # (E,) sum of team rewards
+    time_to_find: np.ndarray  # (E,) int steps, T when never found
+    found: np.ndarray  # (E,) bool, some robot was in range at some step
+    final_coverage: np.ndarray  # (E,) mean coverage over the last 25 %
+
+    @property
+    def episodes(self) -> int:
+        return int(self.returns.shape[0])
+
+    @property
+    def steps(self) -> int:
+        return int(self.coverage.shape[1])
+
+    def summary(self) -> dict[str, Summary]:
+        """Summaries of the scalar metrics, keyed by metric name."""
+        return {
+            "final_coverage": summarise(self.final_coverage),
+            "time_to_find": summarise(self.time_to_find),
+            "found_rate": summarise(self.found.astype(np.float64)),
+            "mean_coverage": summarise(self.coverage.mean(axis=1)),
+            "return": summarise(self.returns),
+        }
+
+    def to_dict(self, per_episode: bool = True) -> dict:
+        """JSON-ready: summaries, plus per-episode values when asked."""
+        d: dict = {"episodes": self.episodes, "steps": self.steps,
+                   "summary": {k: v.to_dict() for k, v in self.summary().items()}}
+        if per_episode:
+            d["per_episode"] = {
+                "final_coverage": self.final_coverage.tolist(),
+                "time_to_find": self.time_to_find.tolist(),
+                "found": self.found.tolist(),
+                "return": self.returns.tolist(),
+            }
+        return d
+
+
+def episode_metrics(rewards: np.ndarray, coverage: np.ndarray) -> EpisodeMetrics:
+    """Metrics from per-step team rewards (E, T) and coverage (E, T)."""
+    r = np.asarray(rewards, np.float64)
+    c = np.asarray(coverage, np.float64)
+    assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and coverage {c.shape} must both be (E, T)"
+    return EpisodeMetrics(coverage=c, returns=r.sum(axis=1), time_to_find=time_to_find(c),
+                          found=(c > 0).any(axis=1), final_coverage=final_coverage(c))
+
+
+_COLUMNS = (("final_coverage", "final cov"), ("mean_coverage", "mean cov"),
+            ("time_to_find", "steps to find"), ("found_rate", "found"), ("return", "return"))
+
+
+def compare(table: dict[str, EpisodeMetrics]) -> str:
+    """A text table, one row per named policy: mean ± 95 % CI of each metric.
+
+    >>> m = episode_metrics(np.zeros((2, 4)), np.array([[0, 0.5, 1, 1], [0, 0, 0, 0.5]]))
+    >>> print(compare({"demo": m}))  # doctest: +NORMALIZE_WHITESPACE
+    policy  final cov      mean cov       steps to find   found          return         episodes
+    demo    0.750 ± 3.176  0.375 ± 3.176  3.000 ± 12.706  1.000 ± 0.000  0.000 ± 0.000  2
+    """
+    assert table, "compare needs at least one entry"
+    header = ["policy"] + [label for _, label in _COLUMNS] + ["episodes"]
+    rows = []
+    for name, m in table.items():
+        s = m.summary()
+        rows.append([str(name)] + [str(s[key]) for key, _ in _COLUMNS] + [str(m.episodes)])
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+    fmt = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
+    return "\n".join([fmt(header)] + [fmt(r) for r in rows])

@@ -1,0 +1,130 @@
+"""A PettingZoo ``ParallelEnv`` around one simulated swarm (``SwarmEnv`` with a single env).
+
+Optional extra: ``pip install kiloforge[pettingzoo]`` (pettingzoo, gymnasium). The rest of
+:mod:`sim` never imports this module.
+
+* agents ``robot_0`` … ``robot_{M-1}`` (searcher i has kilo_uid i + 1);
+* observations: each robot's float observation vector (``cfg.obs_dim``: wall, target distance,
+  neighbour-sensing flag, RBF histogram), a ``Box`` of float32;
+* actions: ``Box(0, 1, (2,))`` motor commands (u_left, u_right); agents missing from the action
+  dict stand still;
+* rewards: the shared team reward of thesis §4.2, given to every agent;
+* terminations are always False; truncations become True for all agents after
+  ``cfg.episode_steps`` steps, and ``agents`` is then empty until :meth:`reset`;
+* infos: ``{"in_range": bool, "coverage": float}`` per agent;
+* :meth:`state`: the critic's global state (target, every robot's x, y, φ; normalised);
+* ``render_mode="rgb_array"``: :meth:`render` returns an (H, W, 3) uint8 frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig, preset
+
+try:
+    import gymnasium
+    from pettingzoo import ParallelEnv as _ParallelEnv
+except ImportError:  # optional extra
+    gymnasium = None
+    _ParallelEnv = object
+
+_MISSING = "the PettingZoo wrapper needs the optional extra: pip install 'kiloforge[pettingzoo]'"
+
+
+def observation_bounds(cfg: WorldConfig, n_robots: int) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) float32 of one observation vector.
+
+    >>> lo, hi = observation_bounds(preset("thesis"), 4)
+    >>> lo[:3].tolist(), hi[:3].tolist(), float(hi[-1])
+    ([0.0, -1.0, 0.0], [1.0, 1.0, 1.0], 0.75)
+    """
+    lo = np.zeros(cfg.obs_dim, np.float32)
+    hi = np.ones(cfg.obs_dim, np.float32)
+    lo[OBS_TARGET] = -1.0
+    lo[OBS_WALL] = lo[OBS_NBR_SENSING] = 0.0
+    # each table entry adds at most 1 / rbf_norm to a bin
+    hi[OBS_RBF:] = min(max(n_robots - 1, 0), cfg.neighbour_table_size) / cfg.rbf_norm
+    return lo, hi
+
+
+class SwarmParallelEnv(_ParallelEnv):
+    """PettingZoo parallel API over ``SwarmEnv(cfg, n_envs=1, n_robots)``; see the module docstring."""
+
+    metadata = {"name": "kiloforge_swarm_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+
+    def __init__(self, cfg: WorldConfig | str = "thesis", n_robots: int = 4, seed: int | None = None,
+                 render_mode: str | None = None) -> None:
+        if gymnasium is None:
+            raise ImportError(_MISSING)
+        from .env import SwarmEnv
+
+        cfg = preset(cfg) if isinstance(cfg, str) else cfg
+        assert n_robots >= 1, f"n_robots must be >= 1, got {n_robots}"
+        assert render_mode in (None, "rgb_array"), f"render_mode must be None or 'rgb_array', got {render_mode!r}"
+        self.cfg = cfg
+        self.render_mode = render_mode
+        self.env = SwarmEnv(cfg, 1, n_robots, seed=seed)
+        self.possible_agents = [f"robot_{i}" for i in range(n_robots)]
+        self.agents: list[str] = []
+        lo, hi = observation_bounds(cfg, n_robots)
+        self.observation_spaces = {a: gymnasium.spaces.Box(lo, hi, dtype=np.float32) for a in self.possible_agents}
+        self.action_spaces = {a: gymnasium.spaces.Box(0.0, 1.0, (ACTION_DIM,), np.float32)
+                              for a in self.possible_agents}
+        self.state_space = gymnasium.spaces.Box(-1.0, 1.0, (cfg.state_dim(n_robots),), np.float32)
+        self._last_in_range = np.zeros(n_robots, bool)
+
+    def observation_space(self, agent: str):
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str):
+        return self.action_spaces[agent]
+
+    def _split(self, obs: np.ndarray, in_range: np.ndarray, coverage: float):
+        o = {a: obs[0, i].astype(np.float32) for i, a in enumerate(self.possible_agents)}
+        info = {a: {"in_range": bool(in_range[i]), "coverage": coverage} for i, a in enumerate(self.possible_agents)}
+        return o, info
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed)
+        self.agents = list(self.possible_agents)
+        d = np.linalg.norm(self.env.pos[0] - self.env.target[0], axis=-1)  # (M,)
+        self._last_in_range = d <= self.cfg.comm_radius_mm
+        return self._split(obs, self._last_in_range, float(self._last_in_range.mean()))
+
+    def step(self, actions: dict):
+        assert self.agents, "step() after the episode ended; call reset()"
+        a = np.zeros((1, len(self.possible_agents), ACTION_DIM))
+        for i, name in enumerate(self.possible_agents):
+            if name in actions:
+                a[0, i] = np.clip(np.asarray(actions[name], np.float64).reshape(ACTION_DIM), 0.0, 1.0)
+        obs, reward, terminated, truncated, info = self.env.step(a)
+        self._last_in_range = np.asarray(info["in_range"][0], bool)
+        o, infos = self._split(obs, self._last_in_range, float(info["coverage"][0]))
+        r = float(reward[0])
+        rewards = {n: r for n in self.agents}
+        terms = {n: bool(terminated[0]) for n in self.agents}
+        truncs = {n: bool(truncated[0]) for n in self.agents}
+        live = list(self.agents)
+        if terminated[0] or truncated[0]:
+            self.agents = []
+        return ({n: o[n] for n in live}, rewards, terms, truncs, {n: infos[n] for n in live})
+
+    def state(self) -> np.ndarray:
+        return np.asarray(self.env.state()[0], np.float32)
+
+    def render(self):
+        if self.render_mode is None:
+            return None
+        from .render import render_frame
+
+        return render_frame(self.env.pos[0], self.env.heading[0], self.env.target[0], self._last_in_range,
+                            self.cfg, step=int(self.env.t))
+
+    def close(self) -> None:
+        pass
+
+
+def parallel_env(cfg: WorldConfig | str = "thesis", n_robots: int = 4, seed: int | None = None,
+                 render_mode: str | None = None) -> SwarmParallelEnv:
+    """PettingZoo-style constructor: ``parallel_env("thesis", n_robots=4)``."""
+    return SwarmParallelEnv(cfg, n_robots, seed, render_mode)

@@ -1,0 +1,319 @@
+"""The radio stage: who hears whom during one control period, at what measured distance.
+
+Two message models, chosen by ``cfg.msg_period_ticks``:
+
+Thesis mode (``msg_period_ticks == 0``, :func:`thesis_radio`)
+    Every searcher within the communication radius (true distance, after the move) is heard by
+    every other searcher exactly once per period, at tick 0; the target beacon likewise. Events are
+    in arrival order: per receiver the target first, then senders by ascending index.
+
+Tick-level mode (``msg_period_ticks >= 1``, :func:`tick_radio`)
+    Every transmitter (the M searchers and the target) has a phase in ``[0, msg_period_ticks)``,
+    drawn at reset; it sends at the global ticks ``g`` with ``(g - phase) % msg_period_ticks == 0``.
+    Each robot within the communication radius at that tick (true distance, positions after that
+    tick's move) hears it. Events carry the tick within the period (0 .. P-1) and are in arrival
+    order: by tick, then sender index with the target first.
+
+In both modes, when configured: each message is lost independently at each receiver with
+probability ``msg_loss``; the measured distance is ``clip(round_half_up(true + N(0, σ)), dist_min,
+dist_max)`` (rounding only with ``dist_integer``; noise only with ``dist_noise_mm > 0``). A message
+carries its sender's ``sensing`` flag as of the sender's last control step; the target's flag is 0.
+
+Random numbers come from one ``numpy.random.Generator`` per env (the env's radio stream), drawn per
+env in a fixed order, so an env of a batch sees exactly what it would see alone. Per env and
+period: thesis mode draws loss uniforms then noise normals over [searcher messages, target
+messages]; tick-level mode draws them over the period's candidate messages in arrival order.
+
+Light (:func:`light_readings`): ``light_wall`` when the robot centre is at most ``wall_sense_mm``
+from the nearest wall, else ``light_floor``; with probability ``light_dropout`` the reading is -1.
+
+Observations: :func:`observe_period` uses :func:`sim.events.observe` on the period's events, or,
+when every (receiver, sender) pair occurs at most once (thesis mode), :func:`observe_fast`, which
+computes the same numbers straight from the message arrays without sorting (tested equal).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from . import grid
+from .config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_SEARCHER, ROLE_TARGET, WorldConfig
+from .events import HeardEvents, observe, rbf
+
+
+@dataclass
+class RadioPeriod:
+    """Messages received in one control period, as searcher and target message arrays.
+
+    Searcher messages (``s_*``, shape (Ns,)) and target messages (``t_*``, shape (Nt,)) are each in
+    arrival order (env, receiver, tick, sender). ``single`` is True when every (receiver, sender)
+    pair occurs at most once, which makes :func:`observe_fast` valid.
+    """
+
+    n_envs: int
+    n_robots: int
+    period_ticks: int
+    s_env: np.ndarray  # (Ns,) int64
+    s_rx: np.ndarray  # (Ns,) int64
+    s_snd: np.ndarray  # (Ns,) int64, 0..M-1
+    s_tick: np.ndarray  # (Ns,) int64
+    s_dist: np.ndarray  # (Ns,) float64, measured
+    s_flag: np.ndarray  # (Ns,) uint8
+    t_env: np.ndarray  # (Nt,) int64
+    t_rx: np.ndarray  # (Nt,) int64
+    t_tick: np.ndarray  # (Nt,) int64
+    t_dist: np.ndarray  # (Nt,) float64, measured
+    single: bool
+    #: optional: measured distances of unordered pairs (U,) and each searcher message's slot in it
+    #: (``s_dist == s_udist[s_uidx]``), set when distances are symmetric (no noise)
+    s_udist: np.ndarray | None = None
+    s_uidx: np.ndarray | None = None
+    _events: HeardEvents | None = field(default=None, repr=False)
+
+    def events(self) -> HeardEvents:
+        """The period's :class:`HeardEvents` in arrival order (built once, on first call)."""
+        if self._events is None:
+            M, P = self.n_robots, self.period_ticks
+            env = np.concatenate([self.t_env, self.s_env])
+            rx = np.concatenate([self.t_rx, self.s_rx])
+            snd = np.concatenate([np.full(self.t_env.shape, -1, np.int64), self.s_snd])
+            tick = np.concatenate([self.t_tick, self.s_tick])
+            key = ((env * M + rx) * P + tick) * (M + 1) + (snd + 1)  # target (-1) first at a tick
+            o = np.argsort(key)  # keys are unique (one message per sender and tick)
+            role = np.concatenate([np.full(self.t_env.shape, ROLE_TARGET, np.uint8),
+                                   np.full(self.s_env.shape, ROLE_SEARCHER, np.uint8)])
+            flag = np.concatenate([np.zeros(self.t_env.shape, np.uint8), self.s_flag])
+            dist = np.concatenate([self.t_dist, self.s_dist])
+            self._events = HeardEvents(env[o].astype(np.int32), rx[o].astype(np.int32),
+                                       snd[o].astype(np.int32), tick[o].astype(np.int16),
+                                       dist[o].astype(np.float64), role[o], flag[o])
+        return self._events
+
+
+def measure(true_mm: np.ndarray, z: np.ndarray | None, cfg: WorldConfig) -> np.ndarray:
+    """Measured distance: true + σ·z, rounded half up with ``dist_integer``, clipped to the range."""
+    d = true_mm if z is None else true_mm + cfg.dist_noise_mm * z
+    if cfg.dist_integer:
+        d = np.floor(d + 0.5)
+    return np.clip(d, cfg.dist_min_mm, cfg.dist_max_mm)
+
+
+def _per_env_draws(rngs: Sequence[np.random.Generator], counts: np.ndarray, loss: bool, noise: bool
+                   ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per env e: ``counts[e]`` loss uniforms, then ``counts[e]`` standard normals, concatenated.
+
+    A loop over envs (each env owns its generator), never over robots.
+    """
+    u = z = None
+    if loss or noise:
+        us, zs = [], []
+        for rng, n in zip(rngs, counts.tolist()):
+            if loss:
+                us.append(rng.random(n))
+            if noise:
+                zs.append(rng.standard_normal(n))
+        u = np.concatenate(us) if loss else None
+        z = np.concatenate(zs) if noise else None
+    return u, z
+
+
+def target_distance(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """True robot–target distances (B, M), same formula as :func:`sim.grid.distance`."""
+    dx = pos[..., 0] - target[:, None, 0]
+    dy = pos[..., 1] - target[:, None, 1]
+    return np.sqrt(dx * dx + dy * dy)
+
+
+_EMPTY_I = np.zeros(0, np.int64)
+
+
+def thesis_radio(pos: np.ndarray, target: np.ndarray, flags: np.ndarray, cfg: WorldConfig,
+                 rngs: Sequence[np.random.Generator], target_dist: np.ndarray | None = None,
+                 method: str = "auto") -> RadioPeriod:
+    """Thesis-mode messages for one period. pos (B, M, 2), target (B, 2), flags (B, M) uint8."""
+    B, M, _ = pos.shape
+    R = cfg.comm_radius_mm
+    pr = grid.pairs_within(pos, R, cfg.arena_half_mm, method, ordered=True)  # sorted (env, rx, snd)
+    s_env, s_rx, s_snd, s_true, s_uidx = pr.env, pr.i, pr.j, pr.dist, pr.uidx
+    dt = target_distance(pos, target) if target_dist is None else target_dist  # (B, M)
+    t_env, t_rx = np.nonzero(dt <= R)  # sorted (env, rx)
+    t_true = dt[t_env, t_rx]
+    loss, noise = cfg.msg_loss > 0, cfg.dist_noise_mm > 0
+    zs = zt = None
+    if loss or noise:
+        cs = np.bincount(s_env, minlength=B)  # (B,) searcher messages per env
+        ct = np.bincount(t_env, minlength=B)
+        u, z = _per_env_draws(rngs, cs + ct, loss, noise)
+        off = np.cumsum(cs + ct) - (cs + ct)  # first draw of each env
+        si = off[s_env] + np.arange(s_env.size) - (np.cumsum(cs) - cs)[s_env]  # draw index per message
+        ti = off[t_env] + cs[t_env] + np.arange(t_env.size) - (np.cumsum(ct) - ct)[t_env]
+        if noise:
+            zs, zt = z[si], z[ti]
+        if loss:
+            ks, kt = u[si] >= cfg.msg_loss, u[ti] >= cfg.msg_loss  # received
+            s_env, s_rx, s_snd, s_true, s_uidx = s_env[ks], s_rx[ks], s_snd[ks], s_true[ks], s_uidx[ks]
+            t_env, t_rx, t_true = t_env[kt], t_rx[kt], t_true[kt]
+            if noise:
+                zs, zt = zs[ks], zt[kt]
+    if noise:
+        s_dist, s_udist, s_uidx = measure(s_true, zs, cfg), None, None
+    else:  # symmetric: measure each unordered pair once
+        s_udist = measure(pr.udist, None, cfg)
+        s_dist = s_udist[s_uidx]
+    return RadioPeriod(
+        B, M, cfg.period_ticks,
+        s_env, s_rx, s_snd, np.zeros(s_env.shape, np.int64), s_dist,
+        flags[s_env, s_snd].astype(np.uint8),
+        t_env, t_rx, np.zeros(t_env.shape, np.int64), measure(t_true, zt, cfg), single=True,
+        s_udist=s_udist, s_uidx=s_uidx)
+
+
+def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldConfig) -> np.ndarray:
+    """Transmit phases (B, M + 1) in [0, msg_period_ticks); column M is the target."""
+    return np.stack([rng.integers(0, cfg.msg_period_ticks, n_robots + 1) for rng in rngs]).astype(np.int64)
+
+
+def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, tick0: int,
+               flags: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
+               method: str = "auto") -> RadioPeriod:
+    """Tick-level messages of the period covering global ticks ``tick0 .. tick0 + P - 1``.
+
+    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) (fixed);
+    phases (B, M + 1); flags (B, M) uint8 senders' flags.
+    """
+    P, B, M, _ = pos_ticks.shape
+    T, R = cfg.msg_period_ticks, cfg.comm_radius_mm
+    final = pos_ticks[-1]  # (B, M, 2)
+    dev = pos_ticks - final  # (P, B, M, 2) how far each robot was from its final position
+    reach = float(np.sqrt(np.max(dev[..., 0] ** 2 + dev[..., 1] ** 2))) if dev.size else 0.0
+    allpos = np.concatenate([final, target[:, None, :]], axis=1)  # (B, M + 1, 2), M = target
+    # every pair within R at some tick is within R + 2 * reach at the end
+    cand = grid.pairs_within(allpos, R + 2.0 * reach + 1e-9, cfg.arena_half_mm, method, ordered=True)
+    m = cand.i < M  # the target only sends
+    e, rx, snd = cand.env[m], cand.i[m], cand.j[m]
+    k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
+    nsend = np.where(k0 < P, (P - 1 - k0) // T + 1, 0)
+    tot = int(nsend.sum())
+    first = np.cumsum(nsend) - nsend
+    e, rx, snd, k0 = (np.repeat(v, nsend) for v in (e, rx, snd, k0))
+    k = k0 + T * (np.arange(tot, dtype=np.int64) - np.repeat(first, nsend))  # (tot,) send tick
+    is_t = snd == M
+    rxp = pos_ticks[k, e, rx]  # (tot, 2)
+    sp = np.where(is_t[:, None], target[e], pos_ticks[k, e, np.minimum(snd, M - 1)])
+    dx, dy = rxp[:, 0] - sp[:, 0], rxp[:, 1] - sp[:, 1]
+    d = np.sqrt(dx * dx + dy * dy)
+    h = d <= R
+    e, rx, snd, k, d, is_t = e[h], rx[h], snd[h], k[h], d[h], is_t[h]
+    o = np.argsort(((e * M + rx) * P + k) * (M + 1) + np.where(is_t, 0, snd + 1))  # unique keys
+    e, rx, snd, k, d, is_t = e[o], rx[o], snd[o], k[o], d[o], is_t[o]
+    loss, noise = cfg.msg_loss > 0, cfg.dist_noise_mm > 0
+    u, z = _per_env_draws(rngs, np.bincount(e, minlength=B), loss, noise)
+    if loss:
+        ok = u >= cfg.msg_loss
+        e, rx, snd, k, d, is_t = e[ok], rx[ok], snd[ok], k[ok], d[ok], is_t[ok]
+        z = z[ok] if noise else None
+    dm = measure(d, z, cfg)
+    sender = np.where(is_t, -1, snd)
+    flag = np.where(is_t, 0, flags[e, np.minimum(snd, M - 1)]).astype(np.uint8)
+    ev = HeardEvents(e.astype(np.int32), rx.astype(np.int32), sender.astype(np.int32), k.astype(np.int16),
+                     dm, np.where(is_t, ROLE_TARGET, ROLE_SEARCHER).astype(np.uint8), flag)
+    s = ~is_t
+    return RadioPeriod(B, M, P, e[s], rx[s], snd[s], k[s], dm[s], flag[s],
+                       e[is_t], rx[is_t], k[is_t], dm[is_t], single=T >= P, _events=ev)
+
+
+def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator]) -> np.ndarray:
+    """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout)."""
+    wall_d = cfg.arena_half_mm - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
+    light = np.where(wall_d <= cfg.wall_sense_mm, cfg.light_wall, cfg.light_floor).astype(np.int16)
+    if cfg.light_dropout > 0:
+        M = pos.shape[1]
+        u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
+        light[u < cfg.light_dropout] = -1
+    return light
+
+
+def rbf_fast(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
+    """:func:`sim.events.rbf` for 1-D distances, bit-identical, with fewer passes and temporaries.
+
+    ``-(t) / c == t / -c`` exactly in IEEE arithmetic, so the negation folds into the division.
+    """
+    t = d_mm[:, None] - cfg.rbf_centres_mm  # (N, n_rbf)
+    np.square(t, out=t)
+    np.divide(t, -(2.0 * cfg.rbf_sigma_mm ** 2), out=t)
+    np.exp(t, out=t)
+    np.divide(t, cfg.rbf_norm, out=t)
+    far = d_mm > cfg.comm_radius_mm
+    if far.any():
+        t[far] = 0.0
+    return t
+
+
+def _segment_sums(rows: np.ndarray, starts: np.ndarray, counts: np.ndarray, index: np.ndarray | None
+                  ) -> np.ndarray:
+    """Per segment, the sum of its rows added one after another (0 + r0 + r1 + ...), like np.add.at.
+
+    ``rows`` (N, K); segment s covers positions ``starts[s] .. starts[s] + counts[s] - 1`` (counts
+    >= 1), each position p standing for ``rows[index[p]]`` (or ``rows[p]``). Loops over the rank
+    within the segment (at most the neighbour-table size), vectorised over segments.
+    """
+    o = np.argsort(-counts, kind="stable")  # longest segments first: active ones form a prefix
+    st, cn = starts[o], counts[o]
+    out = np.zeros((st.size, rows.shape[1]))
+    n_active = np.searchsorted(-cn, -np.arange(1, cn[0] + 1), side="right")  # segments with > k rows
+    for k, na in enumerate(n_active.tolist()):
+        pos = st[:na] + k
+        out[:na] += rows.take(pos if index is None else index.take(pos), axis=0)  # take: faster than []
+    res = np.empty_like(out)
+    res[o] = out
+    return res
+
+
+def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sim.events.observe` for periods where each (receiver, sender) pair occurs at most once.
+
+    Same float64 operations in the same summation order, so the result is bit-identical.
+    """
+    assert period.single, "observe_fast needs a period where each sender is heard at most once"
+    B, M = light.shape
+    g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing (arrival order)
+    d, f, ui = period.s_dist, period.s_flag, period.s_uidx
+    counts = np.bincount(g, minlength=B * M)  # (B*M,) messages per receiver
+    if g.size and counts.max() > cfg.neighbour_table_size:  # table full: later senders are dropped
+        rank = np.arange(g.size) - (np.cumsum(counts) - counts)[g]
+        keep = rank < cfg.neighbour_table_size
+        d, f = d[keep], f[keep]
+        ui = ui[keep] if ui is not None else None
+        counts = np.minimum(counts, cfg.neighbour_table_size)
+    obs = np.zeros((B, M, cfg.obs_dim), np.float32)
+    wall = (light >= cfg.light_threshold).astype(np.float64)
+    obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall)
+    heard = np.zeros(B * M, bool)
+    tdist = np.zeros(B * M)
+    tg = period.t_env * M + period.t_rx
+    heard[tg] = True
+    tdist[tg] = period.t_dist
+    obs[..., OBS_TARGET] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0), -1.0).reshape(B, M)
+    if d.size:
+        rcv = np.flatnonzero(counts)  # receivers with table entries
+        cnt = counts[rcv]
+        starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)
+        flat = obs.reshape(B * M, cfg.obs_dim)
+        flat[rcv, OBS_NBR_SENSING] = np.maximum.reduceat(f, starts)  # max of the table's flags
+        if ui is None:
+            hist = _segment_sums(rbf_fast(cfg, d), starts, cnt, None)
+        else:  # symmetric distances: ψ once per unordered pair
+            hist = _segment_sums(rbf_fast(cfg, period.s_udist), starts, cnt, ui)
+        flat[rcv, OBS_RBF:] = hist
+    return obs, heard.reshape(B, M).astype(np.uint8)
+
+
+def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
+                   fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Observations (B, M, obs_dim) float32 and new sensing flags (B, M) uint8 for a period."""
+    if fast and period.single:
+        return observe_fast(period, light, prev_wall, cfg)
+    return observe(period.events(), light, prev_wall, cfg)

@@ -1,0 +1,101 @@
+"""Replay memory: shapes, histories as sim.history.History builds them, uniform sampling, wrap-around."""
+import numpy as np
+
+from learn.replay import EpisodeReplay
+from sim.history import History
+
+M, D, S, TP = 3, 5, 7, 4  # robots, tuple width (2 actions + 3 obs), state width, t_prev
+
+
+def _fill(rp: EpisodeReplay, B: int, steps: int, rng: np.random.Generator, start_id: float = 0.0):
+    """Run B synchronised episodes of ``steps`` random steps; returns what History saw at each step."""
+    obs = rng.random((B, M, D - 2), dtype=np.float32)
+    hist = History(TP, D - 2)
+    h = hist.reset(obs)
+    s = np.full((B, S), start_id, np.float32)
+    rp.begin(hist.buf[:, :, 0], s)
+    seen = [h]
+    for t in range(steps):
+        a = rng.random((B, M, 2), dtype=np.float32)
+        obs = rng.random((B, M, D - 2), dtype=np.float32)
+        h = hist.push(a, obs)
+        s = np.full((B, S), start_id + t + 1, np.float32)
+        rp.add(np.concatenate([a, obs], -1), s, np.full(B, start_id + t, np.float32))
+        seen.append(h)
+    return seen
+
+
+def test_shapes_and_histories_match_history_buffer():
+    """Every stored transition rebuilds h and h' exactly as History held them (Algorithm 4 initialisation included)."""
+    rng = np.random.default_rng(0)
+    T, B = 9, 2
+    rp = EpisodeReplay(capacity=100, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    seen = _fill(rp, B, T, rng)
+    assert len(rp) == B * T
+    for slot in range(B):
+        e = np.full(T, rp.active[slot])
+        t = np.arange(T)
+        b = rp.gather(e, t)
+        assert b.s.shape == (T, S) and b.h.shape == (T, M, TP * D) and b.a.shape == (T, M, 2)
+        assert b.r.shape == (T,) and b.s2.shape == (T, S) and b.h2.shape == (T, M, TP * D)
+        for k in range(T):
+            np.testing.assert_array_equal(b.h[k], seen[k][slot])
+            np.testing.assert_array_equal(b.h2[k], seen[k + 1][slot])
+            np.testing.assert_array_equal(b.a[k], seen[k + 1][slot][:, -D:-D + 2])  # newest tuple's action
+        np.testing.assert_array_equal(b.r, np.arange(T))
+        np.testing.assert_array_equal(b.s[:, 0], np.arange(T))
+        np.testing.assert_array_equal(b.s2[:, 0], np.arange(1, T + 1))
+
+
+def test_sampling_is_uniform_over_stored_transitions():
+    """Counts of sampled transitions, including those of unfinished episodes, are uniform (chi-square bound)."""
+    rng = np.random.default_rng(1)
+    T = 5
+    rp = EpisodeReplay(capacity=40, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    _fill(rp, 4, T, rng)
+    _fill(rp, 2, 3, rng, start_id=100.0)  # two unfinished episodes of 3 steps
+    n_stored = 4 * T + 2 * 3
+    assert len(rp) == n_stored
+    n = 52_000
+    b = rp.sample(n, np.random.default_rng(2))
+    # identify each transition by (state id, first coordinate of h) — unique here
+    keys = np.round(b.s[:, 0]).astype(int) * 10_000 + np.floor(b.h[:, 0, -1] * 9999).astype(int)
+    _, counts = np.unique(keys, return_counts=True)
+    assert counts.size == n_stored, "every stored transition must be reachable, nothing else"
+    expected = n / n_stored
+    chi2 = ((counts - expected) ** 2 / expected).sum()
+    assert chi2 < 60, f"chi-square {chi2:.1f} with {n_stored - 1} dof is far from uniform"
+    assert (b.s[:, 0] >= 100).mean() > 0.15  # the unfinished episodes are sampled (6/26 ≈ 0.23)
+
+
+def test_wrap_around_overwrites_oldest_episodes():
+    """With room for 3 episodes, the 4th and 5th replace the 1st and 2nd; samples come only from stored ones."""
+    rng = np.random.default_rng(3)
+    T = 4
+    rp = EpisodeReplay(capacity=3 * T + 2, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    assert rp.n_slots == 3 and rp.capacity == 12
+    for k in range(5):
+        _fill(rp, 1, T, rng, start_id=1000.0 * k)
+    assert len(rp) == 3 * T
+    b = rp.sample(2000, np.random.default_rng(4))
+    episode_of = np.floor(b.s[:, 0] / 1000).astype(int)
+    assert set(np.unique(episode_of)) == {2, 3, 4}
+    # a batch of parallel episodes that wraps past the end of the ring
+    _fill(rp, 2, T, rng, start_id=9000.0)
+    assert sorted(rp.active.tolist()) == [0, 2] and rp.next_slot == 1
+    b = rp.sample(2000, np.random.default_rng(5))
+    assert set(np.unique(np.floor(b.s[:, 0] / 1000).astype(int))) == {4, 9}
+
+
+def test_state_dict_round_trip():
+    """A replay restored from its state_dict samples exactly what the original samples."""
+    rng = np.random.default_rng(6)
+    T = 4
+    rp = EpisodeReplay(capacity=40, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    _fill(rp, 3, T, rng)
+    rp2 = EpisodeReplay(capacity=40, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    rp2.load_state_dict(rp.state_dict())
+    a, b = rp.sample(64, np.random.default_rng(7)), rp2.sample(64, np.random.default_rng(7))
+    for name in ("s", "h", "a", "r", "s2", "h2"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert rp.state_dict()["tuples"].shape[0] == 3  # only the used slots are saved

@@ -1,0 +1,159 @@
+"""Training loop: determinism, exact resume, config validation, CLI (train / plot / evaluate) smoke tests."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from export.artifact import load_policy  # noqa: E402
+from learn.__main__ import main  # noqa: E402
+from learn.checkpoint import load_checkpoint  # noqa: E402
+from learn.config import ConfigError, TrainConfig, from_preset  # noqa: E402
+from learn.train import read_metrics, train  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: a run of a few seconds: 20-step episodes, tiny networks
+TINY = dict(n_robots=2, t_prev=3, episode_steps=20, actor_hidden=(8,), critic_hidden=(16, 16), n_envs=2,
+            warmup_episodes=2, episodes=4, batch_size=8, replay_size=400, updates_per_step=0.5,
+            eval_every=40, eval_episodes=2, threads=1, tau=0.05)
+
+TINY_ARGS = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8",
+             "--critic-hidden", "16", "16", "--n-envs", "2", "--warmup-episodes", "2", "--episodes", "4",
+             "--batch-size", "8", "--replay-size", "400", "--updates-per-step", "0.5", "--eval-every", "40",
+             "--eval-episodes", "2", "--threads", "1", "--quiet"]
+
+
+def _weights(run_dir: Path) -> dict:
+    return load_checkpoint(run_dir / "checkpoint.pt")["agent"]
+
+
+def _assert_same_agent(a: dict, b: dict) -> None:
+    for part in ("actor", "critic", "actor_target", "critic_target"):
+        for k in a[part]:
+            torch.testing.assert_close(a[part][k], b[part][k], rtol=0, atol=0)
+
+
+def _quiet(_msg: str) -> None:
+    pass
+
+
+def test_same_seed_same_run(tmp_path):
+    """Two runs with one seed give identical networks and evaluations; another seed differs."""
+    cfg = TrainConfig(**TINY, seed=3)
+    r1 = train(cfg, tmp_path / "a", progress=False, log=_quiet)
+    r2 = train(cfg, tmp_path / "b", progress=False, log=_quiet)
+    r3 = train(TrainConfig(**TINY, seed=4), tmp_path / "c", progress=False, log=_quiet)
+    _assert_same_agent(_weights(r1.run_dir), _weights(r2.run_dir))
+    assert r1.counters.updates == r2.counters.updates > 0
+    cols = ("env_steps", "updates", "eval_return", "train_return", "critic_loss")
+    np.testing.assert_array_equal([[r[c] for c in cols] for r in r1.counters.rows],
+                                  [[r[c] for c in cols] for r in r2.counters.rows])  # NaN == NaN here
+    w1, w3 = _weights(r1.run_dir)["actor"], _weights(r3.run_dir)["actor"]
+    assert any(not torch.equal(w1[k], w3[k]) for k in w1)
+
+
+def test_resume_continues_exactly(tmp_path):
+    """Stopping after 2 learning episodes and resuming to 4 gives the same networks, optimisers and replay as one run."""
+    full = train(TrainConfig(**TINY, seed=5), tmp_path / "full", progress=False, log=_quiet)
+    half = TrainConfig(**{**TINY, "episodes": 2}, seed=5)
+    train(half, tmp_path / "split", progress=False, log=_quiet)
+    ck_half = load_checkpoint(tmp_path / "split" / "checkpoint.pt")
+    assert ck_half["counters"]["updates"] > 0  # the interrupted run had already learned
+    resumed = train(TrainConfig(**TINY, seed=5), tmp_path / "split", resume=True, progress=False, log=_quiet)
+    assert resumed.counters.updates == full.counters.updates
+    a, b = load_checkpoint(tmp_path / "full" / "checkpoint.pt"), load_checkpoint(tmp_path / "split" / "checkpoint.pt")
+    _assert_same_agent(a["agent"], b["agent"])
+    for k in a["agent"]["actor_opt"]["state"]:
+        torch.testing.assert_close(a["agent"]["actor_opt"]["state"][k]["exp_avg"],
+                                   b["agent"]["actor_opt"]["state"][k]["exp_avg"], rtol=0, atol=0)
+    np.testing.assert_array_equal(a["replay"]["tuples"], b["replay"]["tuples"])
+    assert a["rng"]["replay"] == b["rng"]["replay"]
+
+
+def test_resume_refuses_changed_config(tmp_path):
+    """Resuming with a different learning rate is refused with a message naming the field."""
+    train(TrainConfig(**TINY, seed=1), tmp_path / "r", progress=False, log=_quiet)
+    with pytest.raises(ConfigError, match="lr_actor"):
+        train(TrainConfig(**{**TINY, "lr_actor": 0.5}, seed=1), tmp_path / "r", resume=True, progress=False)
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("gamma", 1.0, "gamma must be in [0, 1)"),
+    ("tau", 0.0, "tau must be in (0, 1]"),
+    ("batch_size", 0, "batch_size must be >= 1"),
+    ("n_robots", 0, "n_robots must be in 1..256"),
+    ("world", "mars", "world must be one of"),
+    ("actor_hidden", (), "actor_hidden must be one or more widths"),
+    ("replay_size", 100, "must hold at least one episode per env"),
+    ("lr_critic", -1.0, "lr_critic must be > 0"),
+])
+def test_bad_config_values_rejected(field, value, words):
+    """Each bad value raises ConfigError with a one-line message naming the problem."""
+    with pytest.raises(ConfigError) as e:
+        TrainConfig(**{field: value}).validate()
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_config_file_and_presets():
+    """Unknown keys and mistyped values in a config are refused; presets override defaults."""
+    with pytest.raises(ConfigError, match="unknown training config field"):
+        TrainConfig.from_dict({"learning_rate": 1e-3})
+    with pytest.raises(ConfigError, match="batch_size: cannot read"):
+        TrainConfig.from_dict({"batch_size": 3.5})
+    with pytest.raises(ConfigError, match="unknown training preset"):
+        from_preset("slow")
+    assert from_preset("fast").n_envs > 1 and from_preset("default").n_envs == 1
+    assert from_preset("default").batch_size == 32 and from_preset("default").tau == 0.001
+
+
+def test_cli_bad_value_is_one_line_exit_2():
+    """`python -m learn train --gamma 1.5` prints one error line (no traceback) and exits 2."""
+    out = subprocess.run([sys.executable, "-m", "learn", "train", "--gamma", "1.5", "--out", "/nonexistent/x"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "gamma must be in [0, 1)" in lines[0], out.stderr
+    out = subprocess.run([sys.executable, "-m", "learn", "train", "--batch-size", "many"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1 and "batch_size" in out.stderr
+
+
+def test_cli_smoke_train_plot_evaluate(tmp_path, capsys):
+    """The CLI trains (CSV, PNG, loadable artifacts), refuses to overwrite, plots two seeds, and evaluates."""
+    runs = []
+    for seed in (1, 2):
+        run = tmp_path / f"run{seed}"
+        assert main(["train", *TINY_ARGS, "--seed", str(seed), "--out", str(run)]) == 0
+        runs.append(run)
+    run = runs[0]
+    for name in ("metrics.csv", "learning_curve.png", "policy_best.npz", "policy_last.npz", "checkpoint.pt",
+                 "config.json", "world.json", "summary.json"):
+        assert (run / name).is_file(), name
+    rows = read_metrics(run)
+    assert len(rows) >= 2 and rows[-1]["env_steps"] == 6 * 20 and rows[-1]["updates"] > 0
+    pol = load_policy(run / "policy_best.npz")
+    assert pol.t_prev == 3 and pol.hidden == [8] and pol.provenance["seed"] == 1
+    assert pol.provenance["config"]["n_robots"] == 2 and "eval_return" in pol.provenance["eval"]
+    assert load_policy(run / "policy_last.npz").provenance["env_steps"] == 120
+    assert json.loads((run / "summary.json").read_text())["updates_per_s"] > 0
+
+    assert main(["train", *TINY_ARGS, "--out", str(run)]) == 2  # the run exists: refuse, say --resume
+    assert "--resume" in capsys.readouterr().err
+
+    png = tmp_path / "curves.png"
+    assert main(["plot", str(runs[0]), str(runs[1]), "--out", str(png)]) == 0
+    assert png.stat().st_size > 1000
+
+    ev = tmp_path / "eval"
+    assert main(["evaluate", "--policy", str(run / "policy_best.npz"), "--robots", "3", "--episodes", "2",
+                 "--steps", "12", "--n-envs", "2", "--out", str(ev), "--quiet"]) == 0
+    res = json.loads((ev / "evaluation.json").read_text())
+    assert set(res["robots"]["3"]["metrics"]) == {"run1/policy_best", "hand-written", "random"}
+    for name in ("reward_over_time_3.png", "returns_box_3.png", "coverage_3.png", "episode_run1_policy_best_3.gif"):
+        assert (ev / name).stat().st_size > 500, name
+    assert main(["evaluate", "--policy", str(tmp_path / "missing.npz"), "--out", str(ev)]) == 2
