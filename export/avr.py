@@ -157,7 +157,10 @@ def build(sources: dict[str, str], out_dir: Path, *, name: str = "prog", include
           defines: Sequence[str] = (), extra_objects: Sequence[Path] = (), make_hex: bool = False,
           cflags: Sequence[str] = KILOLIB_CFLAGS) -> Build:
     """Write ``sources`` (file name -> text; the ``.c`` ones are compiled) into ``out_dir`` and link
-    them with kilolib's flags into ``out_dir/<name>.elf`` (and ``.hex`` with ``make_hex``)."""
+    them with kilolib's flags into ``out_dir/<name>.elf`` (and ``.hex`` with ``make_hex``).
+
+    ``extra_objects``: further ``.c`` files or objects / archives (e.g. ``kilolib.a``), linked after.
+    """
     why = missing_tools()
     if why:
         raise AvrError(why)
@@ -190,6 +193,7 @@ class SimResult:
     stack_low: int  #: lowest SRAM address the program wrote above .bss (RAMEND + 1: none)
     stack_paint_from: int  #: where the painting started (the ELF's _end)
     underrun: int  #: input bytes read past the end of the input (a harness bug if > 0)
+    scans: list[tuple[int, int]] = field(default_factory=list)  #: (lowest written, SP at paint) per 0xFD
 
     @property
     def stack_peak(self) -> int:
@@ -220,18 +224,21 @@ def run_elf(elf: Path, input_bytes: bytes = b"", *, max_cycles: int = 2_000_000_
                             "-p", str(paint_from), "-c", str(max_cycles), str(elf)],
                            capture_output=True, text=True, timeout=timeout_s)
         output = fout.read_bytes() if fout.exists() else b""
-    marks, end = [], None
+    marks, scans, end = [], [], None
     for line in p.stdout.splitlines():
         if line.startswith("M "):
             _, mid, cyc = line.split()
             marks.append((int(mid), int(cyc)))
+        elif line.startswith("S "):
+            _, low, top = line.split()
+            scans.append((int(low), int(top)))
         elif line.startswith("END "):
             end = dict(kv.split("=") for kv in line.split()[1:])
     if p.returncode != 0 or end is None:
         raise AvrError(f"simavr run of {elf.name} did not finish (exit {p.returncode}, "
                        f"{(end or {}).get('cycles', '?')} cycles): {p.stderr.strip()[-2000:]}")
     return SimResult(output=output, marks=marks, cycles=int(end["cycles"]), stack_low=int(end["stack_low"]),
-                     stack_paint_from=paint_from, underrun=int(end["underrun"]))
+                     stack_paint_from=paint_from, underrun=int(end["underrun"]), scans=scans)
 
 
 def mark_overhead(res: SimResult) -> int:
@@ -250,6 +257,19 @@ def kernel_sources() -> dict[str, str]:
             "kf_sim_io.h": (STANDIN_DIR / "kf_sim_io.h").read_text()}
 
 
+HOST_IO_SHIM = """#ifdef __AVR__
+#include "kf_sim_io.h"
+#else /* the same program on a PC: stdin / stdout */
+#include <stdio.h>
+#include <stdlib.h>
+static uint8_t kf_sim_in(void) { int c = getchar(); return (uint8_t)(c < 0 ? 0 : c); }
+static uint16_t kf_sim_in16(void) { uint16_t lo = kf_sim_in(); return (uint16_t)(lo | ((uint16_t)kf_sim_in() << 8)); }
+static void kf_sim_out16(uint16_t v) { putchar(v & 0xFF); putchar(v >> 8); }
+static void kf_sim_mark(uint8_t id) { (void)id; }
+static void kf_sim_exit(void) { fflush(stdout); exit(0); }
+#endif"""
+
+
 def kernel_program(layers: Sequence["KernelLayer"]) -> str:  # noqa: F821 (export.kernel.KernelLayer)
     """C source of a simavr program that runs ``kf_dense2`` on requests from the input stream.
 
@@ -260,7 +280,7 @@ def kernel_program(layers: Sequence["KernelLayer"]) -> str:  # noqa: F821 (expor
     """
     max_in = max(l.n_in for l in layers)
     max_out = max(l.n_out for l in layers)
-    parts = ["#include <stdint.h>", '#include "kf_sim_io.h"', '#include "kf_dense.h"', '#include "kf_dense_impl.h"', ""]
+    parts = ["#include <stdint.h>", HOST_IO_SHIM, '#include "kf_dense.h"', '#include "kf_dense_impl.h"', ""]
     for i, l in enumerate(layers):
         parts.append(l.c_source(f"KF_L{i}"))
     names = ", ".join(f"&KF_L{i}" for i in range(len(layers)))
@@ -317,12 +337,7 @@ class KernelRun:
     result: SimResult = field(repr=False)
 
 
-def run_kernel(layers: Sequence["KernelLayer"], requests: Sequence[tuple[int, int | None, np.ndarray | None]],  # noqa: F821
-               *, portable: bool = False, work_dir: Path | None = None) -> KernelRun:
-    """Run requests ``(layer, n1, x)`` (``x`` None: chained on the previous outputs) in simavr.
-
-    ``portable`` builds the plain C kernel instead of the assembly one (the baseline).
-    """
+def _kernel_stream(requests) -> bytes:
     stream = bytearray()
     for li, n1, x in requests:
         if x is None:
@@ -332,18 +347,270 @@ def run_kernel(layers: Sequence["KernelLayer"], requests: Sequence[tuple[int, in
             stream += int(n1).to_bytes(2, "little")
             stream += np.asarray(x, np.int64).astype(np.int8).tobytes()
     stream.append(0xFF)
-    with tempfile.TemporaryDirectory(prefix="kf_kernel_") as td:
-        d = Path(work_dir) if work_dir else Path(td)
-        b = build({**kernel_sources(), "kernel_test.c": kernel_program(layers)}, d, name="kernel_test",
-                  defines=("KF_DENSE_PORTABLE",) if portable else ())
-        res = run_elf(b.elf, bytes(stream))
-    raw = np.frombuffer(res.output, dtype="<i2").astype(np.int64)
+    return bytes(stream)
+
+
+def _split_outputs(layers, requests, output: bytes) -> list[np.ndarray]:
+    raw = np.frombuffer(output, dtype="<i2").astype(np.int64)
     outs, pos = [], 0
     for li, _, _ in requests:
         n = layers[li].n_out
         outs.append(raw[pos:pos + n])
         pos += n
-    if pos != raw.size or res.underrun:
-        raise AvrError(f"kernel program returned {raw.size} values, expected {pos} (underrun {res.underrun})")
+    if pos != raw.size:
+        raise AvrError(f"kernel program returned {raw.size} values, expected {pos}")
+    return outs
+
+
+def run_kernel_host(layers, requests, *, cc: str = "gcc") -> list[np.ndarray]:
+    """The same kernel program built for the host (``-std=c99 -Wall -Wextra -Werror``): the portable C."""
+    with tempfile.TemporaryDirectory(prefix="kf_kernel_host_") as td:
+        d = Path(td)
+        for fname, text in {**kernel_sources(), "kernel_test.c": kernel_program(layers)}.items():
+            (d / fname).write_text(text)
+        exe = d / "kernel_test"
+        _run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-I", d, "-o", exe, d / "kernel_test.c"],
+             "host build of the kernel program")
+        p = subprocess.run([str(exe)], input=_kernel_stream(requests), capture_output=True, timeout=120)
+    if p.returncode != 0:
+        raise AvrError(f"host kernel program failed: {p.stderr.decode(errors='replace')[:500]}")
+    return _split_outputs(layers, requests, p.stdout)
+
+
+def run_kernel(layers: Sequence["KernelLayer"], requests: Sequence[tuple[int, int | None, np.ndarray | None]],  # noqa: F821
+               *, portable: bool = False, work_dir: Path | None = None) -> KernelRun:
+    """Run requests ``(layer, n1, x)`` (``x`` None: chained on the previous outputs) in simavr.
+
+    ``portable`` builds the plain C kernel instead of the assembly one (the baseline).
+    """
+    stream = _kernel_stream(requests)
+    with tempfile.TemporaryDirectory(prefix="kf_kernel_") as td:
+        d = Path(work_dir) if work_dir else Path(td)
+        b = build({**kernel_sources(), "kernel_test.c": kernel_program(layers)}, d, name="kernel_test",
+                  defines=("KF_DENSE_PORTABLE",) if portable else ())
+        res = run_elf(b.elf, bytes(stream))
+    if res.underrun:
+        raise AvrError(f"kernel program read {res.underrun} bytes past its input")
+    outs = _split_outputs(layers, requests, res.output)
     return KernelRun(outputs=outs, cycles=res.spans() - mark_overhead(res), sizes=b.sizes,
                      stack_peak=res.stack_peak, result=res)
+
+
+# --------------------------------------------------------------------------------------------
+# Generated firmware: exact budgets, robot builds, simavr verification (rung 3)
+# --------------------------------------------------------------------------------------------
+POLICY_FILE = "kilobot_policy.c"
+HOST_DIR = TEMPLATES / "host"
+EMPTY_PROGRAM = """#include <kilolib.h>
+static void setup(void) {}
+static void loop(void) {}
+int main(void) { kilo_init(); kilo_start(setup, loop); return 0; }
+"""
+#: marks the firmware build for simavr emits (firmware_templates/avr/kf_avr_io.c, kf_dense.c)
+MARK_STEP_BEGIN, MARK_STEP_END = 10, 11
+MARK_LAYER_BEGIN, MARK_LAYER_END = 21, 22
+LAYER_MARK_DEFINE = "KF_DENSE_MARK(id)=(*(volatile unsigned char *)0x3E = (unsigned char)(20u + (id)))"
+IO_CALL_RETURN_B = 2  #: return address of the harness's kf_io_read call (the paint is inside it)
+
+
+def _standin_sizes(work: Path) -> Sizes:
+    """Sizes of the empty-setup/loop program built with our stand-in (cached per process)."""
+    key = "standin"
+    if key not in _SIZE_CACHE:
+        b = build({"empty.c": EMPTY_PROGRAM}, work / "empty", name="empty", include_dirs=(STANDIN_DIR,),
+                  extra_objects=(STANDIN_DIR / "kilolib_avr.c",))
+        _SIZE_CACHE[key] = b.sizes
+    return _SIZE_CACHE[key]
+
+
+_SIZE_CACHE: dict[str, Sizes] = {}
+
+
+@dataclass(frozen=True)
+class ProgramBudget:
+    """Exact figures of one generated program (bytes)."""
+
+    name: str
+    flash: int  #: text + data of the whole program with kilolib (corrected as in the module doc)
+    sram_static: int  #: user .data + .bss (kilolib's own excluded)
+    stack_peak: int | None  #: peak stack of loop() at control steps (simavr), None when not measured
+    sizes: Sizes  #: raw sizes of the stand-in build
+    standin: Sizes  #: raw sizes of the empty program with the stand-in
+
+    @property
+    def sram_user(self) -> int | None:
+        return None if self.stack_peak is None else self.sram_static + self.stack_peak
+
+
+def program_budget(name: str, c_source: str, work: Path) -> ProgramBudget:
+    """Build one generated program against the stand-in and apply the kilolib correction."""
+    b = build({name: c_source}, work / Path(name).stem, name=Path(name).stem, include_dirs=(STANDIN_DIR,),
+              extra_objects=(STANDIN_DIR / "kilolib_avr.c",))
+    e = _standin_sizes(work)
+    return ProgramBudget(name=name, flash=b.sizes.flash - e.flash + KILOLIB_FLASH,
+                         sram_static=b.sizes.sram_static - e.sram_static, stack_peak=None, sizes=b.sizes, standin=e)
+
+
+def exact_budget(rendered_files: dict[str, str], qpolicy: "QuantizedPolicy | None" = None, *,  # noqa: F821
+                 stack_steps: int = 40, seed: int = 0) -> dict:
+    """Exact flash / SRAM of the rendered programs from real avr-gcc builds (kilolib's flags).
+
+    Returns the dict :meth:`export.budget.Budget.with_exact` takes: ``flash`` and ``sram_user`` of
+    ``kilobot_policy.c`` (the program that must fit), plus detail keys. ``sram_user`` is user
+    .data + .bss + the peak stack of ``loop()`` at control steps, measured in simavr when
+    ``qpolicy`` is given and simavr is installed (``stack_steps`` control steps of a random event
+    stream); otherwise the analytic stack estimate of :mod:`export.budget` is added and
+    ``stack`` says ``"estimate"``. Raises :class:`AvrError` when avr-gcc is missing or fails.
+    """
+    from .budget import CONTROL_STACK_B
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="kf_budget_") as td:
+        work = Path(td)
+        for name, text in sorted(rendered_files.items()):
+            if not name.endswith(".c"):
+                continue
+            pb = program_budget(name, text, work)
+            out[name] = {"flash": pb.flash, "sram_static": pb.sram_static, "text": pb.sizes.text,
+                         "data": pb.sizes.data, "bss": pb.sizes.bss}
+    main = out[POLICY_FILE]
+    stack, how = CONTROL_STACK_B, "estimate"
+    if qpolicy is not None and missing_tools(simulate=True) is None:
+        check = verify_simavr(qpolicy, rendered_files, n_robots=max(1, stack_steps // 20 + 1), n_steps=20, seed=seed)
+        stack, how = check.stack_peak, "simavr"
+        out["cycles_per_step"] = check.cycles_step_max
+    result = {"flash": main["flash"], "sram_user": main["sram_static"] + stack,
+              "sram_static": main["sram_static"], "stack": stack, "stack_source": how,
+              "kilolib_flash": KILOLIB_FLASH, "kilolib_sram": KILOLIB_SRAM,
+              "flash_limit_ok": main["flash"] <= FLASH_LIMIT_B,
+              "sram_limit_ok": main["sram_static"] + stack <= SRAM_LIMIT_B}
+    result.update({k: v for k, v in out.items() if k != POLICY_FILE and not isinstance(v, dict)})
+    for name, d in out.items():
+        if isinstance(d, dict) and name != POLICY_FILE:
+            result[f"{Path(name).stem}_flash"] = d["flash"]
+    return result
+
+
+def find_kilolib(kilolib_dir: Path) -> tuple[Path, Path]:
+    """(include dir holding kilolib.h, kilolib.a) of a kilolib checkout (built with its Makefile)."""
+    d = Path(kilolib_dir)
+    heads = [p.parent for p in (d / "kilolib.h", d / "include" / "kilolib.h") if p.exists()]
+    libs = [p for p in (d / "build" / "kilolib.a", d / "kilolib.a", d / "lib" / "kilolib.a") if p.exists()]
+    if not heads or not libs:
+        raise AvrError(f"{d}: not a built kilolib checkout (need kilolib.h and build/kilolib.a; run `make` there)")
+    return heads[0], libs[0]
+
+
+def build_for_robot(rendered_files: dict[str, str], kilolib_dir: Path, out_dir: Path) -> dict[str, Build]:
+    """Build every rendered program against a real kilolib: ``<name>.elf`` and ``<name>.hex`` (KiloGUI)."""
+    inc, lib = find_kilolib(kilolib_dir)
+    builds = {}
+    for name, text in sorted(rendered_files.items()):
+        if name.endswith(".c"):
+            stem = Path(name).stem
+            builds[name] = build({name: text}, Path(out_dir), name=stem, include_dirs=(inc,),
+                                 extra_objects=(lib,), make_hex=True)
+    return builds
+
+
+@dataclass(frozen=True)
+class SimavrCheck:
+    """Result of :func:`verify_simavr`."""
+
+    ok: bool
+    control_steps: int  #: searcher control steps compared
+    ticks: int  #: robot-ticks compared
+    detail: str  #: '' or where the first difference is
+    stack_peak: int  #: peak stack of loop() at control steps (bytes, including its return address)
+    cycles_step: np.ndarray  #: cycles of loop() at every control step (harness glue included, ~60)
+    cycles_net: np.ndarray  #: cycles of the dense layers per control step (sum of kf_dense calls)
+    macs: int  #: multiply-accumulates of the network
+    sizes: Sizes
+
+    @property
+    def cycles_step_max(self) -> int:
+        return int(self.cycles_step.max()) if self.cycles_step.size else 0
+
+    @property
+    def cycles_per_mac(self) -> float:
+        return float(np.median(self.cycles_net)) / self.macs if self.cycles_net.size else float("nan")
+
+    def __str__(self) -> str:
+        verdict = "bit-exact" if self.ok else "MISMATCH"
+        cyc = (f"; loop() at a control step {int(np.median(self.cycles_step)):,} cycles median, "
+               f"{self.cycles_step_max:,} max ({self.cycles_step_max / F_CPU * 1e3:.1f} ms); dense layers "
+               f"{self.cycles_per_mac:.2f} cycles/MAC; peak stack {self.stack_peak} B") if self.cycles_step.size else ""
+        return (f"simavr (ATmega328P, 8 MHz) vs emulator: {verdict} over {self.control_steps:,} control steps "
+                f"({self.ticks:,} robot-ticks){cyc}{': ' + self.detail if self.detail else ''}")
+
+
+def build_simavr_firmware(c_source: str, out_dir: Path, *, portable: bool = False) -> Build:
+    """The generated program + the host stand-in + the replay harness, for the AVR under simavr."""
+    defines = ["KF_HARNESS_CUSTOM_IO", LAYER_MARK_DEFINE] + (["KF_DENSE_PORTABLE"] if portable else [])
+    return build({POLICY_FILE: c_source}, out_dir, name="kilobot_policy_sim", include_dirs=(HOST_DIR, STANDIN_DIR),
+                 defines=defines, extra_objects=(HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c",
+                                                 STANDIN_DIR / "kf_avr_io.c"))
+
+
+def run_firmware(elf: Path, inputs, period_ticks: int, obs_dim: int):  # -> (FirmwareOutputs, SimResult, stack)
+    """Replay ``inputs`` (export.emulator.FirmwareInputs) through a simavr firmware build."""
+    from .hostbuild import decode_output, encode_stream
+    res = run_elf(elf, encode_stream(inputs, period_ticks, obs_dim))
+    outs = decode_output(res.output, inputs.n_robots, inputs.n_ticks, period_ticks, obs_dim)
+    return outs, res
+
+
+def verify_simavr(qpolicy, files: dict[str, str], *, target_uids: tuple[int, ...] | None = None,
+                  msg_type: int | None = None, seed: int = 0, n_robots: int = 64, n_steps: int = 40,
+                  portable: bool = False, inputs=None) -> SimavrCheck:
+    """Rung 3: the AVR build of ``files["kilobot_policy.c"]`` in simavr vs the emulator, byte for byte.
+
+    A random event stream (``export.hostbuild.random_inputs``: bursts, duplicate senders, full
+    tables, distances 0..255, foreign / malformed messages, light -1) of ``n_robots`` robots and
+    ``n_steps`` control periods (or ``inputs``) is replayed through the firmware on the simulated
+    ATmega328P and through :class:`export.emulator.FirmwareEmulator`; every output byte must agree.
+    Also measures cycles of ``loop()`` at each control step, cycles of the dense layers and the
+    peak stack of ``loop()``.
+    """
+    from . import fwspec
+    from .emulator import FirmwareEmulator
+    from .hostbuild import StreamSpec, compare, random_inputs
+    qp = qpolicy
+    msg_type = fwspec.DEFAULT_MSG_TYPE if msg_type is None else msg_type
+    targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
+    P, obs_dim = qp.world.period_ticks, qp.world.obs_dim
+    if inputs is None:
+        rng = np.random.default_rng(np.random.SeedSequence(seed))
+        inputs = random_inputs(rng, P, targets, StreamSpec(n_robots=n_robots, n_steps=n_steps), msg_type,
+                               qp.world.comm_radius_mm, qp.world.light_threshold)
+    with tempfile.TemporaryDirectory(prefix="kf_simavr_") as td:
+        b = build_simavr_firmware(files[POLICY_FILE], Path(td), portable=portable)
+        outs, res = run_firmware(b.elf, inputs, P, obs_dim)
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets, msg_type=msg_type).run(inputs)
+    detail = compare(emu, outs)
+    steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(P)
+    step_cycles, net_cycles, stack = _step_profile(res)
+    macs = int(sum(l.w.size for l in qp.layers))
+    return SimavrCheck(ok=not detail, control_steps=steps, ticks=inputs.n_robots * inputs.n_ticks, detail=detail,
+                       stack_peak=stack, cycles_step=step_cycles, cycles_net=net_cycles, macs=macs, sizes=b.sizes)
+
+
+def _step_profile(res: SimResult) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per searcher control step: cycles of loop() and inside kf_dense calls; the deepest stack of loop()."""
+    steps, nets = [], []
+    start = layer_start = None
+    net = 0
+    for mid, cyc in res.marks:
+        if mid == MARK_STEP_BEGIN:
+            start, net = cyc, 0
+        elif mid == MARK_LAYER_BEGIN and start is not None:
+            layer_start = cyc
+        elif mid == MARK_LAYER_END and layer_start is not None:
+            net += cyc - layer_start
+            layer_start = None
+        elif mid == MARK_STEP_END and start is not None:
+            if net:  # a searcher's control step (a beacon's loop() returns at once)
+                steps.append(cyc - start)
+                nets.append(net)
+            start = None
+    deepest = max((top + IO_CALL_RETURN_B + 1 - low for low, top in res.scans), default=0)
+    return np.asarray(steps, np.int64), np.asarray(nets, np.int64), int(deepest)

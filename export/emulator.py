@@ -130,7 +130,7 @@ def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarr
     """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros, type, CRC LE.
 
     >>> message_bytes(np.array([0x0102]), np.array([1]), 0x2A).tolist()
-    [[1, 2, 1, 1, 0, 0, 0, 0, 0, 42, 49, 192]]
+    [[1, 2, 1, 1, 0, 0, 0, 0, 0, 42, 104, 187]]
     """
     uids = np.asarray(uids, np.uint16)
     m = np.zeros((uids.shape[0], MSG_BYTES), np.uint8)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -240,18 +241,37 @@ def compare(emu: FirmwareOutputs, host: FirmwareOutputs) -> str:
     return ""
 
 
-def verify_host(qp: "QuantizedPolicy", files: dict[str, str], *, target_uids: tuple[int, ...] | None = None,
-                msg_type: int = fwspec.DEFAULT_MSG_TYPE, seed: int = 0,
+def rendered_params(c_text: str) -> tuple[tuple[int, ...], int]:
+    """(target uids, message type) of a rendered kilobot_policy.c, read back from its constants."""
+    m_type = re.search(r"^#define KF_MSG_TYPE (\d+)u\b", c_text, re.M)
+    m_uids = re.search(r"KF_TARGET_UIDS\[\d+\] PROGMEM = \{([^}]*)\}", c_text)
+    if not (m_type and m_uids):
+        raise HostBuildError("not a kiloforge policy program (KF_MSG_TYPE / KF_TARGET_UIDS not found)")
+    uids = tuple(int(v.strip().rstrip("u")) for v in m_uids.group(1).split(",") if v.strip())
+    return uids, int(m_type.group(1))
+
+
+def verify_host(qp: "QuantizedPolicy", files: dict[str, str], *, seed: int = 0,
                 spec: StreamSpec = StreamSpec(n_robots=64, n_steps=40)) -> HostCheck:
-    """Build ``files["kilobot_policy.c"]`` on the host, replay random streams, compare with the emulator."""
-    targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
+    """Build both rendered programs on the host, replay random streams, compare with the emulator.
+
+    The target uids and message type are read back from ``kilobot_policy.c``; the beacon program
+    is replayed with every robot a beacon.
+    """
+    targets, msg_type = rendered_params(files["kilobot_policy.c"])
     rng = np.random.default_rng(np.random.SeedSequence(seed))
-    inputs = random_inputs(rng, qp.world.period_ticks, targets, spec, msg_type, qp.world.comm_radius_mm,
-                           qp.world.light_threshold)
+    w = qp.world
+    inputs = random_inputs(rng, w.period_ticks, targets, spec, msg_type, w.comm_radius_mm, w.light_threshold)
     with tempfile.TemporaryDirectory(prefix="kiloforge-host-") as tmp:
-        exe = build_host(files["kilobot_policy.c"], tmp)
-        host = run_host(exe, inputs, qp.world.period_ticks, qp.world.obs_dim)
+        host = run_host(build_host(files["kilobot_policy.c"], tmp), inputs, w.period_ticks, w.obs_dim)
+        host_t = run_host(build_host(files["kilobot_target.c"], tmp, name="kilobot_target"), inputs,
+                          w.period_ticks, w.obs_dim)
     emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets, msg_type=msg_type).run(inputs)
+    emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids),
+                             msg_type=msg_type).run(inputs)
     detail = compare(emu, host)
-    steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(qp.world.period_ticks)
-    return HostCheck(ok=not detail, control_steps=steps, ticks=inputs.n_robots * inputs.n_ticks, detail=detail)
+    detail_t = compare(emu_t, host_t)
+    detail = "; ".join(d for d in (detail and f"policy program: {detail}",
+                                   detail_t and f"target program: {detail_t}") if d)
+    steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(w.period_ticks)
+    return HostCheck(ok=not detail, control_steps=steps, ticks=2 * inputs.n_robots * inputs.n_ticks, detail=detail)

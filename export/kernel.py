@@ -85,7 +85,10 @@ def proof(layer: QuantLayer) -> np.ndarray:
 
 
 def is_fast(layer: QuantLayer) -> bool:
-    """True when the AVR assembly kernel computes this layer exactly (24-bit proof, clamp, width)."""
+    """True when the AVR assembly kernel computes this layer exactly (24-bit proof, clamp, width).
+
+    The proof includes the rounding constant 2^(s-1), so a fast row always has s <= 23.
+    """
     n_out, n_in = layer.w.shape
     return bool(np.all(proof(layer) < ACC24_LIMIT) and (layer.lo, layer.hi) in FAST_CLAMPS
                 and 1 <= n_in <= FAST_MAX_IN)
@@ -301,10 +304,27 @@ def _avr_asm_lines() -> list[str]:
     a("subi r29, 8"); a("brcs .Lkf_p_small")  # s < 8
     a("mov r0, r1"); a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28")  # drop a byte; r28 = sign
     a("subi r29, 8"); a("brcs .Lkf_p_mid")  # 8 <= s < 16
-    a("mov r0, r1"); a("mov r1, r28")
-    a("subi r29, 8"); a("brcs .Lkf_p_mid")  # 16 <= s < 24
-    a("mov r0, r28"); a("rjmp 4f")  # s >= 24: only the sign is left
-    a(".Lkf_p_small:"); a("subi r29, -8"); a("breq 4f")  # 24-bit right shift by s
+    a("mov r0, r1"); a("mov r1, r28"); a("subi r29, 8"); a("rjmp .Lkf_p_mid")  # 16 <= s < 24 (s > 23 is never fast)
+    a(".Lkf_p_small:")  # s < 8, r29 = s - 8: for s >= 4 shift left t = 8 - s into a 4th byte, drop one
+    a("cpi r29, -4"); a("brlt .Lkf_p_right24")
+    a("cpi r29, -2"); a("brlt .Lkf_p_t34")
+    a("cpi r29, -1"); a("brne .Lkf_p_t2")
+    sign = ("mov r29, r28", "lsl r29", "sbc r29, r29")  # r29 = sign extension of r28
+    for t in (1, 2, 3, 4):
+        if t == 2:
+            a(".Lkf_p_t2:")
+        if t == 3:
+            a(".Lkf_p_t34:"); a("cpi r29, -3"); a("brne .Lkf_p_t4")
+        if t == 4:
+            a(".Lkf_p_t4:")
+        for ln in sign:
+            a(ln)
+        if t < 4:
+            a(f"rjmp .Lkf_p_sh{t}")
+    for t in (4, 3, 2, 1):  # falls through: entering at sh<t> shifts t bits left
+        a(f".Lkf_p_sh{t}:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29")
+    a("mov r0, r1"); a("mov r1, r28"); a("mov r28, r29"); a("rjmp 4f")
+    a(".Lkf_p_right24:"); a("subi r29, -8"); a("breq 4f")  # s < 4: 24-bit right shift by s
     a("1:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r29"); a("brne 1b"); a("rjmp 4f")
     a(".Lkf_p_left:")  # c >= 4 bits right = 8 - c bits left, then drop a byte (no overflow: |value| < 2^15)
     a("lsl r0"); a("rol r1"); a("rol r28"); a("inc r29"); a("brne .Lkf_p_left")

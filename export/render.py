@@ -35,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 TEMPLATE_DIR = Path(__file__).resolve().parent.parent / "firmware_templates"
 POLICY_FILE = "kilobot_policy.c"
 TARGET_FILE = "kilobot_target.c"
-#: hand-written C inlined into the programs, in this order (local #includes of them are dropped)
+#: hand-written C inlined into the programs, in this order (their local #includes are pasted in place)
 RUNTIME_SOURCES = ("kf_runtime.h",)
 DENSE_SOURCES = ("kf_dense.h", "kf_dense.c")
 MAX_TARGET_UIDS = 32

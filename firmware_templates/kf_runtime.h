@@ -91,6 +91,14 @@ static inline void kf_act_table(const int8_t *table, const int16_t *z, int8_t *x
 
 /* --- CRC-16/MCRF4XX (export/crc.py): reflected poly 0x8408, init 0xFFFF, no final xor ----------- */
 
+#ifdef __AVR__
+#include <util/crc16.h>
+/* avr-libc's _crc_ccitt_update is exactly this update (reflected 0x8408), in a few instructions */
+static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
+{
+    return _crc_ccitt_update(crc, byte);
+}
+#else
 static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
 {
     uint8_t bit;
@@ -100,6 +108,7 @@ static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
     }
     return crc;
 }
+#endif
 
 static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
 {

@@ -4,6 +4,7 @@
                           [--seed S] [--config file.json] [--resume] [--<any TrainConfig field> VALUE]
     python -m learn evaluate --policy P [P ...] --robots 16 32 --episodes 500 --steps 500 --out DIR
     python -m learn plot RUN_DIR [RUN_DIR ...] [--out curve.png]
+    python -m learn export-onnx --policy P.npz --out actor.onnx
 
 Every ``TrainConfig`` field is an option (``--lr-actor 3e-4``, ``--actor-hidden 32 32``).
 Precedence: defaults < ``--preset`` < ``--config`` file < options on the command line.
@@ -83,6 +84,9 @@ def build_parser() -> ArgumentParser:
     e.add_argument("--no-baselines", action="store_true", help="skip the random and hand-written baselines")
     e.add_argument("--no-gif", action="store_true", help="skip the episode GIF")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
+
+    sub.add_parser("export-onnx", add_help=False,
+                   help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
 
     pl = sub.add_parser("plot", help="learning curves of runs (mean ± 2 std over seeds)",
                         description="Plot learning curves; runs that differ only in seed are averaged.")
@@ -196,6 +200,11 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     from export.errors import ExportError
 
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "export-onnx":  # its own parser lives with the exporter (learn/onnx_export.py)
+        from .onnx_export import main_export_onnx
+
+        return main_export_onnx(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return {"train": cmd_train, "evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)

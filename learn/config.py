@@ -26,7 +26,7 @@ import dataclasses
 import json
 import math
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from sim.config import PRESETS as WORLD_PRESETS
@@ -214,6 +214,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "episodes": 100_000,
         "replay_size": 200_000,
         "eval_every": 25_600,
+        "eval_episodes": 50,
         "exp_name": "fast",
     },
     "quick": {
@@ -227,6 +228,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "episodes": 100_000,
         "replay_size": 100_000,
         "eval_every": 12_800,
+        "eval_episodes": 50,
         "max_minutes": 5.0,
         "exp_name": "quick",
     },

@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -130,6 +129,3 @@ def metrics_row(m: EpisodeMetrics) -> dict[str, float]:
             "eval_final_coverage": s["final_coverage"].mean, "eval_mean_coverage": s["mean_coverage"].mean,
             "eval_time_to_find": s["time_to_find"].mean, "eval_found_rate": s["found_rate"].mean}
 
-
-def nan_to_none(x: float) -> float | None:
-    return None if x is None or (isinstance(x, float) and math.isnan(x)) else x

@@ -276,7 +276,7 @@ def actor_policy(agent: MAGDDPG, cfg: TrainConfig, world, c: Counters, metrics: 
         "trainer": "kiloforge.learn MAGDDPG", "config": cfg.to_dict(), "seed": cfg.seed,
         "git": git_hash(), "torch": torch.__version__, "trained_robots": cfg.n_robots,
         "env_steps": c.env_steps, "updates": c.updates, "wall_s": round(c.wall_s, 1),
-        "eval": {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in metrics.items()},
+        "eval": finite_or_none(dict(metrics)),
     }
     return Policy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
                   activations=[a for _, _, a in layers], t_prev=cfg.t_prev, world=world,
@@ -322,5 +322,15 @@ def write_summary(run_dir: Path, cfg: TrainConfig, c: Counters, stopped: str) ->
         "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
         "seed": cfg.seed, "git": git_hash(),
     }
-    clean = json.loads(json.dumps(summary, default=float).replace("NaN", "null").replace("Infinity", "null"))
-    write_text_atomic(run_dir / "summary.json", json.dumps(clean, indent=2, sort_keys=True) + "\n")
+    write_text_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
+
+
+def finite_or_none(obj):
+    """JSON-safe copy: NaN and infinities become None (null)."""
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [finite_or_none(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj

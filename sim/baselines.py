@@ -73,10 +73,14 @@ class SearcherParams:
         assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
 
 
-#: tuned defaults per world preset (see the sim-tools report for the numbers)
+#: tuned defaults per world preset (sweeps over 32–128 episodes; numbers in the sim-tools report)
 TUNED: dict[str, SearcherParams] = {
-    "thesis": SearcherParams(),
-    "kilobot": SearcherParams(),
+    "thesis": SearcherParams(run_min_steps=25, run_alpha=1.5, run_max_steps=300, tumble_max_steps=3,
+                             wall_turn_min=3, wall_turn_max=3, wall_cooldown=2, uturn_steps=4,
+                             stop_dist=1.0),
+    "kilobot": SearcherParams(run_min_steps=30, run_alpha=1.5, run_max_steps=300, tumble_max_steps=2,
+                              wall_turn_min=3, wall_turn_max=3, wall_cooldown=2, uturn_steps=4,
+                              stop_dist=0.6),
 }
 
 

@@ -23,7 +23,7 @@ used.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
@@ -37,7 +37,6 @@ ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clip
 MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
 _STREAMS = ("init", "radio", "light")
 
-SeedLike = "int | None | np.random.SeedSequence | Sequence[np.random.SeedSequence]"
 
 
 def _child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
@@ -181,7 +180,7 @@ class SwarmEnv:
         return self.cfg.state_dim(self.n_robots)
 
     @property
-    def tick_radio(self) -> bool:
+    def tick_level_radio(self) -> bool:
         """True when messages follow the tick-level model (``msg_period_ticks >= 1``)."""
         return self.cfg.msg_period_ticks >= 1
 
@@ -255,12 +254,12 @@ class SwarmEnv:
         self._prev_wall = np.zeros((B, M), np.float32)
         self.t = 0
         self._tick0 = 0
-        if self.tick_radio:
+        if self.tick_level_radio:
             self.phase = draw_phases(self._rng_radio, M, self.cfg)
         if self._collider is not None:
             self._collider.invalidate()
         P = self.cfg.period_ticks
-        still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_radio else None  # no movement
+        still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
         dt = target_distance(self.pos, self.target)
         obs, info = self._sense(self._hear(still, dt), dt)
         self._started = True
@@ -313,13 +312,13 @@ class SwarmEnv:
         record = None
         if cfg.tick_level:
             assert q is not None
-            record = np.empty((cfg.period_ticks, B, M, 2)) if self.tick_radio else None
+            record = np.empty((cfg.period_ticks, B, M, 2)) if self.tick_level_radio else None
             tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
                 self._collider.resolve(self.pos, self.target)
-            if self.tick_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
+            if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
                 record = np.broadcast_to(self.pos, (cfg.period_ticks, B, M, 2))
         dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
         obs, info = self._sense(self._hear(record, dt), dt)
@@ -334,7 +333,7 @@ class SwarmEnv:
         return obs, reward, terminated, truncated, info
 
     def _hear(self, record: np.ndarray | None, dt: np.ndarray) -> RadioPeriod:
-        if self.tick_radio:
+        if self.tick_level_radio:
             return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
                               self._rng_radio, self.neighbour_method)
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,

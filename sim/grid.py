@@ -78,9 +78,9 @@ def distance(x: np.ndarray, y: np.ndarray, env: np.ndarray, i: np.ndarray, j: np
 
 
 def choose_method(n_envs: int, n_points: int, radius: float, extent: float) -> str:
-    """'dense' for small N or a grid too coarse to prune (<= 2 cells a side), else 'grid'."""
+    """'dense' for small N or a grid too coarse to prune (<= 3 cells a side), else 'grid'."""
     cells = max(1, int(2.0 * extent // radius))
-    if n_points <= DENSE_MAX_N or cells <= 2:
+    if n_points <= DENSE_MAX_N or cells <= 3:
         return "dense"
     return "grid"
 
@@ -164,15 +164,29 @@ def _dense_chunk(x: np.ndarray, y: np.ndarray, radius: float, ordered: bool) -> 
     i, j = I.take(k), J.take(k)
     if not ordered:
         return Pairs(e, i, j, udist)
-    # both directions, sorted by (env, rx, snd): sort packed keys (pair key << sh | unordered slot)
-    nu = fu.size
-    sh = max(1, int(nu).bit_length())
+    return _both_directions(e, i, j, udist, nb, N)
+
+
+def _sort_packed(key: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted key, permutation) for unique non-negative keys < limit, by sorting ``key << sh | index``
+    (a plain SIMD sort of int64 is several times faster than argsort here)."""
+    n = key.size
+    sh = max(1, int(n).bit_length())
+    if int(limit).bit_length() + sh > 62:  # would overflow int64: plain argsort
+        perm = np.argsort(key)
+        return key[perm], perm
+    packed = (key << sh) | np.arange(n, dtype=np.int64)
+    packed.sort()
+    return packed >> sh, packed & ((1 << sh) - 1)
+
+
+def _both_directions(e: np.ndarray, i: np.ndarray, j: np.ndarray, udist: np.ndarray, nb: int, N: int) -> Pairs:
+    """Ordered pairs (both directions) of unordered ones, sorted by (env, rx, snd), with uidx."""
+    nu = e.size
     base = e * N
-    r = np.arange(nu, dtype=np.int64)
-    keys = np.concatenate([(((base + i) * N + j) << sh) | r, (((base + j) * N + i) << sh) | r])
-    keys.sort()  # unique keys; SIMD sort
-    uidx = keys & ((1 << sh) - 1)
-    flat = keys >> sh
+    key = np.concatenate([(base + i) * N + j, (base + j) * N + i])  # (2 nu,) unique
+    flat, perm = _sort_packed(key, nb * N * N)
+    uidx = np.where(perm < nu, perm, perm - nu)
     eo = flat // (N * N)
     rem = flat - eo * (N * N)
     rx = rem // N
@@ -240,16 +254,12 @@ def _grid(x: np.ndarray, y: np.ndarray, radius: float, extent: float, ordered: b
     if not parts:
         return _empty(ordered)
     lo_id, hi_id, d2 = (np.concatenate(v) if len(parts) > 1 else v[0] for v in zip(*parts))
-    e = lo_id // N
-    i, j = lo_id - e * N, hi_id - e * N
-    d = np.sqrt(d2)
+    key, perm = _sort_packed(lo_id * N + (hi_id - (lo_id // N) * N), B * N * N)  # (e*N + i)*N + j
+    e = key // (N * N)
+    rem = key - e * (N * N)
+    i = rem // N
+    j = rem - i * N
+    d = np.sqrt(d2.take(perm))
     if not ordered:
-        srt = np.argsort(lo_id * N + j)  # = (e*N + i)*N + j; unique keys: any sort is exact
-        return Pairs(e[srt], i[srt], j[srt], d[srt])
-    K = i.size
-    eo = np.concatenate([e, e])
-    io = np.concatenate([i, j])
-    jo = np.concatenate([j, i])
-    srt = np.argsort((eo * N + io) * N + jo)  # unique keys
-    uidx = np.concatenate([np.arange(K), np.arange(K)])[srt]
-    return Pairs(eo[srt], io[srt], jo[srt], d[uidx], d, uidx)
+        return Pairs(e, i, j, d)
+    return _both_directions(e, i, j, d, B, N)

@@ -15,7 +15,7 @@ import pytest
 from export import fwspec, numfmt
 from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
 from export.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
-                              random_inputs, run_host, verify_host)
+                              random_inputs, rendered_params, run_host, verify_host)
 from export.render import POLICY_FILE, TARGET_FILE, render_firmware
 from export.synthetic import synthetic_qpolicy
 from sim.config import preset
@@ -194,11 +194,30 @@ def test_firmware_in_the_loop_stream_replays_on_host(builds):
 
 
 def test_verify_host_reports_ok():
-    """verify_host (the CLI's --verify host) builds, replays and reports a bit-exact match."""
+    """verify_host (the CLI's --verify host) checks both programs with the rendered uids and type."""
     qp = synthetic_qpolicy(preset("kilobot"), 2, (6,), seed=1)
-    result = verify_host(qp, render_firmware(qp, generator_version="t"), spec=StreamSpec(n_robots=16, n_steps=10))
-    assert result.ok and result.control_steps > 0
+    files = render_firmware(qp, target_uids=(9, 0), msg_type=0x11, generator_version="t")
+    assert rendered_params(files[POLICY_FILE]) == ((9, 0), 0x11)
+    result = verify_host(qp, files, spec=StreamSpec(n_robots=16, n_steps=10))
+    assert result.ok and result.control_steps > 0, str(result)
     assert "bit-exact" in str(result)
+
+
+EDGE_WORLDS = [
+    preset("kilobot", comm_radius_mm=255.0, rbf_hi_mm=255.0, rbf_sigma_mm=60.0, period_ticks=1),
+    preset("thesis", n_rbf=1, neighbour_table_size=1, period_ticks=255),
+    preset("thesis", neighbour_table_size=64, period_ticks=2),
+    preset("thesis", comm_radius_mm=1.0, rbf_lo_mm=0.0, rbf_hi_mm=0.0, n_rbf=2),
+]
+
+
+@pytest.mark.parametrize("world, t_prev, hidden", [(EDGE_WORLDS[0], 2, (3,)), (EDGE_WORLDS[1], 1, ()),
+                                                    (EDGE_WORLDS[2], 40, (4,)), (EDGE_WORLDS[3], 3, (2,))])
+def test_edge_configurations(world, t_prev, hidden):
+    """Extreme worlds (radius 255, period 1 and 255, tables of 1 and 64, a 40-tuple ring) build warning-free and match."""
+    qp = synthetic_qpolicy(world, t_prev, hidden, seed=3)
+    result = verify_host(qp, render_firmware(qp, generator_version="t"), spec=StreamSpec(n_robots=8, n_steps=6))
+    assert result.ok, str(result)
 
 
 def test_build_errors_name_the_problem(builds):

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,3 +159,14 @@ def test_comment_helper_breaks_terminators():
     for s in ("*/", "/*", "**//**", "a*/*/b", "*" * 5 + "/" * 5):
         out = c_comment(s)
         assert "*/" not in out and "/*" not in out
+
+
+def test_doctests_of_the_firmware_helpers():
+    """The doctests of the C formatting, CRC, firmware-constant and emulator modules pass."""
+    import doctest
+
+    from export import cformat, crc, emulator, fwspec as fw
+
+    for mod in (cformat, crc, fw, emulator):
+        res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS)
+        assert res.attempted > 0 and res.failed == 0, f"{mod.__name__}: {res}"

@@ -216,6 +216,24 @@ def test_fast_observe_equals_events_path(overrides, M):
         assert most > cfg.neighbour_table_size
 
 
+def test_fast_observe_tick_level_single_sends_equals_events_path():
+    """With one send per period (msg_period_ticks >= period_ticks) the fast path also applies to the
+    tick-level radio, and equals the events path bit for bit."""
+    cfg = preset("kilobot", msg_period_ticks=31, neighbour_table_size=3, arena_half_mm=150.0)
+    fast = SwarmEnv(cfg, 3, 16, seed=2, fast_observe=True)
+    slow = SwarmEnv(cfg, 3, 16, seed=2, fast_observe=False)
+    np.testing.assert_array_equal(fast.reset()[0], slow.reset()[0])
+    rng = np.random.default_rng(4)
+    n = 0
+    for _ in range(4):
+        a = rng.random((3, 16, 2))
+        o1, *_ = fast.step(a)
+        o2, *_, info = slow.step(a)
+        np.testing.assert_array_equal(o1, o2)
+        n += len(info["events"])
+    assert n > 0
+
+
 def test_observe_fast_direct_call_matches_observe():
     """observe_fast on a crowded period (table overflow) equals observe on its events."""
     cfg = preset("thesis", neighbour_table_size=4)

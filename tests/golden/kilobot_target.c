@@ -24,6 +24,12 @@
 #endif
 
 /* ===== hand-written runtime ===== */
+/* It runs once per control period or per message, not per multiply: on the AVR it is compiled for
+ * size (kilolib's -O3 would unroll it into hundreds of bytes of flash for nothing measurable). */
+#if defined(__AVR__) && !defined(KF_GLUE_OPTIMIZE_SPEED)
+#pragma GCC push_options
+#pragma GCC optimize("Os")
+#endif
 /* ---- firmware_templates/kf_runtime.h ---- */
 /*
  * kf_runtime.h: the hand-written fixed-point and message helpers of kiloforge firmware.
@@ -118,6 +124,14 @@ static inline void kf_act_table(const int8_t *table, const int16_t *z, int8_t *x
 
 /* --- CRC-16/MCRF4XX (export/crc.py): reflected poly 0x8408, init 0xFFFF, no final xor ----------- */
 
+#ifdef __AVR__
+#include <util/crc16.h>
+/* avr-libc's _crc_ccitt_update is exactly this update (reflected 0x8408), in a few instructions */
+static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
+{
+    return _crc_ccitt_update(crc, byte);
+}
+#else
 static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
 {
     uint8_t bit;
@@ -127,6 +141,7 @@ static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
     }
     return crc;
 }
+#endif
 
 static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
 {
@@ -140,6 +155,9 @@ static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
 
 #endif /* KF_RUNTIME_H */
 
+#if defined(__AVR__) && !defined(KF_GLUE_OPTIMIZE_SPEED)
+#pragma GCC pop_options
+#endif
 
 /* ===== message ===== */
 #define KF_MSG_TYPE 42u /* message type of ours (a user type: < 0x80, not 1) */

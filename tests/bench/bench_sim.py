@@ -1,0 +1,116 @@
+"""Simulator throughput benchmark: agent-steps per second and peak memory of SwarmEnv.step.
+
+    python tests/bench/bench_sim.py            # full table (a few minutes)
+    python tests/bench/bench_sim.py --quick    # small sizes only
+
+Worlds:
+  thesis/fixed     thesis preset, arena ±100 mm whatever M (density grows with M)
+  thesis/density   thesis preset, arena scaled to the density of M = 32 in ±100 mm:
+                   arena_half_mm = 100 * sqrt(M / 32) (≈ 3.3 neighbours per robot)
+  kilobot/density  kilobot preset (tick-level motion, collisions, lossy radio), arena scaled to
+                   the density of M = 32 in ±250 mm: arena_half_mm = 250 * sqrt(M / 32)
+
+Timing: random actions, after one warm-up step; each row reports the best of several timed
+blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
+blocks. Peak memory: tracemalloc peak (NumPy allocations) during one extra step, measured
+separately from the timing. Rows whose estimated memory exceeds --max-gb are skipped.
+Not a test: nothing is asserted; print a table to paste into docs.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+import tracemalloc
+
+import numpy as np
+
+sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..")))
+
+from sim.config import preset  # noqa: E402
+from sim.env import SwarmEnv  # noqa: E402
+from sim.grid import choose_method  # noqa: E402
+
+
+def world(kind: str, M: int):
+    if kind == "thesis/fixed":
+        return preset("thesis")
+    if kind == "thesis/density":
+        return preset("thesis", arena_half_mm=100.0 * math.sqrt(M / 32))
+    if kind == "kilobot/density":
+        return preset("kilobot", arena_half_mm=250.0 * math.sqrt(M / 32))
+    raise ValueError(kind)
+
+
+def est_bytes(cfg, B: int, M: int) -> float:
+    """Rough peak estimate: ~150 bytes per in-range ordered pair plus per-robot state."""
+    area = (2 * cfg.arena_half_mm) ** 2
+    nbrs = min(M - 1, (M - 1) * math.pi * cfg.comm_radius_mm ** 2 / area)
+    ticks = cfg.period_ticks if cfg.tick_level else 1
+    return B * M * (nbrs * 150 * (2 if cfg.tick_level else 1) + 64 * ticks + 400)
+
+
+def bench(cfg, B: int, M: int, min_time: float, max_steps: int) -> dict:
+    env = SwarmEnv(cfg, B, M, seed=0)
+    env.reset()
+    rng = np.random.default_rng(0)
+    acts = [rng.random((B, M, 2)) for _ in range(4)]
+    env.step(acts[0])  # warm-up
+    best_wall = best_cpu = math.inf
+    steps_done, t_total = 0, 0.0
+    block = 1
+    while steps_done < max_steps and (t_total < min_time or steps_done < 3):
+        if env.t + block > cfg.episode_steps:
+            env.reset()
+        w0, c0 = time.perf_counter(), time.process_time()
+        for s in range(block):
+            *_, info = env.step(acts[s % 4])
+        w, c = time.perf_counter() - w0, time.process_time() - c0
+        best_wall, best_cpu = min(best_wall, w / block), min(best_cpu, c / block)
+        steps_done += block
+        t_total += w
+        block = max(1, min(8, int(0.2 / max(w / block, 1e-6))))
+    nbrs = float(np.mean([len(info["events"])])) / (B * M)  # messages received per robot per period
+    if env.t >= cfg.episode_steps:
+        env.reset()
+    tracemalloc.start()
+    env.step(acts[1])
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return {"wall": best_wall, "cpu": best_cpu, "peak": peak, "msgs": nbrs, "steps": steps_done}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes only")
+    ap.add_argument("--max-gb", type=float, default=4.0, help="skip rows estimated above this")
+    ap.add_argument("--min-time", type=float, default=1.0, help="seconds of timed steps per row")
+    args = ap.parse_args()
+    Ms = [4, 32, 256] if args.quick else [4, 32, 256, 1024]
+    Bs = [1, 64] if args.quick else [1, 64, 1024]
+    rows = [("thesis/fixed", M, B) for M in Ms for B in Bs]
+    rows += [("thesis/density", M, B) for M in Ms for B in Bs if M != 32]  # M=32 equals fixed
+    kb = [(4, 1), (4, 64), (32, 1), (32, 64)] + ([] if args.quick else [(256, 8), (1024, 1)])
+    rows += [("kilobot/density", M, B) for M, B in kb]
+    print(f"# kiloforge simulator benchmark — {platform.processor() or platform.machine()}, "
+          f"{os.cpu_count()} cores, numpy {np.__version__}, python {platform.python_version()}")
+    print("# shared machine: other jobs were running; numbers are best-of-blocks, expect ±30 %\n")
+    print("| world | M | B | search | agent-steps/s (wall) | ms/step | agent-steps/s (cpu) | msgs/robot/period | peak MiB |")
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|")
+    for kind, M, B in rows:
+        cfg = world(kind, M)
+        method = choose_method(B, M, cfg.comm_radius_mm, cfg.arena_half_mm)
+        if est_bytes(cfg, B, M) > args.max_gb * 2 ** 30:
+            print(f"| {kind} | {M} | {B} | {method} | skipped (> {args.max_gb:g} GB est.) | | | | |")
+            continue
+        r = bench(cfg, B, M, args.min_time, max_steps=200)
+        n = B * M
+        print(f"| {kind} | {M} | {B} | {method} | {n / r['wall']:,.0f} | {r['wall'] * 1e3:.2f} | "
+              f"{n / r['cpu']:,.0f} | {r['msgs']:.1f} | {r['peak'] / 2 ** 20:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""Exact AVR budgets (export.avr.exact_budget) and robot builds against a kilolib checkout."""
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from avr_tools import require_avr
+from export import avr
+from export.budget import FLASH_LIMIT_B
+from export.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.synthetic import synthetic_qpolicy
+from sim.config import preset
+
+pytestmark = pytest.mark.avr
+
+WORLD = preset("kilobot", period_ticks=6)
+
+
+def test_empty_program_costs_exactly_kilolib(tmp_path):
+    """The kilolib correction: an empty setup/loop program is kilolib's 7,028 B flash and 0 B user SRAM."""
+    require_avr()
+    pb = avr.program_budget("empty.c", avr.EMPTY_PROGRAM, tmp_path)
+    assert (pb.flash, pb.sram_static) == (avr.KILOLIB_FLASH, 0)
+    assert pb.sizes == pb.standin
+
+
+def test_exact_budget_of_a_rendered_policy():
+    """Exact figures are consistent (text+data corrected; SRAM = static + stack) and grow with the weights."""
+    require_avr()
+    small, big = (synthetic_qpolicy(WORLD, 4, (h,), seed=1) for h in (8, 24))
+    eb_small = avr.exact_budget(render_firmware(small))
+    eb_big = avr.exact_budget(render_firmware(big))
+    for eb in (eb_small, eb_big):
+        assert avr.KILOLIB_FLASH < eb["flash"] <= FLASH_LIMIT_B
+        assert eb["sram_user"] == eb["sram_static"] + eb["stack"] and eb["stack_source"] == "estimate"
+        assert eb["kilobot_target_flash"] < eb["flash"]
+    extra_weights = (24 - 8) * (small.layers[0].w.shape[1] + 2)  # int8 weights only, kernel arrays add more
+    assert eb_big["flash"] - eb_small["flash"] > extra_weights
+    assert eb_big["sram_static"] - eb_small["sram_static"] < 64  # weights stay in flash (PROGMEM)
+
+
+def test_exact_budget_measures_the_stack_in_simavr():
+    """With the policy given and simavr installed, the stack figure is measured, not estimated."""
+    require_avr(simulate=True)
+    qp = synthetic_qpolicy(WORLD, 4, (16,), seed=2)
+    eb = avr.exact_budget(render_firmware(qp), qp, stack_steps=10)
+    assert eb["stack_source"] == "simavr" and 20 < eb["stack"] < 600
+    assert eb["sram_user"] == eb["sram_static"] + eb["stack"]
+
+
+def _fake_kilolib(d):
+    """A kilolib checkout look-alike: our stand-in as kilolib.h + build/kilolib.a."""
+    (d / "build").mkdir(parents=True)
+    (d / "kilolib.h").write_text((avr.STANDIN_DIR / "kilolib.h").read_text())
+    obj = d / "build" / "kilolib.o"
+    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, "-c", "-o", str(obj), str(avr.STANDIN_DIR / "kilolib_avr.c")],
+                   check=True)
+    subprocess.run(["avr-ar", "rcs", str(d / "build" / "kilolib.a"), str(obj)], check=True)
+    return d
+
+
+def test_build_for_robot_writes_elf_and_hex(tmp_path):
+    """Against a kilolib checkout: an .elf and an Intel-hex .hex per program, hex bytes = text + data."""
+    require_avr()
+    files = render_firmware(synthetic_qpolicy(WORLD, 2, (8,), seed=3))
+    builds = avr.build_for_robot(files, _fake_kilolib(tmp_path / "kilolib"), tmp_path / "out")
+    assert set(builds) == {POLICY_FILE, TARGET_FILE}
+    for b in builds.values():
+        lines = b.hex.read_text().split()
+        assert lines[-1] == ":00000001FF" and all(l.startswith(":") for l in lines)
+        data = sum(int(l[1:3], 16) for l in lines if l[7:9] == "00")
+        assert data == b.sizes.flash
+
+
+def test_find_kilolib_explains_an_unbuilt_checkout(tmp_path):
+    """A directory without kilolib.h / build/kilolib.a gets a message that says what to do."""
+    with pytest.raises(avr.AvrError, match="make"):
+        avr.find_kilolib(tmp_path)
