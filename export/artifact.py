@@ -9,6 +9,9 @@ File format (one ``.npz`` in :func:`numpy.savez`'s layout, byte-for-byte reprodu
         action_mapping "clip01", world (WorldConfig.to_dict()), provenance {...},
         policy_hash (sha256 of the canonical bytes of the weights and of meta without this field)
 
+Kind ``"gru"`` (a recurrent actor: GRU cell + linear output) has its own arrays and checks in
+:mod:`export.gru` (:class:`export.gru.GRUPolicy`); ``load_policy`` returns one for such a file.
+
 ``load_policy`` reads it with ``allow_pickle=False`` and validates everything (structure, version,
 shapes against the world's history width, finite values, activations, world config, hash); every
 problem raises :class:`PolicyError` with one line that names the file and the problem.
@@ -33,11 +36,12 @@ from .atomic import write_bytes_atomic
 from .errors import ExportError, PolicyError
 from .numfmt import ACTIVATIONS, act_float
 
-__all__ = ["Policy", "save_policy", "load_policy", "PolicyError", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["Policy", "save_policy", "load_policy", "PolicyError", "FORMAT", "FORMAT_VERSION", "npz_bytes"]
 
 FORMAT = "kiloforge-policy"
 FORMAT_VERSION = 1
-KINDS = ("mlp",)
+KINDS = ("mlp", "gru")  #: "gru": the recurrent actor of export/gru.py (GRUPolicy)
+MLP_KINDS = ("mlp",)  #: kinds this module's Policy class holds
 ACTION_MAPPING = "clip01"  #: actions are the output layer's values clipped to [0, 1]
 
 
@@ -68,8 +72,9 @@ class Policy:
         def bad(msg: str) -> None:
             raise PolicyError(f"policy: {msg}")
 
-        if self.kind not in KINDS:
-            bad(f"unknown kind '{self.kind}' (supported: {', '.join(KINDS)})")
+        if self.kind not in MLP_KINDS:
+            hint = " (a recurrent actor is an export.gru.GRUPolicy)" if self.kind == "gru" else ""
+            bad(f"unknown kind '{self.kind}' (supported: {', '.join(MLP_KINDS)}){hint}")
         if not isinstance(self.world, WorldConfig):
             bad(f"world must be a WorldConfig, got {type(self.world).__name__}")
         if isinstance(self.t_prev, bool) or not isinstance(self.t_prev, (int, np.integer)) or self.t_prev < 1:
@@ -190,15 +195,19 @@ class Policy:
             arrays[f"w{k}"] = w
             arrays[f"b{k}"] = b
         arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True, indent=1).encode("utf-8"), np.uint8)
-        # the layout of numpy.savez (one .npy member per array, stored), with fixed member
-        # timestamps so that the same policy always gives the same bytes
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
-            for name, arr in arrays.items():
-                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                with zf.open(info, "w") as f:
-                    np.lib.format.write_array(f, np.ascontiguousarray(arr), allow_pickle=False)
-        return buf.getvalue()
+        return npz_bytes(arrays)
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """The layout of numpy.savez (one .npy member per array, stored, in the given order), with fixed
+    member timestamps so that the same arrays always give the same bytes."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with zf.open(info, "w") as f:
+                np.lib.format.write_array(f, np.ascontiguousarray(arr), allow_pickle=False)
+    return buf.getvalue()
 
 
 def save_policy(policy: Policy, path: str | os.PathLike) -> Path:
@@ -263,6 +272,13 @@ def load_policy(path: str | os.PathLike) -> Policy:
         raise bad(f"unknown kind {kind!r} (supported: {', '.join(KINDS)})")
     if meta.get("action_mapping", ACTION_MAPPING) != ACTION_MAPPING:
         raise bad(f"action mapping {meta.get('action_mapping')!r} is not supported (only '{ACTION_MAPPING}')")
+    if kind == "gru":  # the recurrent actor: its own arrays and checks (export/gru.py)
+        from .gru import gru_policy_from_arrays
+        try:
+            gru = gru_policy_from_arrays(arrays, meta)
+        except PolicyError as e:
+            raise bad(str(e).removeprefix("policy: ")) from None
+        return _check_hash(gru, meta, bad)
     for key in ("activations", "t_prev", "world", "layer_sizes"):
         if key not in meta:
             raise bad(f"'meta' lacks '{key}'")
@@ -292,6 +308,11 @@ def load_policy(path: str | os.PathLike) -> Policy:
                         activations=acts, t_prev=meta["t_prev"], world=world, provenance=prov, kind=kind)
     except PolicyError as e:
         raise bad(str(e).removeprefix("policy: ")) from None
+    return _check_hash(policy, meta, bad)
+
+
+def _check_hash(policy: Any, meta: dict, bad: Any) -> Any:
+    """The loaded policy, unless the stored ``policy_hash`` disagrees with its contents."""
     stored = meta.get("policy_hash")
     if stored is not None and stored != policy.hash:
         raise bad(f"policy_hash {str(stored)[:12]}... does not match the contents ({policy.hash[:12]}...); "

@@ -11,12 +11,18 @@ that this module compiles once into a cache directory.
   (``Budget.with_exact``): the stand-in's own size is replaced by kilolib's (see below).
 * :func:`run_elf` runs an ELF in simavr (ATmega328P, 8 MHz) with a byte stream in and out, cycle
   marks and the painted-stack high-water mark.
+* :func:`verify_simavr` is rung 3 of the verification ladder (``python -m export --verify avr``):
+  the AVR build of the generated program, driven by the replay harness of
+  ``firmware_templates/host/`` with simavr I/O (``firmware_templates/avr/kf_avr_io.c``), must equal
+  :class:`export.emulator.FirmwareEmulator` byte for byte; it also reports cycles per control
+  step, cycles per MAC of the dense layers and the peak stack of ``loop()``.
+* :func:`robot_images` builds ``.elf`` / ``.hex`` (for KiloGUI) against a real kilolib checkout.
 * :func:`kernel_program` / :func:`run_kernel` run ``kf_dense`` layers in simavr (tests, benchmark).
 
 The kilolib correction. kilolib has no licence, so we never build against it by default: the
 stand-in implements its documented API (our own code) and the figures of a program built with it
 are corrected by ``kilolib size - stand-in size``, both measured as a program with empty
-``setup``/``loop``. kilolib's figures, :data:`KILOLIB_FLASH_B` / :data:`KILOLIB_SRAM_B`, are the
+``setup``/``loop``. kilolib's figures, :data:`KILOLIB_FLASH` / :data:`KILOLIB_SRAM`, are the
 platform notes' (``shared/reference/kilobot-platform.md``: kilolib alone with empty setup/loop,
 7,028 B flash and 110 B static SRAM, measured with Debian's avr-gcc 5.4 / avr-libc 2.0 and the
 flags below). With a real kilolib checkout (``kilolib_dir``) no correction is applied.
@@ -36,6 +42,7 @@ from typing import Sequence
 import numpy as np
 
 from .budget import FLASH_LIMIT_B, KILOLIB_FLASH_B, KILOLIB_SRAM_STATIC_B, SRAM_LIMIT_B
+from .errors import ExportError
 
 #: kilolib's build regime (platform notes): it changes the ABI (char signedness, enum and struct sizes)
 KILOLIB_CFLAGS = ("-mmcu=atmega328p", "-O3", "-funsigned-char", "-funsigned-bitfields", "-fpack-struct",
@@ -58,8 +65,8 @@ MARK_BEGIN, MARK_END = 1, 2  #: kernel program: marks around each kf_dense2 call
 MARK_CAL_A, MARK_CAL_B = 3, 4  #: back-to-back marks: the cost of marking itself
 
 
-class AvrError(RuntimeError):
-    """A build or a simulator run failed (the message carries the tool's output)."""
+class AvrError(ExportError):
+    """A build or a simulator run failed (one line; it carries the tool's output)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,7 +258,8 @@ def mark_overhead(res: SimResult) -> int:
 # Kernel programs (tests and benchmark)
 # --------------------------------------------------------------------------------------------
 def kernel_sources() -> dict[str, str]:
-    """kf_dense.h / kf_dense.c / kf_sim_io.h texts, to be written beside a test program."""
+    """kf_dense.h / kf_dense.c / kf_sim_io.h texts, to be written beside a test program (kf_dense.c
+    under another name: :func:`build` compiles every ``.c`` it is given, the program includes it)."""
     return {"kf_dense.h": (TEMPLATES / "kf_dense.h").read_text(),
             "kf_dense_impl.h": (TEMPLATES / "kf_dense.c").read_text(),
             "kf_sim_io.h": (STANDIN_DIR / "kf_sim_io.h").read_text()}
@@ -280,7 +288,8 @@ def kernel_program(layers: Sequence["KernelLayer"]) -> str:  # noqa: F821 (expor
     """
     max_in = max(l.n_in for l in layers)
     max_out = max(l.n_out for l in layers)
-    parts = ["#include <stdint.h>", HOST_IO_SHIM, '#include "kf_dense.h"', '#include "kf_dense_impl.h"', ""]
+    fast = "#define KF_DENSE_ALL_FAST 1" if all(l.fast for l in layers) else "/* some layers use the int32 path */"
+    parts = ["#include <stdint.h>", HOST_IO_SHIM, fast, '#include "kf_dense.h"', '#include "kf_dense_impl.h"', ""]
     for i, l in enumerate(layers):
         parts.append(l.c_source(f"KF_L{i}"))
     names = ", ".join(f"&KF_L{i}" for i in range(len(layers)))
@@ -413,17 +422,16 @@ LAYER_MARK_DEFINE = "KF_DENSE_MARK(id)=(*(volatile unsigned char *)0x3E = (unsig
 IO_CALL_RETURN_B = 2  #: return address of the harness's kf_io_read call (the paint is inside it)
 
 
+_STANDIN_SIZES: list[Sizes] = []  #: the empty program's sizes, measured once per process
+
+
 def _standin_sizes(work: Path) -> Sizes:
-    """Sizes of the empty-setup/loop program built with our stand-in (cached per process)."""
-    key = "standin"
-    if key not in _SIZE_CACHE:
+    """Sizes of the empty-setup/loop program built with our stand-in."""
+    if not _STANDIN_SIZES:
         b = build({"empty.c": EMPTY_PROGRAM}, work / "empty", name="empty", include_dirs=(STANDIN_DIR,),
                   extra_objects=(STANDIN_DIR / "kilolib_avr.c",))
-        _SIZE_CACHE[key] = b.sizes
-    return _SIZE_CACHE[key]
-
-
-_SIZE_CACHE: dict[str, Sizes] = {}
+        _STANDIN_SIZES.append(b.sizes)
+    return _STANDIN_SIZES[0]
 
 
 @dataclass(frozen=True)
@@ -433,13 +441,8 @@ class ProgramBudget:
     name: str
     flash: int  #: text + data of the whole program with kilolib (corrected as in the module doc)
     sram_static: int  #: user .data + .bss (kilolib's own excluded)
-    stack_peak: int | None  #: peak stack of loop() at control steps (simavr), None when not measured
     sizes: Sizes  #: raw sizes of the stand-in build
     standin: Sizes  #: raw sizes of the empty program with the stand-in
-
-    @property
-    def sram_user(self) -> int | None:
-        return None if self.stack_peak is None else self.sram_static + self.stack_peak
 
 
 def program_budget(name: str, c_source: str, work: Path) -> ProgramBudget:
@@ -448,7 +451,7 @@ def program_budget(name: str, c_source: str, work: Path) -> ProgramBudget:
               extra_objects=(STANDIN_DIR / "kilolib_avr.c",))
     e = _standin_sizes(work)
     return ProgramBudget(name=name, flash=b.sizes.flash - e.flash + KILOLIB_FLASH,
-                         sram_static=b.sizes.sram_static - e.sram_static, stack_peak=None, sizes=b.sizes, standin=e)
+                         sram_static=b.sizes.sram_static - e.sram_static, sizes=b.sizes, standin=e)
 
 
 def exact_budget(rendered_files: dict[str, str], qpolicy: "QuantizedPolicy | None" = None, *,  # noqa: F821
@@ -456,37 +459,31 @@ def exact_budget(rendered_files: dict[str, str], qpolicy: "QuantizedPolicy | Non
     """Exact flash / SRAM of the rendered programs from real avr-gcc builds (kilolib's flags).
 
     Returns the dict :meth:`export.budget.Budget.with_exact` takes: ``flash`` and ``sram_user`` of
-    ``kilobot_policy.c`` (the program that must fit), plus detail keys. ``sram_user`` is user
+    ``kilobot_policy.c`` (the program that must fit), ``sram_static`` and ``stack`` (its parts),
+    ``stack_source`` and ``<other program>_flash`` (the beacon program). ``sram_user`` is user
     .data + .bss + the peak stack of ``loop()`` at control steps, measured in simavr when
     ``qpolicy`` is given and simavr is installed (``stack_steps`` control steps of a random event
-    stream); otherwise the analytic stack estimate of :mod:`export.budget` is added and
-    ``stack`` says ``"estimate"``. Raises :class:`AvrError` when avr-gcc is missing or fails.
+    stream, which is also checked against the emulator); otherwise the analytic stack estimate of
+    :mod:`export.budget` is added and ``stack_source`` says ``"estimate"``. Raises
+    :class:`AvrError` when avr-gcc is missing or fails, or the AVR build disagrees with the emulator.
     """
     from .budget import CONTROL_STACK_B
-    out: dict = {}
     with tempfile.TemporaryDirectory(prefix="kf_budget_") as td:
-        work = Path(td)
-        for name, text in sorted(rendered_files.items()):
-            if not name.endswith(".c"):
-                continue
-            pb = program_budget(name, text, work)
-            out[name] = {"flash": pb.flash, "sram_static": pb.sram_static, "text": pb.sizes.text,
-                         "data": pb.sizes.data, "bss": pb.sizes.bss}
-    main = out[POLICY_FILE]
+        progs = {name: program_budget(name, text, Path(td)) for name, text in sorted(rendered_files.items())
+                 if name.endswith(".c")}
+    main = progs[POLICY_FILE]
+    result: dict = {"flash": main.flash}
     stack, how = CONTROL_STACK_B, "estimate"
     if qpolicy is not None and missing_tools(simulate=True) is None:
-        check = verify_simavr(qpolicy, rendered_files, n_robots=max(1, stack_steps // 20 + 1), n_steps=20, seed=seed)
-        stack, how = check.stack_peak, "simavr"
-        out["cycles_per_step"] = check.cycles_step_max
-    result = {"flash": main["flash"], "sram_user": main["sram_static"] + stack,
-              "sram_static": main["sram_static"], "stack": stack, "stack_source": how,
-              "kilolib_flash": KILOLIB_FLASH, "kilolib_sram": KILOLIB_SRAM,
-              "flash_limit_ok": main["flash"] <= FLASH_LIMIT_B,
-              "sram_limit_ok": main["sram_static"] + stack <= SRAM_LIMIT_B}
-    result.update({k: v for k, v in out.items() if k != POLICY_FILE and not isinstance(v, dict)})
-    for name, d in out.items():
-        if isinstance(d, dict) and name != POLICY_FILE:
-            result[f"{Path(name).stem}_flash"] = d["flash"]
+        n_robots = 4  # a random stream: some robots may be beacons, whose loop() does nothing
+        check = verify_simavr(qpolicy, rendered_files, n_robots=n_robots, n_steps=max(2, stack_steps // n_robots),
+                              seed=seed)
+        if not check.ok:
+            raise AvrError(f"the AVR build does not match the emulator: {check.detail}")
+        if check.cycles_step.size:
+            stack, how = check.stack_peak, "simavr"
+    result.update(sram_user=main.sram_static + stack, sram_static=main.sram_static, stack=stack, stack_source=how)
+    result.update({f"{Path(n).stem}_flash": p.flash for n, p in progs.items() if n != POLICY_FILE})
     return result
 
 
@@ -498,6 +495,19 @@ def find_kilolib(kilolib_dir: Path) -> tuple[Path, Path]:
     if not heads or not libs:
         raise AvrError(f"{d}: not a built kilolib checkout (need kilolib.h and build/kilolib.a; run `make` there)")
     return heads[0], libs[0]
+
+
+def robot_images(rendered_files: dict[str, str], kilolib_dir: Path) -> dict[str, bytes]:
+    """``{"kilobot_policy.hex": ..., "kilobot_policy.elf": ..., ...}``: every rendered program built
+    against a real kilolib checkout, as bytes (the CLI writes them atomically beside the C files).
+    Upload the ``.hex`` with KiloGUI."""
+    with tempfile.TemporaryDirectory(prefix="kf_robot_") as td:
+        builds = build_for_robot(rendered_files, kilolib_dir, Path(td))
+        out = {}
+        for b in builds.values():
+            out[b.elf.name] = b.elf.read_bytes()
+            out[b.hex.name] = b.hex.read_bytes()
+    return out
 
 
 def build_for_robot(rendered_files: dict[str, str], kilolib_dir: Path, out_dir: Path) -> dict[str, Build]:

@@ -90,6 +90,7 @@ class Budget:
     exact: dict[str, Any] | None = None  #: avr-gcc figures (keys "flash", "sram_user", ...) from export/avr.py
     flash_limit: int = FLASH_LIMIT_B
     sram_limit: int = SRAM_LIMIT_B
+    kind: str = "mlp"  #: "mlp", or "gru": a recurrent actor (layer_sizes (in, hidden, 2), t_prev 1)
 
     # --- totals ------------------------------------------------------------------------------
     @property
@@ -140,6 +141,9 @@ class Budget:
         arch = " -> ".join(map(str, self.layer_sizes))
         lines = [f"budget: world '{self.world.name}', t_prev {self.t_prev}, layers {arch} "
                  f"({', '.join(self.activations)})"]
+        if self.kind == "gru":
+            lines = [f"budget: world '{self.world.name}', GRU actor: input {self.layer_sizes[0]}, "
+                     f"{self.layer_sizes[1]} hidden units (int8 state), linear output {self.layer_sizes[2]}"]
         for section, total, limit in (("flash", self.flash_analytic, self.flash_limit),
                                       ("sram", self.sram_analytic, self.sram_limit)):
             lines.append(f"  {section.upper()} (analytic)")
@@ -169,6 +173,9 @@ class Budget:
         """What would fit: the largest history at these hidden sizes, the largest width at this history."""
         acts_h = self.activations[:-1]
         out = []
+        if self.kind == "gru":
+            best = largest_gru_hidden(self.world)
+            return [f"a GRU of <= {best} hidden units" if best else "no GRU size fits"]
         t_best = largest_t_prev(self.world, self.hidden, acts_h)
         if t_best:
             out.append(f"t_prev <= {t_best} with hidden {list(self.hidden)}")
@@ -192,6 +199,7 @@ class Budget:
                           "items": {i.name: i.bytes for i in self.items if i.section == "sram"}},
             "exact": self.exact, "fits": self.ok,
             "code_estimate_b": dict(CODE_ESTIMATE_B),
+            **({"kind": self.kind, "gru_code_b": GRU_CODE_B} if self.kind != "mlp" else {}),
         }
 
 
@@ -297,4 +305,71 @@ def largest_width(world: WorldConfig, t_prev: int, n_hidden: int, activations: S
         if not estimate(world, t_prev, [w] * n_hidden, activations).ok:
             break
         best = w
+    return best
+
+
+# --- the recurrent actor (export/gru_quantize.py, firmware_templates/kilobot_policy_gru.c.j2) ------
+GRU_LAYERS = 5  #: dense layers of the int8 GRU: r and z gates over [x, h], n's input and hidden parts, output
+GRU_CODE_B = 300  #: code of the GRU step beyond the dense calls (gate tables, n, state update); estimate
+GRU_GATE_TABLES_B = 3 * 256  #: sigmoid (r), 1 - sigmoid (1 - z) uint8 and tanh int8 tables
+
+
+def gru_sizes(in_dim: int, hidden: int) -> list[tuple[int, int]]:
+    """(n_out, n_in) of the five dense layers: r, z over [x, h]; n over x; n over h; the output.
+
+    >>> gru_sizes(16, 32)
+    [(32, 48), (32, 48), (32, 16), (32, 32), (2, 32)]
+    """
+    D, H = int(in_dim), int(hidden)
+    return [(H, D + H), (H, D + H), (H, D), (H, H), (ACTION_DIM, H)]
+
+
+def estimate_gru(world: WorldConfig, hidden: int, *, e_in: int = numfmt.DEFAULT_INPUT_EXP,
+                 n_target_uids: int = 1) -> Budget:
+    """Analytic budget of the int8 GRU actor with ``hidden`` units (one tuple of input per step).
+
+    >>> from sim.config import preset
+    >>> estimate_gru(preset("kilobot"), 32).ok
+    True
+    """
+    assert hidden >= 1, f"hidden must be >= 1, got {hidden}"
+    D, H = world.tuple_dim, int(hidden)
+    layers = gru_sizes(D, H)
+    n_w = sum(o * i for o, i in layers)
+    n_rows = sum(o for o, _ in layers)
+    rbf_b, tgt_b = sensing_table_bytes(world, e_in)
+    items = [
+        Item("flash", "kilolib", KILOLIB_FLASH_B, "measured, empty setup/loop"),
+        Item("flash", "program code (estimate)",
+             CODE_ESTIMATE_B["base"] + CODE_ESTIMATE_B["per_layer"] * GRU_LAYERS + GRU_CODE_B,
+             f"{CODE_ESTIMATE_B['base']} + {CODE_ESTIMATE_B['per_layer']} x {GRU_LAYERS} layers + {GRU_CODE_B} GRU step"),
+        Item("flash", "layer descriptors", LAYER_DESCRIPTOR_B * GRU_LAYERS, f"{LAYER_DESCRIPTOR_B} x {GRU_LAYERS} (.data)"),
+        Item("flash", "weights int8", n_w, " + ".join(f"{o}x{i}" for o, i in layers)),
+        Item("flash", "biases int32", 4 * n_rows, f"4 x {n_rows} rows"),
+        Item("flash", "shifts uint8", n_rows, f"1 x {n_rows} rows"),
+        Item("flash", "RBF table", rbf_b, f"{world.n_rbf} non-zero windows + index, e_in {e_in}"),
+        Item("flash", "target, action, uid tables", tgt_b + 256 + 2 * n_target_uids,
+             f"{tgt_b} + 256 int8 + {n_target_uids} uint16"),
+        Item("flash", "gate tables", GRU_GATE_TABLES_B, "sigmoid, 1 - sigmoid (uint8), tanh (int8)"),
+        Item("sram", "hidden state + input", H + D, f"{H} + {D} int8"),
+        Item("sram", "neighbour table", world.neighbour_table_size * NEIGHBOUR_ENTRY_B,
+             f"{world.neighbour_table_size} x {NEIGHBOUR_ENTRY_B} B"),
+        Item("sram", "rx queue", RX_QUEUE_LEN * RX_ENTRY_B, f"{RX_QUEUE_LEN} x {RX_ENTRY_B} B"),
+        Item("sram", "outgoing message", MESSAGE_B, "message_t"),
+        Item("sram", "misc state", MISC_STATE_B, "estimate"),
+        Item("sram", "gate buffers", 2 * 2 * H + H, f"{2 * H} int16 + {H} uint8"),
+        Item("sram", "layer descriptors", LAYER_DESCRIPTOR_B * GRU_LAYERS, f"{LAYER_DESCRIPTOR_B} x {GRU_LAYERS}"),
+        Item("sram", "control-step stack (estimate)", CONTROL_STACK_B, "estimate"),
+    ]
+    return Budget(world=world, t_prev=1, layer_sizes=(D, H, ACTION_DIM), activations=("gru", "identity"),
+                  items=tuple(items), kind="gru")
+
+
+def largest_gru_hidden(world: WorldConfig, cap: int = 255) -> int:
+    """Largest GRU hidden size (<= cap) that fits; 0 when none does."""
+    best = 0
+    for h in range(1, cap + 1):
+        if not estimate_gru(world, h).ok:
+            break
+        best = h
     return best

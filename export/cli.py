@@ -4,7 +4,7 @@ Export (the default command)::
 
     python -m export --out kilobot_policy.c [--policy PATH | --onnx PATH [--world-json FILE]]
                      [--robots-calib 4 16] [--calib-episodes 1] [--calib-steps N] [--seed 0]
-                     [--target-uids 0,5] [--verify host]
+                     [--target-uids 0,5] [--verify host|avr] [--kilolib DIR]
 
 loads the policy (default: the shipped placeholder ``export/data/default_policy.npz``), checks the
 analytic flash/SRAM budget (refusing an architecture that does not fit, and saying what would),
@@ -15,6 +15,10 @@ budget, renders the firmware and writes ``<out>``, ``kilobot_target.c`` beside i
 Will it fit, before training::
 
     python -m export budget --history 20 --hidden 64 32 [--preset kilobot]
+
+Float actor vs int8 firmware in the simulator (firmware in the loop, :mod:`export.verify_cli`)::
+
+    python -m export verify --closed-loop [--policy PATH] [--robots 16 32] [--episodes 200] [--out DIR]
 
 Exit status: 0 done / fits; 1 does not fit (or verification failed); 2 bad input (a missing or
 corrupt policy, an unwritable output path, ...). Errors are one line on stderr, never a traceback.
@@ -68,7 +72,8 @@ def _positive(text: str) -> int:
 def export_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="python -m export",
                  description="Quantise a policy to int8 and render the Kilobot firmware "
-                             "(sub-command 'budget': will an architecture fit?).")
+                             "(sub-command 'budget': will an architecture fit?; 'verify --closed-loop': "
+                             "float actor vs int8 firmware in the simulator).")
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
@@ -85,7 +90,11 @@ def export_parser() -> argparse.ArgumentParser:
                     help="range percentile for exponent choice (default 100: the largest value seen)")
     ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS",
                     help="comma-separated kilo_uids that run as the target beacon (default: the world's target_uid)")
-    ap.add_argument("--verify", choices=["host"], default=None,
+    ap.add_argument("--kilolib", type=Path, default=None, metavar="DIR",
+                    help="a built kilolib checkout: also write .elf/.hex images for KiloGUI beside the C files")
+    ap.add_argument("--no-avr", action="store_true",
+                    help="skip the exact avr-gcc budget even when the AVR toolchain is installed")
+    ap.add_argument("--verify", choices=["host", "avr"], default=None,
                     help="host: build the C with the host compiler and check it against the emulator before writing")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     return ap
@@ -167,6 +176,33 @@ def _verify_host(qp: Any, files: dict[str, str]) -> str:
     return f"host verification: {result}"
 
 
+def _exact_budget(budget: Any, qp: Any, files: dict[str, str], *, skip: bool) -> Any:
+    """Merge the exact avr-gcc figures (and the simavr-measured stack) into the budget, when possible."""
+    from . import avr
+    why = "--no-avr" if skip else avr.missing_tools()
+    if why is not None:
+        print(f"exact AVR budget skipped: {why}; the figures below are analytic estimates")
+        return budget
+    budget = budget.with_exact(avr.exact_budget(files, qp))
+    if not budget.ok:
+        print(budget.table())
+        raise BudgetError(f"the avr-gcc build does not fit ({budget.summary()}); would fit: "
+                          + "; ".join(budget.suggest()))
+    return budget
+
+
+def _verify_avr(qp: Any, files: dict[str, str]) -> str:
+    """Run the AVR build in simavr and compare every output byte with the emulator (rung 3)."""
+    from . import avr
+    why = avr.missing_tools(simulate=True)
+    if why:
+        raise ExportError(f"--verify avr needs avr-gcc and simavr: {why}")
+    check = avr.verify_simavr(qp, files)
+    if not check.ok:
+        raise VerifyError(f"AVR verification failed: {check}")
+    return str(check)
+
+
 def run_export(argv: Sequence[str]) -> int:
     args = export_parser().parse_args(list(argv))
     from . import budget as bud
@@ -203,22 +239,30 @@ def run_export(argv: Sequence[str]) -> int:
     report = error_report(policy, qp, calib)
     print(report.table())
     budget = bud.for_quantized(qp)
-    print(budget.table())
     if not budget.ok:  # pragma: no cover - same architecture as checked above
+        print(budget.table())
         raise BudgetError(f"quantised policy does not fit ({budget.summary()})")
 
     target_uids = args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
     files = _render(qp, target_uids, {"generator_version": generator_version(), "budget": budget,
                                       "error_report": report})
-    # Exact figures: export/avr.py builds `files` with avr-gcc and returns the dict that
-    # `budget.with_exact(...)` merges in (keys "flash", "sram_user" decide); wire it here.
+    budget = _exact_budget(budget, qp, files, skip=args.no_avr)
+    print(budget.table())
     if args.verify == "host":
         print(_verify_host(qp, files))
+    elif args.verify == "avr":
+        print(_verify_avr(qp, files))
     options = {"target_uids": list(target_uids), "robots_calib": list(args.robots_calib),
                "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
                "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
                "source": str(args.onnx or args.policy or "default placeholder")}
     contents = {out: files[POLICY_FILE], target_path: files[TARGET_FILE]}
+    if args.kilolib is not None:
+        from . import avr
+        images = avr.robot_images(files, args.kilolib)  # {"kilobot_policy.hex": bytes, ...}
+        stems = {Path(POLICY_FILE).stem: out, Path(TARGET_FILE).stem: target_path}
+        for name, data in images.items():
+            contents[stems[Path(name).stem].with_suffix(Path(name).suffix)] = data
     manifest = build_manifest(policy, qp, budget, report, calib,
                               {out.name: files[POLICY_FILE], TARGET_FILE: files[TARGET_FILE]}, options)
     contents[manifest_path] = manifest_json(manifest)
@@ -233,6 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if argv and argv[0] == "budget":
             return run_budget(argv[1:])
+        if argv and argv[0] == "verify":
+            from .verify_cli import run_verify
+            return run_verify(argv[1:])
         return run_export(argv)
     except (BudgetError, VerifyError) as e:
         _err(str(e))

@@ -2,7 +2,8 @@
 
 :class:`FirmwareEmulator` reproduces ``kilobot_policy.c`` (and, for beacon uids, ``kilobot_target.c``)
 integer for integer: the rx filter and bounded rx queue, the receive rules, the int8 observation,
-the Algorithm-4 history, the int8 MLP, the motor schedule applied tick by tick (with
+the Algorithm-4 history, the int8 MLP (or, for a recurrent policy, the int8 GRU cell and its hidden
+state, :mod:`export.gru_quantize`), the motor schedule applied tick by tick (with
 ``spinup_motors``), the LED and the outgoing message bytes with their CRC. The host build
 (:mod:`export.hostbuild`) and the AVR build run the same event streams and must give the same bytes.
 
@@ -196,6 +197,10 @@ class FirmwareEmulator:
         self.wall = np.zeros(R, bool)
         self.q = np.zeros((R, 2), np.uint8)
         self.history = History(self.qp.t_prev, self.world.obs_dim)
+        # a recurrent policy (export/gru_quantize.py) keeps a hidden state per robot instead of a
+        # history: setup() zeroes it, and its input is the one-tuple history [ACT[q_prev], obs]
+        self.recurrent = getattr(self.qp, "kind", "mlp") == "gru"
+        self.hidden = self.qp.initial_state(R) if self.recurrent else None
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
         self.turn = np.zeros(R, np.uint8)
         self.turn_mode = np.full(R, MODE_STOP, np.uint8)
@@ -271,7 +276,10 @@ class FirmwareEmulator:
             flat = self.history.reset(obs[None].astype(np.float32))  # (1, R, in_dim), a_0 = ACT[0] = 0
         else:
             flat = self.history.push(act[None].astype(np.float32), obs[None].astype(np.float32))
-        q = qp.forward_int(flat[0].astype(np.int64))  # (R, 2) uint8
+        if self.recurrent:
+            q, self.hidden = qp.step_int(flat[0].astype(np.int64), self.hidden)  # (R, 2) uint8, (R, H)
+        else:
+            q = qp.forward_int(flat[0].astype(np.int64))  # (R, 2) uint8
         self.steps_done += 1
 
         searcher = ~self.is_beacon

@@ -19,10 +19,20 @@ Array formats (also in ``kf_dense.h``):
 * ``w``: int8, rows in groups of 8 (then 4, 2, 1 for the rest, :func:`row_groups`), each group
   interleaved input-major so the AVR streams it with ``lpm Z+`` for 8 rows per loaded input:
   ``w[g0*n + i*k + r] = W[g0+r, i] + 128`` (as a byte: the bit pattern of ``W ^ 0x80``).
-* ``b``: int32 folded bias ``b'``; for ``fast`` layers ``(b' mod 2^24) | (s << 24)``.
-* ``shift``: uint8 ``s`` (the int32 path reads it; the fast path has it in ``b``'s top byte).
+* ``b``: int32 folded bias ``b'``; for ``fast`` layers ``(b' mod 2^24) | (code << 24)`` with the
+  AVR kernel's requantisation code :func:`avr_shift_code` (the portable C ignores the top byte).
+* ``shift``: uint8 ``s`` (the portable C reads it).
 * ``fast``: the 24-bit accumulator is exact for every int8 input, the clamp is ``-128..127`` or
-  ``0..255`` and ``n_in <= FAST_MAX_IN``: the AVR runs the assembly kernel.
+  ``0..255``, ``n_in <= FAST_MAX_IN`` and ``n_out <= FAST_MAX_OUT``: the AVR runs the assembly
+  kernel. :func:`all_fast` true: the renderer may ``#define KF_DENSE_ALL_FAST`` (drops the portable
+  kernel from the AVR build, about 1 KB of flash).
+
+The AVR kernel (:func:`avr_asm_block`, embedded in ``kf_dense.c``): per group of up to 8 rows the
+inner loop costs ``lpm`` 3 + ``mul`` 2 + 3-byte subtract 3 = 8 cycles per MAC plus the input load
+and loop counting shared by the rows (8.56 cycles per MAC for 8 rows); each row then costs about
+40 cycles (bias, requantisation, clamp, int16 store), each group about 90 and each call about 300
+(register saves, the pass over the input for ``S``). Measured in simavr: 9.3 cycles per MAC over
+the default 320-32-32-2 policy, 10.7 for a 32x32 layer.
 """
 from __future__ import annotations
 
@@ -35,6 +45,7 @@ from .numfmt import QuantLayer
 
 GROUP_SIZES = (8, 4, 2, 1)  #: rows per group, largest first (the AVR kernel has one loop per size)
 FAST_MAX_IN = 510  #: widest layer the AVR kernel takes (it counts input pairs of a segment in 8 bits)
+FAST_MAX_OUT = 2047  #: the AVR kernel counts groups of 8 rows in 8 bits
 FAST_CLAMPS = ((numfmt.INT8_MIN, numfmt.INT8_MAX), (0, 255))  #: clamps the AVR kernel implements
 ACC24_LIMIT = 2 ** (numfmt.ACC_BITS_NARROW - 1)
 ACC32_LIMIT = 2 ** 31
@@ -91,7 +102,12 @@ def is_fast(layer: QuantLayer) -> bool:
     """
     n_out, n_in = layer.w.shape
     return bool(np.all(proof(layer) < ACC24_LIMIT) and (layer.lo, layer.hi) in FAST_CLAMPS
-                and 1 <= n_in <= FAST_MAX_IN)
+                and 1 <= n_in <= FAST_MAX_IN and n_out <= FAST_MAX_OUT)
+
+
+def all_fast(layers) -> bool:
+    """True when every layer is fast: the renderer may then ``#define KF_DENSE_ALL_FAST`` (saves ~1 KB)."""
+    return all(is_fast(l) for l in layers)
 
 
 def kernel_bias(layer: QuantLayer) -> np.ndarray:
@@ -109,8 +125,27 @@ def kernel_bias(layer: QuantLayer) -> np.ndarray:
     wsum = (layer.w.astype(np.int64) + 128).sum(axis=1)  # (n_out,) sum of w'
     b = layer.b.astype(np.int64) + rounding(layer.shift) - 128 * wsum + 16384 * n_in
     if is_fast(layer):
-        b = (b & 0xFFFFFF) | (layer.shift.astype(np.int64) << 24)
+        code = np.array([avr_shift_code(int(s)) for s in layer.shift], np.int64)
+        b = (b & 0xFFFFFF) | (code << 24)
     return (b & 0xFFFFFFFF).astype(np.uint32).view(np.int32)
+
+
+def avr_shift_code(s: int) -> int:
+    """The AVR kernel's per-row requantisation code (top byte of a fast bias) for shift ``s`` (0..23).
+
+    With v = r28:r1:r0 (24 bits), the value ``v >> 8`` is already in r28:r1, so for 8 <= s <= 11
+    the code is just the bit count ``s - 8``; 12..15 shift left ``16 - s`` and drop a byte (0x20);
+    16..23 first drop another byte (0x40); below 8 the 24-bit paths (0x80, with 0x20: left).
+
+    >>> [avr_shift_code(s) for s in (9, 12, 15, 17, 23, 2, 6)]
+    [1, 36, 33, 65, 97, 130, 162]
+    """
+    assert 0 <= s <= 23, f"shift {s} is never 24-bit exact"
+    if s < 8:
+        return 0x80 | s if s < 4 else 0xA0 | (8 - s)
+    c = s - 8 if s < 16 else s - 16
+    code = c if c < 4 else 0x20 | (8 - c)
+    return code | (0x40 if s >= 16 else 0)
 
 
 @dataclass(frozen=True)
@@ -163,10 +198,8 @@ def run(kl: KernelLayer, x: np.ndarray) -> np.ndarray:
     for g0, k in row_groups(kl.n_out):
         wo[g0:g0 + k] = flat[g0 * kl.n_in:(g0 + k) * kl.n_in].reshape(kl.n_in, k).T
     b = kl.b.astype(np.int64) & 0xFFFFFFFF
-    if kl.fast:
-        s, b, mod = b >> 24, b & 0xFFFFFF, 2 ** 24
-    else:
-        s, mod = kl.shift.astype(np.int64), 2 ** 32
+    s = kl.shift.astype(np.int64)
+    b, mod = (b & 0xFFFFFF, 2 ** 24) if kl.fast else (b, 2 ** 32)
     acc = (b - 128 * xo.sum(axis=-1, keepdims=True) + xo @ wo.T) % mod  # (..., n_out)
     acc = np.where(acc >= mod // 2, acc - mod, acc)  # two's complement
     return np.clip(np.right_shift(acc, s), kl.lo, kl.hi)
@@ -180,7 +213,8 @@ def run(kl: KernelLayer, x: np.ndarray) -> np.ndarray:
 AVR_ACC = (("r2", "r3", "r16"), ("r4", "r5", "r17"), ("r6", "r7", "r18"), ("r8", "r9", "r19"),
            ("r10", "r11", "r20"), ("r12", "r13", "r21"), ("r14", "r15", "r22"), ("r24", "r25", "r23"))
 #: Stack frame of kf_dense_avr (offsets from Y = SP, so the first byte is Y+1).
-AVR_FRAME = {"X1": 1, "N1": 3, "X2": 5, "N2": 7, "Y": 9, "B": 11, "W": 13, "T": 15, "LEFT": 18}
+AVR_FRAME = {"X1": 1, "ODD1": 3, "PAIRS1": 4, "X2": 5, "ODD2": 7, "PAIRS2": 8, "Y": 9, "B": 11, "W": 13,
+             "T": 15, "G8": 18, "REM": 19}
 AVR_FRAME_SIZE = 19
 ASM_BEGIN = "/* ---- BEGIN kf_dense_avr: generated by export.kernel.avr_asm_block(), do not edit ---- */"
 ASM_END = "/* ---- END kf_dense_avr ---- */"
@@ -207,9 +241,8 @@ def _avr_asm_lines() -> list[str]:
         for lo, mid, hi in AVR_ACC[:k]:
             a("lpm r0, Z+"); a("mul r0, r28"); a(f"sub {lo}, r0"); a(f"sbc {mid}, r1"); a(f"sbci {hi}, 0")
 
-    def segment(xo: int, no: int, k: int) -> None:  # Y = frame on entry; clobbers Y
-        a(f"ldd r0, Y+{no}"); a(f"ldd r1, Y+{no + 1}"); a(f"ldd r26, Y+{xo}"); a(f"ldd r27, Y+{xo + 1}")
-        a("lsr r1"); a("ror r0"); a("clr r28"); a("rol r28"); a("mov r29, r0")  # r28 = n odd, r29 = n / 2
+    def segment(xo: int, k: int) -> None:  # r0 = n & 1, r1 = n >> 1; Y = frame on entry; clobbers Y
+        a(f"ldd r26, Y+{xo}"); a(f"ldd r27, Y+{xo + 1}"); a("movw r28, r0")
         a(f"rcall .Lkf_mac{k}")
 
     def group(k: int) -> None:  # Y = frame on entry and on exit
@@ -217,10 +250,12 @@ def _avr_asm_lines() -> list[str]:
         for lo, _, hi in AVR_ACC[:k]:
             a(f"movw {lo}, r0"); a(f"mov {hi}, r26")
         a(f"ldd r30, Y+{F['W']}"); a(f"ldd r31, Y+{F['W'] + 1}")
-        segment(F["X1"], F["N1"], k)
+        a(f"ldd r0, Y+{F['ODD1']}"); a(f"ldd r1, Y+{F['PAIRS1']}")
+        segment(F["X1"], k)
         sp_to_y()
-        a(f"ldd r0, Y+{F['N2']}"); a(f"ldd r1, Y+{F['N2'] + 1}"); a("or r0, r1"); a(f"breq .Lkf_noseg2_{k}")
-        segment(F["X2"], F["N2"], k)
+        a(f"ldd r26, Y+{F['ODD2']}"); a(f"ldd r27, Y+{F['PAIRS2']}"); a("movw r0, r26"); a("or r26, r27")
+        a(f"breq .Lkf_noseg2_{k}")
+        segment(F["X2"], k)
         sp_to_y()
         a(f".Lkf_noseg2_{k}:")
         a(f"std Y+{F['W']}, r30"); a(f"std Y+{F['W'] + 1}, r31")
@@ -241,45 +276,49 @@ def _avr_asm_lines() -> list[str]:
     sp_to_y(); a(f"sbiw r28, {AVR_FRAME_SIZE}")
     a("in r0, 0x3f"); a("cli"); a("out 0x3e, r29"); a("out 0x3f, r0"); a("out 0x3d, r28")
     a(f"std Y+{F['X1']}, r22"); a(f"std Y+{F['X1'] + 1}, r23")
-    a(f"std Y+{F['N1']}, r20"); a(f"std Y+{F['N1'] + 1}, r21")
     a(f"std Y+{F['X2']}, r18"); a(f"std Y+{F['X2'] + 1}, r19")
     a(f"std Y+{F['Y']}, r16"); a(f"std Y+{F['Y'] + 1}, r17")
     a("movw r30, r24")  # Z = L (SRAM): w 0, b 2, shift 4, n_in 6, n_out 8, lo 10, hi 12, fast 14
     a("ld r24, Z"); a("ldd r25, Z+1"); a(f"std Y+{F['W']}, r24"); a(f"std Y+{F['W'] + 1}, r25")
     a("ldd r24, Z+2"); a("ldd r25, Z+3"); a(f"std Y+{F['B']}, r24"); a(f"std Y+{F['B'] + 1}, r25")
-    a("ldd r24, Z+8"); a("ldd r25, Z+9"); a(f"std Y+{F['LEFT']}, r24"); a(f"std Y+{F['LEFT'] + 1}, r25")
-    a("ldd r24, Z+6"); a("ldd r25, Z+7"); a("sub r24, r20"); a("sbc r25, r21")
-    a(f"std Y+{F['N2']}, r24"); a(f"std Y+{F['N2'] + 1}, r25")
+    a("ldd r24, Z+8"); a("ldd r25, Z+9")  # n_out < 2048: G8 = n_out / 8, REM = n_out % 8
+    a("mov r0, r24"); a("andi r24, 7"); a(f"std Y+{F['REM']}, r24")
+    for _ in range(3):
+        a("lsr r25"); a("ror r0")
+    a(f"std Y+{F['G8']}, r0")
     a("clt"); a("ldd r24, Z+10"); a("ldd r25, Z+11"); a("or r24, r25"); a("brne 1f"); a("set"); a("1:")  # T: clamp 0..255
+    a("ldd r2, Z+6"); a("ldd r3, Z+7"); a("sub r2, r20"); a("sbc r3, r21")  # n2 = n_in - n1 (<= 510)
+    for n, odd, pairs in (("r20", "ODD1", "PAIRS1"), ("r2", "ODD2", "PAIRS2")):
+        a(f"movw r24, {n}"); a("lsr r25"); a("ror r24"); a("rol r25")  # r24 = n >> 1, r25 = n & 1
+        a(f"std Y+{F[odd]}, r25"); a(f"std Y+{F[pairs]}, r24")
     # S = sum of x' over both segments (24 bits), T = 128 * S (mod 2^24)
-    a("clr r1"); a("clr r2"); a("clr r3"); a("clr r4")
+    a("movw r26, r18"); a("movw r24, r2"); a("clr r1"); a("clr r2"); a("clr r3"); a("clr r4"); a("rcall .Lkf_sum")
     a("movw r26, r22"); a("movw r24, r20"); a("rcall .Lkf_sum")
-    a("movw r26, r18"); a(f"ldd r24, Y+{F['N2']}"); a(f"ldd r25, Y+{F['N2'] + 1}"); a("rcall .Lkf_sum")
     a("lsr r4"); a("ror r3"); a("ror r2"); a("clr r0"); a("ror r0")
     a(f"std Y+{F['T']}, r0"); a(f"std Y+{F['T'] + 1}, r2"); a(f"std Y+{F['T'] + 2}, r3")
     # groups of 8 rows, then 4, 2, 1 (export.kernel.row_groups)
     a(".Lkf_loop8:")
-    a(f"ldd r24, Y+{F['LEFT']}"); a(f"ldd r25, Y+{F['LEFT'] + 1}"); a("sbiw r24, 8"); a("brsh 1f"); a("rjmp .Lkf_tail"); a("1:")
-    a(f"std Y+{F['LEFT']}, r24"); a(f"std Y+{F['LEFT'] + 1}, r25")
+    a(f"ldd r24, Y+{F['G8']}"); a("subi r24, 1"); a("brcc 1f"); a("rjmp .Lkf_tail"); a("1:")
+    a(f"std Y+{F['G8']}, r24")
     group(8)
     a("rjmp .Lkf_loop8")
-    a(".Lkf_tail:")  # r24 = rows left - 8: its low 3 bits are the rows left
-    a(f"std Y+{F['LEFT']}, r24")
+    a(".Lkf_tail:")
+    a(f"ldd r24, Y+{F['REM']}")
     for k, bit in ((4, 2), (2, 1), (1, 0)):
         a(f"sbrs r24, {bit}"); a(f"rjmp .Lkf_skip{k}")
         group(k)
-        a(f"ldd r24, Y+{F['LEFT']}")
+        a(f"ldd r24, Y+{F['REM']}")
         a(f".Lkf_skip{k}:")
     sp_to_y(); a(f"adiw r28, {AVR_FRAME_SIZE}")
     a("in r0, 0x3f"); a("cli"); a("out 0x3e, r29"); a("out 0x3f, r0"); a("out 0x3d, r28")
     for r in reversed(saved):
         a(f"pop {r}")
     a("clr r1"); a("ret")
-    # r4:r3:r2 += sum (x ^ 0x80) over X[0..r25:r24-1]; r1 = 0; clobbers r23, r24, r25, X
+    # r4:r3:r2 += sum (x ^ 0x80) over X[0..r25:r24-1]; r1 = 0; clobbers r17, r24, r25, X
     a(".Lkf_sum:")
 
     def one() -> None:
-        a("ld r23, X+"); a("subi r23, 0x80"); a("add r2, r23"); a("adc r3, r1"); a("adc r4, r1")
+        a("ld r17, X+"); a("subi r17, 0x80"); a("add r2, r17"); a("adc r3, r1"); a("adc r4, r1")
     a("sbrs r24, 0"); a("rjmp 1f"); one()
     a("1:"); a("sbrs r24, 1"); a("rjmp 2f"); one(); one()
     a("2:"); a("lsr r25"); a("ror r24"); a("lsr r25"); a("ror r24"); a("sbiw r24, 0"); a("breq 4f")
@@ -300,48 +339,49 @@ def _avr_asm_lines() -> list[str]:
             a("3:"); a("ret")
     # requantise: v = r28:r1:r0 (24-bit), s = r29; y = clamp(floor(v / 2^s)) -> X+ (int16);
     # SREG.T set: clamp 0..255, clear: -128..127
-    a(".Lkf_post:")
-    a("subi r29, 8"); a("brcs .Lkf_p_small")  # s < 8
-    a("mov r0, r1"); a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28")  # drop a byte; r28 = sign
-    a("subi r29, 8"); a("brcs .Lkf_p_mid")  # 8 <= s < 16
-    a("mov r0, r1"); a("mov r1, r28"); a("subi r29, 8"); a("rjmp .Lkf_p_mid")  # 16 <= s < 24 (s > 23 is never fast)
-    a(".Lkf_p_small:")  # s < 8, r29 = s - 8: for s >= 4 shift left t = 8 - s into a 4th byte, drop one
-    a("cpi r29, -4"); a("brlt .Lkf_p_right24")
-    a("cpi r29, -2"); a("brlt .Lkf_p_t34")
-    a("cpi r29, -1"); a("brne .Lkf_p_t2")
-    sign = ("mov r29, r28", "lsl r29", "sbc r29, r29")  # r29 = sign extension of r28
-    for t in (1, 2, 3, 4):
-        if t == 2:
-            a(".Lkf_p_t2:")
-        if t == 3:
-            a(".Lkf_p_t34:"); a("cpi r29, -3"); a("brne .Lkf_p_t4")
-        if t == 4:
-            a(".Lkf_p_t4:")
-        for ln in sign:
-            a(ln)
-        if t < 4:
-            a(f"rjmp .Lkf_p_sh{t}")
-    for t in (4, 3, 2, 1):  # falls through: entering at sh<t> shifts t bits left
-        a(f".Lkf_p_sh{t}:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29")
-    a("mov r0, r1"); a("mov r1, r28"); a("mov r28, r29"); a("rjmp 4f")
-    a(".Lkf_p_right24:"); a("subi r29, -8"); a("breq 4f")  # s < 4: 24-bit right shift by s
-    a("1:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r29"); a("brne 1b"); a("rjmp 4f")
-    a(".Lkf_p_left:")  # c >= 4 bits right = 8 - c bits left, then drop a byte (no overflow: |value| < 2^15)
-    a("lsl r0"); a("rol r1"); a("rol r28"); a("inc r29"); a("brne .Lkf_p_left")
-    a("mov r0, r1"); a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28"); a("rjmp 4f")
-    a(".Lkf_p_mid:")  # sign-extended 16-bit r1:r0, shift right by c = r29 + 8 (0..7)
-    a("cpi r29, -4"); a("brge .Lkf_p_left")
-    a("subi r29, -8"); a("breq 4f")
-    a("2:"); a("asr r1"); a("ror r0"); a("dec r29"); a("brne 2b")
+    a(".Lkf_post:")  # the value v >> 8 is r28:r1; the code says how to finish (avr_shift_code)
+    a("cpi r29, 4"); a("brsh .Lkf_p_other")
+    a(".Lkf_p_right:")  # 16-bit r28:r1 shifted right by r29 (0..3)
+    a("tst r29"); a("breq 4f")
+    a("2:"); a("asr r28"); a("ror r1"); a("dec r29"); a("brne 2b")
+    # clamp and store the 16-bit r28:r1; SREG.T set: 0..255, clear: -128..127
     a("4:"); a("brts 6f")
-    a("mov r29, r0"); a("lsl r29"); a("sbc r29, r29"); a("cp r1, r29"); a("cpc r28, r29"); a("brne 5f")
-    a("st X+, r0"); a("st X+, r29"); a("ret")
+    a("mov r0, r1"); a("lsl r0"); a("sbc r0, r0"); a("cp r28, r0"); a("brne 5f")
+    a("st X+, r1"); a("st X+, r0"); a("ret")
     a("5:"); a("ldi r29, 0x7f"); a("sbrc r28, 7"); a("ldi r29, 0x80"); a("st X+, r29")
     a("lsl r28"); a("sbc r28, r28"); a("st X+, r28"); a("ret")
-    a("6:"); a("mov r29, r1"); a("or r29, r28"); a("brne 7f")
-    a("st X+, r0"); a("st X+, r29"); a("ret")
+    a("6:"); a("tst r28"); a("brne 7f")
+    a("st X+, r1"); a("st X+, r28"); a("ret")
     a("7:"); a("ldi r29, 0xff"); a("sbrc r28, 7"); a("ldi r29, 0"); a("st X+, r29")
     a("clr r29"); a("st X+, r29"); a("ret")
+    a(".Lkf_p_other:")
+    a("sbrc r29, 7"); a("rjmp .Lkf_p_small")
+    a("sbrs r29, 6"); a("rjmp .Lkf_p_left")
+    a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28")  # s >= 16: drop another byte
+    a("andi r29, 0x3f"); a("cpi r29, 4"); a("brlo .Lkf_p_right")
+    a(".Lkf_p_left:")  # shift r28:r1 left by t = r29 & 7 (1..4) into a sign byte r0, keep r0:r28
+    a("andi r29, 7"); a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0")
+    a("3:"); a("lsl r1"); a("rol r28"); a("rol r0"); a("dec r29"); a("brne 3b")
+    a("mov r1, r28"); a("mov r28, r0"); a("rjmp 4b")
+    a(".Lkf_p_small:")  # s < 8: the 24-bit v; 0x80 | s (s < 4) right, 0xA0 | t left by t = 8 - s
+    a("sbrc r29, 5"); a("rjmp .Lkf_p_left24")
+    a("andi r29, 7"); a("breq 1f")
+    a("3:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r29"); a("brne 3b")
+    a("1:"); a("mov r29, r28"); a("mov r28, r1"); a("mov r1, r0"); a("rjmp .Lkf_p_fix")
+    a(".Lkf_p_left24:")  # E:r28:r1:r0 <<= t with E = r29 (a count-free chain), keep E:r28:r1
+    a("andi r29, 7"); a("cpi r29, 2"); a("brlo .Lkf_p_t1"); a("breq .Lkf_p_t2"); a("cpi r29, 3"); a("breq .Lkf_p_t3")
+    sign = ("mov r29, r28", "lsl r29", "sbc r29, r29")  # r29 = sign extension of r28
+    for t in (4, 3, 2, 1):
+        if t < 4:
+            a(f".Lkf_p_t{t}:")
+        for ln in sign:
+            a(ln)
+        a(f"rjmp .Lkf_p_sh{t}")
+    for t in (4, 3, 2, 1):  # falls through: entering at sh<t> shifts t bits left
+        a(f".Lkf_p_sh{t}:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29")
+    a(".Lkf_p_fix:")  # 24-bit r29:r28:r1 -> 16-bit r28:r1, saturated when it does not fit
+    a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0"); a("cp r29, r0"); a("brne 8f"); a("rjmp 4b")
+    a("8:"); a("ldi r28, 0x7f"); a("sbrc r29, 7"); a("ldi r28, 0x80"); a("rjmp 4b")
     a(".size kf_dense_avr, .-kf_dense_avr")
     return out
 

@@ -28,6 +28,34 @@ Format
   the history as ``ACT[q]`` (a 256-entry table of ``round_half_up(q / 255 * 2**e_in)``).
 * No floats, no division, no malloc in the control step; C uses only ``<stdint.h>`` types and casts
   to ``int32_t`` before every multiply, so it never depends on the width of ``int``.
+
+The GRU cell (recurrent actors, :class:`QuantGRUCell`)
+-----------------------------------------------------
+PyTorch's GRU (gate order r, z, n) on one int8 input tuple ``x`` (exponent ``e_x``, the
+observation exponent: ``[ACT[q_l], ACT[q_r], obs]``) and the int8 hidden state ``h``:
+
+* **Hidden state**: ``int8`` at the fixed exponent ``HIDDEN_EXP = 7`` (real ``h / 128``), kept in
+  SRAM between control steps, zero after ``setup()``. The candidate ``n`` (a tanh) is at the same
+  exponent, so the state never leaves ``[-128, 127]``.
+* **Gate pre-activations** are dense layers of the format above (int8 weights with per-row
+  exponents, int32 bias and accumulator, half-up requantisation, saturation to int8):
+  ``a_r`` and ``a_z`` read the concatenation ``[x, h]`` (``kf_dense2``'s two segments, no copy);
+  the columns of ``h`` are quantised from the float weights times ``2**(e_x - HIDDEN_EXP)``, so one
+  accumulator exponent serves both parts. ``a_r`` has its exponent ``e_r``, ``a_z`` its ``e_z``;
+  ``nx = W_in x + b_in`` and ``nh = W_hn h + b_hn`` are requantised to ``e_n`` and ``e_nh``.
+* **Gates**: ``r = R[a_r + 128]`` and ``k = K[a_z + 128]`` from 256-entry **uint8** tables at
+  ``GATE_EXP = 8`` (real ``g / 256``; :func:`gate_table`): ``R`` is σ, ``K`` is ``1 - σ``
+  (``k = 1 - z``: a saturated "keep" gate is exactly 0, so a GRU that holds its state holds it
+  bit for bit; 1.0 itself saturates to 255/256).
+* **Candidate**: ``p = saturate_int8(nx + rshift_round(r * nh, s_rn))`` with
+  ``s_rn = GATE_EXP + e_nh - e_n >= 0`` (the gate × state product at exponent ``8 + e_nh``, rounded
+  half-up to ``e_n``), then ``n = TANH[p + 128]`` (:func:`act_table` ``("tanh", e_n, 7)``).
+* **State update**: ``h' = saturate_int8(h + rshift_round(k * (n - h), GATE_EXP))``, i.e.
+  ``(1 - z) n + z h`` with one gate × state product rounded half-up. ``|k (n - h)| / 256 < |n - h|``,
+  so ``h'`` lies between ``h`` and ``n`` and the saturation never acts (kept for safety).
+* **Output**: the output layer of the MLP format on ``h'`` (exponent 7): ``q = clamp(..., 0, 255)``.
+
+Every product is formed in int32 (``|r * nh| <= 32,640``, ``|k (n - h)| <= 65,025``).
 """
 from __future__ import annotations
 
@@ -222,3 +250,82 @@ class QuantLayer:
         if self.table is not None:
             return self.table.astype(np.int64)[z + 128]
         return z
+
+
+# --- the GRU cell (module doc, "The GRU cell") --------------------------------------------
+GATE_EXP = 8  #: gates r and k = 1 - z: uint8 at exponent 8 (real g / 256)
+HIDDEN_EXP = 7  #: hidden state h and candidate n: int8 at exponent 7 (real h / 128)
+
+
+def gate_table(e_a: int, complement: bool = False) -> np.ndarray:
+    """256-entry uint8: index ``a + 128`` (a int8 at exponent e_a) -> σ(a), or 1 - σ(a), at GATE_EXP.
+
+    >>> t = gate_table(4)
+    >>> int(t[128]), int(t[255]), int(t[0])
+    (128, 255, 0)
+    >>> int(gate_table(4, complement=True)[255])
+    0
+    """
+    a = np.arange(-128, 128, dtype=np.float64) * (2.0 ** -e_a)
+    g = act_float("sigmoid", -a if complement else a)
+    return quantize(g, GATE_EXP, 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class QuantGRUCell:
+    """An int8 GRU cell (module doc, "The GRU cell"); ``step`` is the reference integer semantics."""
+
+    r: QuantLayer  #: (H, D + H) over [x, h] -> a_r int8 at r.e_out
+    z: QuantLayer  #: (H, D + H) over [x, h] -> a_z int8 at z.e_out
+    nx: QuantLayer  #: (H, D) over x -> W_in x + b_in int8 at e_n
+    nh: QuantLayer  #: (H, H) over h -> W_hn h + b_hn int8 at e_nh
+    r_table: np.ndarray  #: (256,) uint8 gate_table(r.e_out)
+    k_table: np.ndarray  #: (256,) uint8 gate_table(z.e_out, complement=True): 1 - z
+    n_table: np.ndarray  #: (256,) int8 act_table("tanh", nx.e_out, HIDDEN_EXP)
+    rn_shift: int  #: GATE_EXP + nh.e_out - nx.e_out: r * nh -> exponent e_n
+
+    def __post_init__(self) -> None:
+        H, DH = self.r.w.shape
+        D = DH - H
+        assert D >= 1 and self.z.w.shape == (H, DH), f"r and z must be (H, D + H), got {self.r.w.shape}, {self.z.w.shape}"
+        assert self.nx.w.shape == (H, D) and self.nh.w.shape == (H, H), "nx must be (H, D), nh (H, H)"
+        for name in ("r", "z", "nx", "nh"):
+            l = getattr(self, name)
+            assert (l.lo, l.hi, l.activation, l.table) == (INT8_MIN, INT8_MAX, "identity", None), \
+                f"{name}: gate layers requantise to int8 with no activation of their own"
+        assert self.nh.e_in == HIDDEN_EXP, f"nh reads h at exponent {HIDDEN_EXP}, not {self.nh.e_in}"
+        assert self.r.e_in == self.z.e_in == self.nx.e_in, "r, z and nx read x at one exponent"
+        for name in ("r_table", "k_table"):
+            t = getattr(self, name)
+            assert t.shape == (256,) and t.dtype == np.uint8, f"{name} must be (256,) uint8"
+        assert self.n_table.shape == (256,) and self.n_table.dtype == np.int8, "n_table must be (256,) int8"
+        assert self.rn_shift == GATE_EXP + self.nh.e_out - self.nx.e_out and 0 <= self.rn_shift <= MAX_SHIFT, \
+            f"rn_shift {self.rn_shift} != {GATE_EXP} + e_nh {self.nh.e_out} - e_n {self.nx.e_out} (or out of range)"
+
+    @property
+    def hidden(self) -> int:
+        return int(self.r.w.shape[0])
+
+    @property
+    def in_dim(self) -> int:
+        return int(self.nx.w.shape[1])
+
+    def gates(self, x: np.ndarray, h: np.ndarray) -> dict[str, np.ndarray]:
+        """Every integer of one step (int64): a_r, a_z, r, k, nx, nh, pre_n, n and the new state h."""
+        x = np.asarray(x, np.int64)
+        h = np.asarray(h, np.int64)
+        xh = np.concatenate([x, h], -1)  # (..., D + H)
+        a_r = dense_int(xh, self.r.w, self.r.b, self.r.shift, INT8_MIN, INT8_MAX)
+        a_z = dense_int(xh, self.z.w, self.z.b, self.z.shift, INT8_MIN, INT8_MAX)
+        r = self.r_table.astype(np.int64)[a_r + 128]
+        k = self.k_table.astype(np.int64)[a_z + 128]
+        nx = dense_int(x, self.nx.w, self.nx.b, self.nx.shift, INT8_MIN, INT8_MAX)
+        nh = dense_int(h, self.nh.w, self.nh.b, self.nh.shift, INT8_MIN, INT8_MAX)
+        pre = saturate(nx + rshift_round(r * nh, self.rn_shift), INT8_MIN, INT8_MAX)
+        n = self.n_table.astype(np.int64)[pre + 128]
+        h2 = saturate(h + rshift_round(k * (n - h), GATE_EXP), INT8_MIN, INT8_MAX)
+        return {"a_r": a_r, "a_z": a_z, "r": r, "k": k, "nx": nx, "nh": nh, "pre_n": pre, "n": n, "h": h2}
+
+    def step(self, x: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """The new hidden state (int64, same shape as h) for int8 inputs x (..., D) and states h (..., H)."""
+        return self.gates(x, h)["h"]

@@ -157,18 +157,17 @@ def _common_defines(msg_type: int) -> list[dict[str, str]]:
     ]
 
 
-def _policy_context(qp: "QuantizedPolicy", uids: tuple[int, ...]) -> dict[str, Any]:
+def _io_context(qp: Any, uids: tuple[int, ...], memory: list[dict[str, str]],
+                scratch: list[dict[str, str]]) -> tuple[list[dict[str, str]], list[str]]:
+    """(defines, tables) every policy program has: timing, queues, observation layout, sensing and
+    motor constants, the sensing tables; ``memory`` defines go after the uid count, ``scratch``
+    defines after the motor modes (the actor's own sizes: MLP history, GRU hidden state)."""
     w = qp.world
     P = w.period_ticks
-    T, D = qp.t_prev, w.tuple_dim
-    if T > 255:
-        raise ExportError(f"t_prev {T} is too long for the firmware's uint8 ring index (at most 255)")
-    if D * T > 0xFFFF:
-        raise ExportError(f"history of {D * T} entries is too large")
+    D = w.tuple_dim
     k_turn, k_straight = schedule_constants(P)
     one = int(qp.one_q)
     assert 1 <= one <= numfmt.INT8_MAX, f"1.0 at e_in {qp.e_in} does not fit int8"
-    hidden = [int(l.w.shape[0]) for l in qp.layers[:-1]]
 
     defines = [
         _define("KF_PERIOD_TICKS", _u(P), f"control period in kilo_ticks ({P / 30.52:.3f} s at 30.52 Hz)"),
@@ -177,7 +176,7 @@ def _policy_context(qp: "QuantizedPolicy", uids: tuple[int, ...]) -> dict[str, A
         _define("KF_NBR_CAPACITY", _u(w.neighbour_table_size),
                 "neighbour-table entries per period; further new senders are dropped"),
         _define("KF_N_TARGET_UIDS", _u(len(uids)), "robots with these kilo_uids act as the beacon"),
-        _define("KF_T_PREV", _u(T), "history length (tuples)"),
+        *memory,
         _define("KF_ACTION_DIM", _u(ACTION_DIM), "tuple = [ACT[q_left], ACT[q_right], observation]"),
         _define("KF_OBS_DIM", _u(w.obs_dim), "observation entries"),
         _define("KF_TUPLE_DIM", _u(D), "history tuple entries"),
@@ -198,9 +197,7 @@ def _policy_context(qp: "QuantizedPolicy", uids: tuple[int, ...]) -> dict[str, A
         _define("KF_MODE_STRAIGHT", _u(MODE_STRAIGHT)),
         _define("KF_MODE_LEFT", _u(MODE_LEFT), "pivot counter-clockwise: set_motors(kilo_turn_left, 0)"),
         _define("KF_MODE_RIGHT", _u(MODE_RIGHT), "pivot clockwise: set_motors(0, kilo_turn_right)"),
-        _define("KF_Y_LEN", _u(max(int(l.w.shape[0]) for l in qp.layers), "uint16_t"),
-                "scratch: the widest layer output (int16)"),
-        _define("KF_X_LEN", _u(max(hidden, default=1), "uint16_t"), "scratch: the widest hidden activation (int8)"),
+        *scratch,
     ]
 
     # --- sensing tables (trimmed where exact) ---
@@ -220,6 +217,22 @@ def _policy_context(qp: "QuantizedPolicy", uids: tuple[int, ...]) -> dict[str, A
         c_array("KF_RBF", "uint8_t", packed,
                 comment="psi_k(d) / rbf_norm at e_in over each bin's window (0 beyond the comm radius)"),
     ]
+    return defines, tables
+
+
+def _policy_context(qp: "QuantizedPolicy", uids: tuple[int, ...]) -> dict[str, Any]:
+    w = qp.world
+    T, D = qp.t_prev, w.tuple_dim
+    if T > 255:
+        raise ExportError(f"t_prev {T} is too long for the firmware's uint8 ring index (at most 255)")
+    if D * T > 0xFFFF:
+        raise ExportError(f"history of {D * T} entries is too large")
+    hidden = [int(l.w.shape[0]) for l in qp.layers[:-1]]
+    defines, tables = _io_context(qp, uids, [_define("KF_T_PREV", _u(T), "history length (tuples)")], [
+        _define("KF_Y_LEN", _u(max(int(l.w.shape[0]) for l in qp.layers), "uint16_t"),
+                "scratch: the widest layer output (int16)"),
+        _define("KF_X_LEN", _u(max(hidden, default=1), "uint16_t"), "scratch: the widest hidden activation (int8)"),
+    ])
 
     # --- layers ---
     act_tables: dict[bytes, str] = {}
@@ -289,7 +302,9 @@ def render_firmware(qpolicy: "QuantizedPolicy", target_uids: Iterable[int] | Non
                                      ["One program for every robot: robots whose kilo_uid is a target uid act",
                                       "as the beacon, all others as searchers running the policy."],
                                      uids, msg_type),
-                      dense_c=inline_sources(DENSE_SOURCES))
+                      dense_c=("#define KF_DENSE_ALL_FAST 1 /* every layer runs the 24-bit AVR kernel: "
+                               "the portable kernel is left out of AVR builds */\n"
+                               if kernel.all_fast(qp.layers) else "") + inline_sources(DENSE_SOURCES))
     target_ctx = dict(common, banner=_banner(TARGET_FILE, qp, generator_version,
                                              ["Beacon-only program: whatever its kilo_uid, this robot is the target",
                                               "(it never moves, shines blue and sends role = 1)."],

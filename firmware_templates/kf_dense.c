@@ -14,6 +14,14 @@
 #include "kf_dense.h"
 #endif
 
+#if defined(__AVR__) && !defined(KF_DENSE_PORTABLE)
+#define KF_DENSE_HAVE_AVR 1
+void kf_dense_avr(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8_t *x2, int16_t *y);
+#endif
+
+#if !defined(KF_DENSE_HAVE_AVR) || !defined(KF_DENSE_ALL_FAST)
+/* ---- the portable kernel (compiled out on the AVR when every layer is fast) ---- */
+
 /* floor(a / 2^s) of the two's complement value a (no reliance on >> of negative numbers), clamped. */
 static int16_t kf_dense_requant(uint32_t a, uint8_t s, int16_t lo, int16_t hi)
 {
@@ -46,6 +54,10 @@ static uint32_t kf_dense_dot(const uint8_t *w, uint8_t stride, const int8_t *x, 
     return acc;
 }
 
+#if defined(KF_DENSE_HAVE_AVR) && defined(__GNUC__)
+/* not inlined into kf_dense2: its register saves and frame would slow (and deepen) the fast path */
+__attribute__((noinline))
+#endif
 static void kf_dense_portable(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8_t *x2, int16_t *y)
 {
     const uint16_t n_in = L->n_in, n_out = L->n_out, n2 = (uint16_t)(n_in - n1);
@@ -66,15 +78,8 @@ static void kf_dense_portable(const kf_dense_t *L, const int8_t *x1, uint16_t n1
         for (r = 0u; r < k; ++r) {
             const uint16_t j = (uint16_t)(g0 + r);
             const uint32_t bj = pgm_read_dword(&L->b[j]);
-            uint32_t acc;
-            uint8_t s;
-            if (L->fast) { /* low 24 bits: folded bias; top byte: the shift */
-                acc = bj & 0x00FFFFFFUL;
-                s = (uint8_t)(bj >> 24);
-            } else {
-                acc = bj;
-                s = pgm_read_byte(&L->shift[j]);
-            }
+            const uint8_t s = pgm_read_byte(&L->shift[j]);
+            uint32_t acc = L->fast ? (bj & 0x00FFFFFFUL) : bj; /* fast: the top byte is the AVR's shift code */
             acc -= t;
             acc += kf_dense_dot(wg + r, k, x1, n1);
             acc += kf_dense_dot(wg + r + (uint32_t)n1 * k, k, x2, n2);
@@ -88,10 +93,7 @@ static void kf_dense_portable(const kf_dense_t *L, const int8_t *x1, uint16_t n1
     }
 }
 
-#if defined(__AVR__) && !defined(KF_DENSE_PORTABLE)
-#define KF_DENSE_HAVE_AVR 1
-void kf_dense_avr(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8_t *x2, int16_t *y);
-#endif
+#endif /* the portable kernel */
 
 #ifndef KF_DENSE_MARK
 #define KF_DENSE_MARK(id) ((void)0) /* export/avr.py defines it to time each layer in simavr */
@@ -100,6 +102,9 @@ void kf_dense_avr(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8
 void kf_dense2(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8_t *x2, int16_t *y)
 {
     KF_DENSE_MARK(1);
+#if defined(KF_DENSE_HAVE_AVR) && defined(KF_DENSE_ALL_FAST)
+    kf_dense_avr(L, x1, n1, x2, y); /* the renderer defines KF_DENSE_ALL_FAST when every layer is fast */
+#else
 #ifdef KF_DENSE_HAVE_AVR
     if (L->fast) {
         kf_dense_avr(L, x1, n1, x2, y);
@@ -108,6 +113,7 @@ void kf_dense2(const kf_dense_t *L, const int8_t *x1, uint16_t n1, const int8_t 
     {
         kf_dense_portable(L, x1, n1, x2, y);
     }
+#endif
     KF_DENSE_MARK(2);
 }
 
@@ -126,31 +132,32 @@ __asm__(
     "\tpush r9\n\tpush r10\n\tpush r11\n\tpush r12\n\tpush r13\n\tpush r14\n\tpush r15\n"
     "\tpush r16\n\tpush r17\n\tpush r28\n\tpush r29\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
     "\tsbiw r28, 19\n\tin r0, 0x3f\n\tcli\n\tout 0x3e, r29\n\tout 0x3f, r0\n"
-    "\tout 0x3d, r28\n\tstd Y+1, r22\n\tstd Y+2, r23\n\tstd Y+3, r20\n\tstd Y+4, r21\n"
-    "\tstd Y+5, r18\n\tstd Y+6, r19\n\tstd Y+9, r16\n\tstd Y+10, r17\n\tmovw r30, r24\n"
-    "\tld r24, Z\n\tldd r25, Z+1\n\tstd Y+13, r24\n\tstd Y+14, r25\n\tldd r24, Z+2\n"
-    "\tldd r25, Z+3\n\tstd Y+11, r24\n\tstd Y+12, r25\n\tldd r24, Z+8\n\tldd r25, Z+9\n"
-    "\tstd Y+18, r24\n\tstd Y+19, r25\n\tldd r24, Z+6\n\tldd r25, Z+7\n\tsub r24, r20\n"
-    "\tsbc r25, r21\n\tstd Y+7, r24\n\tstd Y+8, r25\n\tclt\n\tldd r24, Z+10\n"
-    "\tldd r25, Z+11\n\tor r24, r25\n\tbrne 1f\n\tset\n"
+    "\tout 0x3d, r28\n\tstd Y+1, r22\n\tstd Y+2, r23\n\tstd Y+5, r18\n\tstd Y+6, r19\n"
+    "\tstd Y+9, r16\n\tstd Y+10, r17\n\tmovw r30, r24\n\tld r24, Z\n\tldd r25, Z+1\n"
+    "\tstd Y+13, r24\n\tstd Y+14, r25\n\tldd r24, Z+2\n\tldd r25, Z+3\n\tstd Y+11, r24\n"
+    "\tstd Y+12, r25\n\tldd r24, Z+8\n\tldd r25, Z+9\n\tmov r0, r24\n\tandi r24, 7\n"
+    "\tstd Y+19, r24\n\tlsr r25\n\tror r0\n\tlsr r25\n\tror r0\n\tlsr r25\n\tror r0\n"
+    "\tstd Y+18, r0\n\tclt\n\tldd r24, Z+10\n\tldd r25, Z+11\n\tor r24, r25\n\tbrne 1f\n"
+    "\tset\n"
     "1:\n"
-    "\tclr r1\n\tclr r2\n\tclr r3\n\tclr r4\n\tmovw r26, r22\n\tmovw r24, r20\n"
-    "\trcall .Lkf_sum\n\tmovw r26, r18\n\tldd r24, Y+7\n\tldd r25, Y+8\n"
-    "\trcall .Lkf_sum\n\tlsr r4\n\tror r3\n\tror r2\n\tclr r0\n\tror r0\n\tstd Y+15, r0\n"
-    "\tstd Y+16, r2\n\tstd Y+17, r3\n"
+    "\tldd r2, Z+6\n\tldd r3, Z+7\n\tsub r2, r20\n\tsbc r3, r21\n\tmovw r24, r20\n"
+    "\tlsr r25\n\tror r24\n\trol r25\n\tstd Y+3, r25\n\tstd Y+4, r24\n\tmovw r24, r2\n"
+    "\tlsr r25\n\tror r24\n\trol r25\n\tstd Y+7, r25\n\tstd Y+8, r24\n\tmovw r26, r18\n"
+    "\tmovw r24, r2\n\tclr r1\n\tclr r2\n\tclr r3\n\tclr r4\n\trcall .Lkf_sum\n"
+    "\tmovw r26, r22\n\tmovw r24, r20\n\trcall .Lkf_sum\n\tlsr r4\n\tror r3\n\tror r2\n"
+    "\tclr r0\n\tror r0\n\tstd Y+15, r0\n\tstd Y+16, r2\n\tstd Y+17, r3\n"
     ".Lkf_loop8:\n"
-    "\tldd r24, Y+18\n\tldd r25, Y+19\n\tsbiw r24, 8\n\tbrsh 1f\n\trjmp .Lkf_tail\n"
+    "\tldd r24, Y+18\n\tsubi r24, 1\n\tbrcc 1f\n\trjmp .Lkf_tail\n"
     "1:\n"
-    "\tstd Y+18, r24\n\tstd Y+19, r25\n\tldd r0, Y+15\n\tldd r1, Y+16\n\tldd r26, Y+17\n"
-    "\tmovw r2, r0\n\tmov r16, r26\n\tmovw r4, r0\n\tmov r17, r26\n\tmovw r6, r0\n"
-    "\tmov r18, r26\n\tmovw r8, r0\n\tmov r19, r26\n\tmovw r10, r0\n\tmov r20, r26\n"
-    "\tmovw r12, r0\n\tmov r21, r26\n\tmovw r14, r0\n\tmov r22, r26\n\tmovw r24, r0\n"
-    "\tmov r23, r26\n\tldd r30, Y+13\n\tldd r31, Y+14\n\tldd r0, Y+3\n\tldd r1, Y+4\n"
-    "\tldd r26, Y+1\n\tldd r27, Y+2\n\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n"
-    "\tmov r29, r0\n\trcall .Lkf_mac8\n\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r0, Y+7\n"
-    "\tldd r1, Y+8\n\tor r0, r1\n\tbreq .Lkf_noseg2_8\n\tldd r0, Y+7\n\tldd r1, Y+8\n"
-    "\tldd r26, Y+5\n\tldd r27, Y+6\n\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n"
-    "\tmov r29, r0\n\trcall .Lkf_mac8\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
+    "\tstd Y+18, r24\n\tldd r0, Y+15\n\tldd r1, Y+16\n\tldd r26, Y+17\n\tmovw r2, r0\n"
+    "\tmov r16, r26\n\tmovw r4, r0\n\tmov r17, r26\n\tmovw r6, r0\n\tmov r18, r26\n"
+    "\tmovw r8, r0\n\tmov r19, r26\n\tmovw r10, r0\n\tmov r20, r26\n\tmovw r12, r0\n"
+    "\tmov r21, r26\n\tmovw r14, r0\n\tmov r22, r26\n\tmovw r24, r0\n\tmov r23, r26\n"
+    "\tldd r30, Y+13\n\tldd r31, Y+14\n\tldd r0, Y+3\n\tldd r1, Y+4\n\tldd r26, Y+1\n"
+    "\tldd r27, Y+2\n\tmovw r28, r0\n\trcall .Lkf_mac8\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
+    "\tldd r26, Y+7\n\tldd r27, Y+8\n\tmovw r0, r26\n\tor r26, r27\n"
+    "\tbreq .Lkf_noseg2_8\n\tldd r26, Y+5\n\tldd r27, Y+6\n\tmovw r28, r0\n"
+    "\trcall .Lkf_mac8\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
     ".Lkf_noseg2_8:\n"
     "\tstd Y+13, r30\n\tstd Y+14, r31\n\tldd r30, Y+11\n\tldd r31, Y+12\n\tldd r26, Y+9\n"
     "\tldd r27, Y+10\n\tlpm r0, Z+\n\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n"
@@ -169,15 +176,14 @@ __asm__(
     "\tin r28, 0x3d\n\tin r29, 0x3e\n\tstd Y+11, r30\n\tstd Y+12, r31\n\tstd Y+9, r26\n"
     "\tstd Y+10, r27\n\trjmp .Lkf_loop8\n"
     ".Lkf_tail:\n"
-    "\tstd Y+18, r24\n\tsbrs r24, 2\n\trjmp .Lkf_skip4\n\tldd r0, Y+15\n\tldd r1, Y+16\n"
+    "\tldd r24, Y+19\n\tsbrs r24, 2\n\trjmp .Lkf_skip4\n\tldd r0, Y+15\n\tldd r1, Y+16\n"
     "\tldd r26, Y+17\n\tmovw r2, r0\n\tmov r16, r26\n\tmovw r4, r0\n\tmov r17, r26\n"
     "\tmovw r6, r0\n\tmov r18, r26\n\tmovw r8, r0\n\tmov r19, r26\n\tldd r30, Y+13\n"
     "\tldd r31, Y+14\n\tldd r0, Y+3\n\tldd r1, Y+4\n\tldd r26, Y+1\n\tldd r27, Y+2\n"
-    "\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac4\n"
-    "\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r0, Y+7\n\tldd r1, Y+8\n\tor r0, r1\n"
-    "\tbreq .Lkf_noseg2_4\n\tldd r0, Y+7\n\tldd r1, Y+8\n\tldd r26, Y+5\n\tldd r27, Y+6\n"
-    "\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac4\n"
-    "\tin r28, 0x3d\n\tin r29, 0x3e\n"
+    "\tmovw r28, r0\n\trcall .Lkf_mac4\n\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r26, Y+7\n"
+    "\tldd r27, Y+8\n\tmovw r0, r26\n\tor r26, r27\n\tbreq .Lkf_noseg2_4\n"
+    "\tldd r26, Y+5\n\tldd r27, Y+6\n\tmovw r28, r0\n\trcall .Lkf_mac4\n\tin r28, 0x3d\n"
+    "\tin r29, 0x3e\n"
     ".Lkf_noseg2_4:\n"
     "\tstd Y+13, r30\n\tstd Y+14, r31\n\tldd r30, Y+11\n\tldd r31, Y+12\n\tldd r26, Y+9\n"
     "\tldd r27, Y+10\n\tlpm r0, Z+\n\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n"
@@ -187,37 +193,35 @@ __asm__(
     "\tlpm r29, Z+\n\tsub r0, r6\n\tsbc r1, r7\n\tsbc r28, r18\n\trcall .Lkf_post\n"
     "\tlpm r0, Z+\n\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n\tsub r0, r8\n"
     "\tsbc r1, r9\n\tsbc r28, r19\n\trcall .Lkf_post\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
-    "\tstd Y+11, r30\n\tstd Y+12, r31\n\tstd Y+9, r26\n\tstd Y+10, r27\n\tldd r24, Y+18\n"
+    "\tstd Y+11, r30\n\tstd Y+12, r31\n\tstd Y+9, r26\n\tstd Y+10, r27\n\tldd r24, Y+19\n"
     ".Lkf_skip4:\n"
     "\tsbrs r24, 1\n\trjmp .Lkf_skip2\n\tldd r0, Y+15\n\tldd r1, Y+16\n\tldd r26, Y+17\n"
     "\tmovw r2, r0\n\tmov r16, r26\n\tmovw r4, r0\n\tmov r17, r26\n\tldd r30, Y+13\n"
     "\tldd r31, Y+14\n\tldd r0, Y+3\n\tldd r1, Y+4\n\tldd r26, Y+1\n\tldd r27, Y+2\n"
-    "\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac2\n"
-    "\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r0, Y+7\n\tldd r1, Y+8\n\tor r0, r1\n"
-    "\tbreq .Lkf_noseg2_2\n\tldd r0, Y+7\n\tldd r1, Y+8\n\tldd r26, Y+5\n\tldd r27, Y+6\n"
-    "\tlsr r1\n\tror r0\n\tclr r28\n\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac2\n"
-    "\tin r28, 0x3d\n\tin r29, 0x3e\n"
+    "\tmovw r28, r0\n\trcall .Lkf_mac2\n\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r26, Y+7\n"
+    "\tldd r27, Y+8\n\tmovw r0, r26\n\tor r26, r27\n\tbreq .Lkf_noseg2_2\n"
+    "\tldd r26, Y+5\n\tldd r27, Y+6\n\tmovw r28, r0\n\trcall .Lkf_mac2\n\tin r28, 0x3d\n"
+    "\tin r29, 0x3e\n"
     ".Lkf_noseg2_2:\n"
     "\tstd Y+13, r30\n\tstd Y+14, r31\n\tldd r30, Y+11\n\tldd r31, Y+12\n\tldd r26, Y+9\n"
     "\tldd r27, Y+10\n\tlpm r0, Z+\n\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n"
     "\tsub r0, r2\n\tsbc r1, r3\n\tsbc r28, r16\n\trcall .Lkf_post\n\tlpm r0, Z+\n"
     "\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n\tsub r0, r4\n\tsbc r1, r5\n"
     "\tsbc r28, r17\n\trcall .Lkf_post\n\tin r28, 0x3d\n\tin r29, 0x3e\n\tstd Y+11, r30\n"
-    "\tstd Y+12, r31\n\tstd Y+9, r26\n\tstd Y+10, r27\n\tldd r24, Y+18\n"
+    "\tstd Y+12, r31\n\tstd Y+9, r26\n\tstd Y+10, r27\n\tldd r24, Y+19\n"
     ".Lkf_skip2:\n"
     "\tsbrs r24, 0\n\trjmp .Lkf_skip1\n\tldd r0, Y+15\n\tldd r1, Y+16\n\tldd r26, Y+17\n"
     "\tmovw r2, r0\n\tmov r16, r26\n\tldd r30, Y+13\n\tldd r31, Y+14\n\tldd r0, Y+3\n"
-    "\tldd r1, Y+4\n\tldd r26, Y+1\n\tldd r27, Y+2\n\tlsr r1\n\tror r0\n\tclr r28\n"
-    "\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac1\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
-    "\tldd r0, Y+7\n\tldd r1, Y+8\n\tor r0, r1\n\tbreq .Lkf_noseg2_1\n\tldd r0, Y+7\n"
-    "\tldd r1, Y+8\n\tldd r26, Y+5\n\tldd r27, Y+6\n\tlsr r1\n\tror r0\n\tclr r28\n"
-    "\trol r28\n\tmov r29, r0\n\trcall .Lkf_mac1\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
+    "\tldd r1, Y+4\n\tldd r26, Y+1\n\tldd r27, Y+2\n\tmovw r28, r0\n\trcall .Lkf_mac1\n"
+    "\tin r28, 0x3d\n\tin r29, 0x3e\n\tldd r26, Y+7\n\tldd r27, Y+8\n\tmovw r0, r26\n"
+    "\tor r26, r27\n\tbreq .Lkf_noseg2_1\n\tldd r26, Y+5\n\tldd r27, Y+6\n"
+    "\tmovw r28, r0\n\trcall .Lkf_mac1\n\tin r28, 0x3d\n\tin r29, 0x3e\n"
     ".Lkf_noseg2_1:\n"
     "\tstd Y+13, r30\n\tstd Y+14, r31\n\tldd r30, Y+11\n\tldd r31, Y+12\n\tldd r26, Y+9\n"
     "\tldd r27, Y+10\n\tlpm r0, Z+\n\tlpm r1, Z+\n\tlpm r28, Z+\n\tlpm r29, Z+\n"
     "\tsub r0, r2\n\tsbc r1, r3\n\tsbc r28, r16\n\trcall .Lkf_post\n\tin r28, 0x3d\n"
     "\tin r29, 0x3e\n\tstd Y+11, r30\n\tstd Y+12, r31\n\tstd Y+9, r26\n\tstd Y+10, r27\n"
-    "\tldd r24, Y+18\n"
+    "\tldd r24, Y+19\n"
     ".Lkf_skip1:\n"
     "\tin r28, 0x3d\n\tin r29, 0x3e\n\tadiw r28, 19\n\tin r0, 0x3f\n\tcli\n"
     "\tout 0x3e, r29\n\tout 0x3f, r0\n\tout 0x3d, r28\n\tpop r29\n\tpop r28\n\tpop r17\n"
@@ -225,19 +229,19 @@ __asm__(
     "\tpop r9\n\tpop r8\n\tpop r7\n\tpop r6\n\tpop r5\n\tpop r4\n\tpop r3\n\tpop r2\n"
     "\tclr r1\n\tret\n"
     ".Lkf_sum:\n"
-    "\tsbrs r24, 0\n\trjmp 1f\n\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n"
+    "\tsbrs r24, 0\n\trjmp 1f\n\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n"
     "\tadc r3, r1\n\tadc r4, r1\n"
     "1:\n"
-    "\tsbrs r24, 1\n\trjmp 2f\n\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n"
-    "\tadc r3, r1\n\tadc r4, r1\n\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n"
+    "\tsbrs r24, 1\n\trjmp 2f\n\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n"
+    "\tadc r3, r1\n\tadc r4, r1\n\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n"
     "\tadc r3, r1\n\tadc r4, r1\n"
     "2:\n"
     "\tlsr r25\n\tror r24\n\tlsr r25\n\tror r24\n\tsbiw r24, 0\n\tbreq 4f\n"
     "3:\n"
-    "\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n\tadc r3, r1\n\tadc r4, r1\n"
-    "\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n\tadc r3, r1\n\tadc r4, r1\n"
-    "\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n\tadc r3, r1\n\tadc r4, r1\n"
-    "\tld r23, X+\n\tsubi r23, 0x80\n\tadd r2, r23\n\tadc r3, r1\n\tadc r4, r1\n"
+    "\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n\tadc r3, r1\n\tadc r4, r1\n"
+    "\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n\tadc r3, r1\n\tadc r4, r1\n"
+    "\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n\tadc r3, r1\n\tadc r4, r1\n"
+    "\tld r17, X+\n\tsubi r17, 0x80\n\tadd r2, r17\n\tadc r3, r1\n\tadc r4, r1\n"
     "\tsbiw r24, 1\n\tbrne 3b\n"
     "4:\n"
     "\tret\n"
@@ -317,20 +321,46 @@ __asm__(
     "\tmul r0, r28\n\tsub r2, r0\n\tsbc r3, r1\n\tsbci r16, 0\n\tdec r29\n\tbrne 2b\n"
     "\tret\n"
     ".Lkf_post:\n"
-    "\tsubi r29, 8\n\tbrcs .Lkf_p_small\n\tmov r0, r1\n\tmov r1, r28\n\tlsl r28\n"
-    "\tsbc r28, r28\n\tsubi r29, 8\n\tbrcs .Lkf_p_mid\n\tmov r0, r1\n\tmov r1, r28\n"
-    "\tsubi r29, 8\n\trjmp .Lkf_p_mid\n"
+    "\tcpi r29, 4\n\tbrsh .Lkf_p_other\n"
+    ".Lkf_p_right:\n"
+    "\ttst r29\n\tbreq 4f\n"
+    "2:\n"
+    "\tasr r28\n\tror r1\n\tdec r29\n\tbrne 2b\n"
+    "4:\n"
+    "\tbrts 6f\n\tmov r0, r1\n\tlsl r0\n\tsbc r0, r0\n\tcp r28, r0\n\tbrne 5f\n"
+    "\tst X+, r1\n\tst X+, r0\n\tret\n"
+    "5:\n"
+    "\tldi r29, 0x7f\n\tsbrc r28, 7\n\tldi r29, 0x80\n\tst X+, r29\n\tlsl r28\n"
+    "\tsbc r28, r28\n\tst X+, r28\n\tret\n"
+    "6:\n"
+    "\ttst r28\n\tbrne 7f\n\tst X+, r1\n\tst X+, r28\n\tret\n"
+    "7:\n"
+    "\tldi r29, 0xff\n\tsbrc r28, 7\n\tldi r29, 0\n\tst X+, r29\n\tclr r29\n"
+    "\tst X+, r29\n\tret\n"
+    ".Lkf_p_other:\n"
+    "\tsbrc r29, 7\n\trjmp .Lkf_p_small\n\tsbrs r29, 6\n\trjmp .Lkf_p_left\n"
+    "\tmov r1, r28\n\tlsl r28\n\tsbc r28, r28\n\tandi r29, 0x3f\n\tcpi r29, 4\n"
+    "\tbrlo .Lkf_p_right\n"
+    ".Lkf_p_left:\n"
+    "\tandi r29, 7\n\tmov r0, r28\n\tlsl r0\n\tsbc r0, r0\n"
+    "3:\n"
+    "\tlsl r1\n\trol r28\n\trol r0\n\tdec r29\n\tbrne 3b\n\tmov r1, r28\n\tmov r28, r0\n"
+    "\trjmp 4b\n"
     ".Lkf_p_small:\n"
-    "\tcpi r29, -4\n\tbrlt .Lkf_p_right24\n\tcpi r29, -2\n\tbrlt .Lkf_p_t34\n"
-    "\tcpi r29, -1\n\tbrne .Lkf_p_t2\n\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n"
-    "\trjmp .Lkf_p_sh1\n"
+    "\tsbrc r29, 5\n\trjmp .Lkf_p_left24\n\tandi r29, 7\n\tbreq 1f\n"
+    "3:\n"
+    "\tasr r28\n\tror r1\n\tror r0\n\tdec r29\n\tbrne 3b\n"
+    "1:\n"
+    "\tmov r29, r28\n\tmov r28, r1\n\tmov r1, r0\n\trjmp .Lkf_p_fix\n"
+    ".Lkf_p_left24:\n"
+    "\tandi r29, 7\n\tcpi r29, 2\n\tbrlo .Lkf_p_t1\n\tbreq .Lkf_p_t2\n\tcpi r29, 3\n"
+    "\tbreq .Lkf_p_t3\n\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n\trjmp .Lkf_p_sh4\n"
+    ".Lkf_p_t3:\n"
+    "\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n\trjmp .Lkf_p_sh3\n"
     ".Lkf_p_t2:\n"
     "\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n\trjmp .Lkf_p_sh2\n"
-    ".Lkf_p_t34:\n"
-    "\tcpi r29, -3\n\tbrne .Lkf_p_t4\n\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n"
-    "\trjmp .Lkf_p_sh3\n"
-    ".Lkf_p_t4:\n"
-    "\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n"
+    ".Lkf_p_t1:\n"
+    "\tmov r29, r28\n\tlsl r29\n\tsbc r29, r29\n\trjmp .Lkf_p_sh1\n"
     ".Lkf_p_sh4:\n"
     "\tlsl r0\n\trol r1\n\trol r28\n\trol r29\n"
     ".Lkf_p_sh3:\n"
@@ -338,30 +368,12 @@ __asm__(
     ".Lkf_p_sh2:\n"
     "\tlsl r0\n\trol r1\n\trol r28\n\trol r29\n"
     ".Lkf_p_sh1:\n"
-    "\tlsl r0\n\trol r1\n\trol r28\n\trol r29\n\tmov r0, r1\n\tmov r1, r28\n"
-    "\tmov r28, r29\n\trjmp 4f\n"
-    ".Lkf_p_right24:\n"
-    "\tsubi r29, -8\n\tbreq 4f\n"
-    "1:\n"
-    "\tasr r28\n\tror r1\n\tror r0\n\tdec r29\n\tbrne 1b\n\trjmp 4f\n"
-    ".Lkf_p_left:\n"
-    "\tlsl r0\n\trol r1\n\trol r28\n\tinc r29\n\tbrne .Lkf_p_left\n\tmov r0, r1\n"
-    "\tmov r1, r28\n\tlsl r28\n\tsbc r28, r28\n\trjmp 4f\n"
-    ".Lkf_p_mid:\n"
-    "\tcpi r29, -4\n\tbrge .Lkf_p_left\n\tsubi r29, -8\n\tbreq 4f\n"
-    "2:\n"
-    "\tasr r1\n\tror r0\n\tdec r29\n\tbrne 2b\n"
-    "4:\n"
-    "\tbrts 6f\n\tmov r29, r0\n\tlsl r29\n\tsbc r29, r29\n\tcp r1, r29\n\tcpc r28, r29\n"
-    "\tbrne 5f\n\tst X+, r0\n\tst X+, r29\n\tret\n"
-    "5:\n"
-    "\tldi r29, 0x7f\n\tsbrc r28, 7\n\tldi r29, 0x80\n\tst X+, r29\n\tlsl r28\n"
-    "\tsbc r28, r28\n\tst X+, r28\n\tret\n"
-    "6:\n"
-    "\tmov r29, r1\n\tor r29, r28\n\tbrne 7f\n\tst X+, r0\n\tst X+, r29\n\tret\n"
-    "7:\n"
-    "\tldi r29, 0xff\n\tsbrc r28, 7\n\tldi r29, 0\n\tst X+, r29\n\tclr r29\n"
-    "\tst X+, r29\n\tret\n\t.size kf_dense_avr, .-kf_dense_avr\n"
+    "\tlsl r0\n\trol r1\n\trol r28\n\trol r29\n"
+    ".Lkf_p_fix:\n"
+    "\tmov r0, r28\n\tlsl r0\n\tsbc r0, r0\n\tcp r29, r0\n\tbrne 8f\n\trjmp 4b\n"
+    "8:\n"
+    "\tldi r28, 0x7f\n\tsbrc r29, 7\n\tldi r28, 0x80\n\trjmp 4b\n"
+    "\t.size kf_dense_avr, .-kf_dense_avr\n"
     ".popsection\n"
 );
 #endif

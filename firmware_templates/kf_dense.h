@@ -11,15 +11,19 @@
  *          group rows g0..g0+k-1 hold w[g0*n_in + i*k + r] = W[g0+r][i] ^ 0x80.
  *   b      PROGMEM int32, n_out: the bias with the rounding constant and the offset-binary
  *          corrections folded in; for `fast` layers the low 24 bits hold it and the top byte
- *          holds the row's shift.
- *   shift  PROGMEM uint8, n_out: s[j] in 0..30 (read by the int32 path only).
+ *          holds the AVR kernel's requantisation code for the row (export.kernel.avr_shift_code).
+ *   shift  PROGMEM uint8, n_out: s[j] in 0..30 (the portable code's shift).
  *   fast   1 when export/kernel.py proved that a 24-bit accumulator is exact for this layer
- *          (every int8 input), the clamp is int8 or uint8 and n_in <= 510: the AVR uses its
- *          assembly kernel (about 9 cycles per MAC); 0: the portable int32 code everywhere.
+ *          (every int8 input, rounding included), the clamp is int8 or uint8, n_in <= 510
+ *          and n_out <= 2047: the AVR uses its assembly kernel (about 9 cycles per MAC);
+ *          0: the portable int32 code everywhere.
  *   lo, hi the saturation bounds (hidden layers -128..127, the output layer 0..255).
  * The descriptor itself lives in SRAM (plain `static const kf_dense_t`, 15 bytes), e.g.
  *     static const kf_dense_t L0 = { L0_w, L0_b, L0_shift, 160, 32, -128, 127, 1 };
  * export.kernel.KernelLayer.c_initializer(...) renders exactly this initializer.
+ *
+ * KF_DENSE_ALL_FAST: define it (before this code) when every layer's `fast` is 1
+ * (export.kernel.all_fast); the AVR build then omits the portable kernel (about 1 KB of flash).
  *
  * Inputs x are int8 in SRAM; outputs y are int16 in SRAM (already clamped to [lo, hi]).
  * kf_dense2 reads its input as the concatenation of two SRAM segments (x1[0..n1-1] then

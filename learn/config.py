@@ -61,6 +61,7 @@ class TrainConfig:
     episodes: int = 10_000  #: learning episodes (summed over envs) after the warm-up
     updates_per_step: float = 1.0  #: gradient updates per collected transition (thesis: 1)
     reward_scale: float = 1.0  #: multiplies the world's reward for learning only (metrics stay raw)
+    extra_action_penalty: float = 0.0  #: learning only: added to the world's action penalty (thesis 0.01)
     # --- exploration (Ornstein-Uhlenbeck, per robot and motor) -------------------------------
     noise_theta: float = 0.15  #: OU mean reversion per control step
     noise_sigma: float = 0.2  #: OU noise scale per control step
@@ -104,6 +105,8 @@ class TrainConfig:
              f"updates_per_step must be >= 0, got {self.updates_per_step}")
         need(self.reward_scale > 0 and math.isfinite(self.reward_scale),
              f"reward_scale must be > 0, got {self.reward_scale}")
+        need(self.extra_action_penalty >= 0 and math.isfinite(self.extra_action_penalty),
+             f"extra_action_penalty must be >= 0, got {self.extra_action_penalty}")
         need(self.noise_theta >= 0, f"noise_theta must be >= 0, got {self.noise_theta}")
         need(self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}")
         need(1 <= self.n_envs <= 4096, f"n_envs must be in 1..4096, got {self.n_envs}")

@@ -172,7 +172,9 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 a = np.clip(agent.act(h) + noise.sample(), 0.0, 1.0).astype(np.float32)  # (B, M, 2)
                 obs, reward, _, truncated, _ = env.step(a)
                 h = history.push(a, obs)
-                replay.add(np.concatenate([a, obs], axis=-1), env.state(), reward)
+                effort = np.mean(np.sum(a * a, axis=-1), axis=-1)  # (B,) (1/M) Σ_i ||a_i||²
+                r_learn = reward - world.reward_scale * cfg.extra_action_penalty * effort
+                replay.add(np.concatenate([a, obs], axis=-1), env.state(), r_learn)
                 ep_return += reward
                 c.env_steps += B
                 if learning:

@@ -19,11 +19,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
-from .config import PRESETS, WorldConfig, preset
+from .config import PRESETS, preset
 
 EXIT_USAGE = 2
+OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
 
 
 class UserError(Exception):
@@ -135,23 +134,23 @@ def run(a: argparse.Namespace) -> dict:
     except ValueError as e:  # e.g. too many discs for the arena
         raise UserError(str(e)) from None
     out, created = _prepare_out(a.out)
-    res = rollout(env, policy, a.episodes, seed=a.seed, record=1, progress=a.episodes > 1 and not a.quiet)
-    m = res.metrics()
-    name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
-    report = {
-        "tool": "kiloforge sim",
-        "argv": list(a.argv),
-        "policy": desc,
-        "world": world.to_dict(),
-        "robots": a.robots,
-        "seed": a.seed,
-        "envs": n_envs,
-        "rendered_episode": 0,
-        "metrics": m.to_dict(),
-    }
-    tr = res.trajectories
     staging = Path(tempfile.mkdtemp(dir=out, prefix=".sim-"))  # all files appear together or not at all
     try:
+        res = rollout(env, policy, a.episodes, seed=a.seed, record=1, progress=a.episodes > 1 and not a.quiet)
+        m = res.metrics()
+        name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
+        report = {
+            "tool": "kiloforge sim",
+            "argv": list(a.argv),
+            "policy": desc,
+            "world": world.to_dict(),
+            "robots": a.robots,
+            "seed": a.seed,
+            "envs": n_envs,
+            "rendered_episode": 0,
+            "metrics": m.to_dict(),
+        }
+        tr = res.trajectories
         title = f"{world.name}: {a.robots} robots, {name}, seed {a.seed}, episode 0"
         render.plot_trajectories(tr.positions[0], tr.target[0], world, staging / "trajectories.png", title=title)
         render.animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
@@ -159,7 +158,7 @@ def run(a: argparse.Namespace) -> dict:
         render.plot_coverage({name: res.coverage}, staging / "coverage.png",
                              title=f"{world.name}: {a.robots} robots, {a.episodes} episodes")
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-        for f in ("trajectories.png", "episode.gif", "coverage.png", "metrics.json"):
+        for f in OUTPUT_FILES:
             os.replace(staging / f, out / f)
     except BaseException:
         if created:
@@ -168,7 +167,7 @@ def run(a: argparse.Namespace) -> dict:
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     print(compare({name: m}))
-    print(f"wrote {out}/: trajectories.png episode.gif coverage.png metrics.json")
+    print(f"wrote {out}/: {' '.join(OUTPUT_FILES)}")
     return report
 
 

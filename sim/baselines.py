@@ -18,6 +18,10 @@ Behaviour, per robot and control period, by *level* of what it senses:
   exponential lengths, random tumbles) and turn away when the wall flag is set.
 * whenever the level drops (the robot has just left the target's or the neighbour's range) it makes a
   U-turn, which takes it straight back in.
+
+Commands are only ``(speed, speed)`` (straight), ``(1, 0)`` / ``(0, 1)`` (one turn period: ≈45°; in
+the thesis kinematics with 5 mm forward, in the kilobot preset a pivot) and ``(0, 0)`` (stop).
+Parameters: :class:`SearcherParams`; tuned values per preset in :data:`TUNED`.
 """
 from __future__ import annotations
 
@@ -48,12 +52,12 @@ class SearcherParams:
     """Constants of :class:`HandWrittenSearcher` (each one a byte or two in firmware)."""
 
     speed: float = 1.0  #: command of both motors on a straight run
-    run_min_steps: float = 6.0  #: exploration: shortest straight run (periods)
+    run_min_steps: float = 25.0  #: exploration: shortest straight run (periods)
     run_alpha: float = 1.5  #: Pareto tail exponent of run lengths (Lévy-like); 0 = exponential, mean run_min
-    run_max_steps: int = 60  #: runs are cut at this length
-    tumble_max_steps: int = 4  #: a tumble pivots 1..this many periods (≈45° each at full turn)
-    wall_turn_min: int = 2  #: a wall turn pivots between these many periods ...
-    wall_turn_max: int = 4  #: ... (≈90°–180°), direction random
+    run_max_steps: int = 300  #: runs are cut at this length
+    tumble_max_steps: int = 3  #: a tumble pivots 1..this many periods (≈45° each at full turn)
+    wall_turn_min: int = 3  #: a wall turn pivots between these many periods ...
+    wall_turn_max: int = 3  #: ... (3 ≈ 135°; tuned: 180° sends robots back on their own track)
     wall_cooldown: int = 2  #: straight periods after a wall turn before the wall flag counts again
     uturn_steps: int = 4  #: pivot periods of the U-turn made on losing the target / neighbour (≈180°)
     stop_dist: float = 1.0  #: stop once the target is heard at <= this fraction of the comm radius
@@ -73,14 +77,12 @@ class SearcherParams:
         assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
 
 
-#: tuned defaults per world preset (sweeps over 32–128 episodes; numbers in the sim-tools report)
+#: tuned parameters per world preset (the dataclass defaults are the thesis values). Kilobot discs
+#: crowd the target, so they walk further in before stopping; its 40 mm wall zone needs a longer
+#: cooldown. Sweeps and results: see the sim-tools report / README.
 TUNED: dict[str, SearcherParams] = {
-    "thesis": SearcherParams(run_min_steps=25, run_alpha=1.5, run_max_steps=300, tumble_max_steps=3,
-                             wall_turn_min=3, wall_turn_max=3, wall_cooldown=2, uturn_steps=4,
-                             stop_dist=1.0),
-    "kilobot": SearcherParams(run_min_steps=30, run_alpha=1.5, run_max_steps=300, tumble_max_steps=2,
-                              wall_turn_min=3, wall_turn_max=3, wall_cooldown=2, uturn_steps=4,
-                              stop_dist=0.6),
+    "thesis": SearcherParams(),
+    "kilobot": SearcherParams(run_min_steps=30, tumble_max_steps=2, wall_cooldown=3, stop_dist=0.6),
 }
 
 

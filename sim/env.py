@@ -322,9 +322,8 @@ class SwarmEnv:
                 record = np.broadcast_to(self.pos, (cfg.period_ticks, B, M, 2))
         dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
         obs, info = self._sense(self._hear(record, dt), dt)
-        in_range = info["in_range"]
-        cover = in_range.sum(1) / M  # (B,)
-        effort = np.mean(np.sum(u * u, axis=-1), axis=1)  # (B,) (1/M) Σ ||a_i||²
+        cover = info["coverage"]  # (B,) Σ δ_i / M
+        effort = np.sum(u * u, axis=(1, 2)) / M  # (B,) (1/M) Σ_i ||a_i||²
         reward = (cfg.reward_scale * (cover * cover - cfg.action_penalty * effort)).astype(np.float32)
         self.t += 1
         self._tick0 += cfg.period_ticks
@@ -346,7 +345,7 @@ class SwarmEnv:
         self._prev_wall = obs[..., OBS_WALL].copy()
         in_range = dt <= self.cfg.comm_radius_mm
         info = StepInfo({"events": period.events}, in_range=in_range, light=light,
-                        coverage=in_range.mean(1))
+                        coverage=np.count_nonzero(in_range, axis=1) / self.n_robots)
         return obs, info
 
     def state(self) -> np.ndarray:

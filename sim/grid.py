@@ -13,9 +13,9 @@ Two methods give identical results (same pairs, same order, same float distances
 ``method="auto"`` picks dense for small N (and for grids too coarse to prune anything), else grid.
 No Python loop runs over points; the grid method loops only over env chunks.
 
-Squared distances are always ``dx * dx + dy * dy`` with ``dx = x[i] - x[j]`` in float64; a pair is
-in range when ``d2 <= radius * radius`` and its distance is ``sqrt(d2)``, so neither the pair set
-nor a distance depends on the method or the direction.
+Squared distances are always ``dx * dx + dy * dy`` with ``dx = x[i] - x[j]`` (float64, or float32 on
+request); a pair is in range when ``d2 <= radius * radius`` and its distance is ``sqrt(d2)`` (taken
+in float64), so neither the pair set nor a distance depends on the method or the direction.
 """
 from __future__ import annotations
 
@@ -25,7 +25,9 @@ import numpy as np
 
 #: dense all-pairs up to this many points per env (tuned with tests/bench/bench_sim.py)
 DENSE_MAX_N = 64
-#: max entries of a dense (B_chunk, N, N) block / candidate pairs of a grid chunk
+#: max unordered pairs of a dense chunk of envs
+DENSE_CHUNK_PAIRS = 1 << 20
+#: max candidate pairs of a grid chunk
 CHUNK_ENTRIES = 1 << 22
 #: the grid method processes envs in chunks of about this many points (cache-sized work arrays)
 GRID_CHUNK_POINTS = 8192
@@ -86,12 +88,15 @@ def choose_method(n_envs: int, n_points: int, radius: float, extent: float) -> s
 
 
 def pairs_within(pos: np.ndarray, radius: float, extent: float, method: str = "auto",
-                 ordered: bool = False) -> Pairs:
+                 ordered: bool = False, dtype: type = np.float64) -> Pairs:
     """All pairs of points of the same env with distance <= ``radius``.
 
     ``pos`` (B, N, 2): points, expected within ``[-extent, extent]²`` (points outside are put in the
     border cells, still correct). ``ordered=False``: unordered pairs i < j sorted by (env, i, j);
     ``ordered=True``: both directions, sorted by (env, i, j) (i = receiver, j = sender).
+    ``dtype``: precision of the coordinate differences and squared distances (float32 is about twice
+    as fast; its distances are within ~1e-7 relative of the float64 ones). Distances are returned
+    as float64 either way.
     """
     pos = np.asarray(pos, np.float64)
     assert pos.ndim == 3 and pos.shape[2] == 2, f"pos must be (B, N, 2), got {pos.shape}"
@@ -101,8 +106,8 @@ def pairs_within(pos: np.ndarray, radius: float, extent: float, method: str = "a
         return _empty(ordered)
     if method == "auto":
         method = choose_method(B, N, radius, extent)
-    x = np.ascontiguousarray(pos[..., 0])  # (B, N)
-    y = np.ascontiguousarray(pos[..., 1])
+    x = np.ascontiguousarray(pos[..., 0], dtype=dtype)  # (B, N)
+    y = np.ascontiguousarray(pos[..., 1], dtype=dtype)
     if method == "dense":
         return _dense(x, y, radius, ordered)
     if method == "grid":
@@ -125,7 +130,7 @@ def _flat_index(nb: int, n: int) -> tuple[np.ndarray, ...]:
     """Flat ids (nb * n_u,) of the first and second point of every unordered pair i < j, and (I, J)."""
     key = (nb, n)
     if key not in _FLAT_INDEX:
-        if len(_FLAT_INDEX) >= 8:
+        if len(_FLAT_INDEX) >= 4:
             _FLAT_INDEX.clear()
         I, J = np.triu_indices(n, 1)  # (n_u,) sorted by (i, j)
         off = (np.arange(nb, dtype=np.int64) * n)[:, None]
@@ -136,7 +141,7 @@ def _flat_index(nb: int, n: int) -> tuple[np.ndarray, ...]:
 def _dense(x: np.ndarray, y: np.ndarray, radius: float, ordered: bool) -> Pairs:
     """All unordered pairs i < j per env (gathered with precomputed flat ids), in chunks of envs."""
     B, N = x.shape
-    step = max(1, CHUNK_ENTRIES // (N * N))  # also keeps the packed sort keys below 2^63
+    step = max(1, DENSE_CHUNK_PAIRS // (N * (N - 1) // 2))  # bounds memory and the cached index size
     parts = []
     for b0 in range(0, B, step):
         p = _dense_chunk(x[b0:b0 + step], y[b0:b0 + step], radius, ordered)
@@ -158,7 +163,7 @@ def _dense_chunk(x: np.ndarray, y: np.ndarray, radius: float, ordered: bool) -> 
     np.multiply(dy, dy, out=dy)
     d2 += dy
     fu = np.flatnonzero(d2 <= radius * radius)  # sorted by (env, i, j)
-    udist = np.sqrt(d2.take(fu))
+    udist = np.sqrt(d2.take(fu).astype(np.float64))
     e = fu // n_u
     k = fu - e * n_u
     i, j = I.take(k), J.take(k)
@@ -259,7 +264,7 @@ def _grid(x: np.ndarray, y: np.ndarray, radius: float, extent: float, ordered: b
     rem = key - e * (N * N)
     i = rem // N
     j = rem - i * N
-    d = np.sqrt(d2.take(perm))
+    d = np.sqrt(d2.take(perm).astype(np.float64))
     if not ordered:
         return Pairs(e, i, j, d)
     return _both_directions(e, i, j, d, B, N)

@@ -92,7 +92,7 @@ class Collider:
         assert cfg.robot_radius_mm > 0, "collisions need robot_radius_mm > 0"
         self.cfg = cfg
         self.diam = 2.0 * cfg.robot_radius_mm
-        self.skin = skin_mm if skin_mm is not None else 0.25 * self.diam
+        self.skin = skin_mm if skin_mm is not None else 0.5 * self.diam  # rebuild every ~25 ticks
         self.invalidate()
 
     def invalidate(self) -> None:

@@ -73,6 +73,15 @@ def test_build_for_robot_writes_elf_and_hex(tmp_path):
         assert data == b.sizes.flash
 
 
+def test_robot_images_are_the_built_files(tmp_path):
+    """robot_images returns the .elf and .hex bytes of both programs (for an atomic write by the CLI)."""
+    require_avr()
+    files = render_firmware(synthetic_qpolicy(WORLD, 2, (8,), seed=4))
+    images = avr.robot_images(files, _fake_kilolib(tmp_path / "kilolib"))
+    assert set(images) == {"kilobot_policy.elf", "kilobot_policy.hex", "kilobot_target.elf", "kilobot_target.hex"}
+    assert images["kilobot_policy.elf"][:4] == b"\x7fELF" and images["kilobot_policy.hex"].startswith(b":")
+
+
 def test_find_kilolib_explains_an_unbuilt_checkout(tmp_path):
     """A directory without kilolib.h / build/kilolib.a gets a message that says what to do."""
     with pytest.raises(avr.AvrError, match="make"):

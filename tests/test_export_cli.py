@@ -191,7 +191,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     fake.render_firmware = render_firmware
     monkeypatch.setitem(sys.modules, "export.render", fake)
     out = tmp_path / "robot.c"
-    rc, stdout, err = run(["--out", str(out), "--target-uids", "7"] + FAST, capsys)
+    rc, stdout, err = run(["--out", str(out), "--target-uids", "7", "--no-avr"] + FAST, capsys)
     assert rc == 0, err
     qp = seen["qp"]
     assert seen["uids"] == (7,) and qp.world.name == "kilobot" and out.read_text().startswith(f"/* policy {qp.policy_hash}")
@@ -205,7 +205,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     fake.verify_host = verify_host
     out2 = tmp_path / "sub"
     out2.mkdir()
-    rc, _, err = run(["--out", str(out2 / "k.c"), "--verify", "host"] + FAST, capsys)
+    rc, _, err = run(["--out", str(out2 / "k.c"), "--verify", "host", "--no-avr"] + FAST, capsys)
     assert rc == 1 and "host verification failed" in one_error_line(err)
     assert list(out2.iterdir()) == []
 
@@ -229,6 +229,6 @@ def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     fake = types.ModuleType("export.render")
     fake.render_firmware = render_firmware
     monkeypatch.setitem(sys.modules, "export.render", fake)
-    rc, _, err = run(["--onnx", str(tmp_path / "actor.onnx"), "--out", str(tmp_path / "k.c")] + FAST, capsys)
+    rc, _, err = run(["--onnx", str(tmp_path / "actor.onnx"), "--out", str(tmp_path / "k.c"), "--no-avr"] + FAST, capsys)
     assert rc == 0, err
     assert seen["qp"].layer_sizes == p.layer_sizes and seen["qp"].t_prev == 3

@@ -20,14 +20,14 @@ def _rngs(n, seed=0):
 # --- grid --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("B,N,extent,radius", [(3, 70, 100.0, 40.0), (2, 300, 300.0, 25.0), (4, 9, 50.0, 120.0),
                                                (1, 200, 100.0, 7.0)])
-@pytest.mark.parametrize("ordered", [False, True])
-def test_grid_equals_dense(B, N, extent, radius, ordered):
+@pytest.mark.parametrize("ordered,dtype", [(False, np.float64), (True, np.float64), (True, np.float32)])
+def test_grid_equals_dense(B, N, extent, radius, ordered, dtype):
     """Grid and all-pairs search give identical pairs, order and distances (points on cell edges too)."""
     rng = np.random.default_rng(B * N)
     pos = rng.uniform(-extent, extent, (B, N, 2))
     pos[0, :4] = [[-extent, -extent], [extent, extent], [0.0, 0.0], [radius, 0.0]]  # borders, exact radius
-    d = pairs_within(pos, radius, extent, "dense", ordered)
-    g = pairs_within(pos, radius, extent, "grid", ordered)
+    d = pairs_within(pos, radius, extent, "dense", ordered, dtype)
+    g = pairs_within(pos, radius, extent, "grid", ordered, dtype)
     for f in ("env", "i", "j", "dist"):
         np.testing.assert_array_equal(getattr(d, f), getattr(g, f))
     brute = np.linalg.norm(pos[:, :, None] - pos[:, None], axis=-1) <= radius  # (B, N, N)
@@ -36,6 +36,25 @@ def test_grid_equals_dense(B, N, extent, radius, ordered):
     if ordered:
         np.testing.assert_array_equal(d.udist[d.uidx], d.dist)
         np.testing.assert_array_equal(g.udist[g.uidx], g.dist)
+
+
+@pytest.mark.parametrize("ordered", [False, True])
+def test_chunked_search_equals_unchunked(monkeypatch, ordered):
+    """Processing envs in chunks (dense and grid, incl. candidate chunks) changes nothing."""
+    import sim.grid as G
+
+    rng = np.random.default_rng(9)
+    pos = rng.uniform(-100, 100, (7, 80, 2))
+    want = {m: pairs_within(pos, 30.0, 100.0, m, ordered) for m in ("dense", "grid")}
+    monkeypatch.setattr(G, "DENSE_CHUNK_PAIRS", 5000)  # 2 envs per dense chunk
+    monkeypatch.setattr(G, "GRID_CHUNK_POINTS", 200)  # 2 envs per grid chunk
+    monkeypatch.setattr(G, "CHUNK_ENTRIES", 300)  # several candidate chunks
+    for m in ("dense", "grid"):
+        got = pairs_within(pos, 30.0, 100.0, m, ordered)
+        for f in ("env", "i", "j", "dist"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want[m], f))
+        if ordered:
+            np.testing.assert_array_equal(got.udist[got.uidx], got.dist)
 
 
 def test_grid_rejects_unknown_method():
@@ -275,3 +294,13 @@ def test_reset_observation_has_no_neighbour_flags():
     np.testing.assert_array_equal(obs[..., OBS_WALL], (info["light"] >= 500).astype(np.float32))
     dt = target_distance(env.pos, env.target)
     np.testing.assert_array_equal(info["in_range"], dt <= 40)
+
+
+def test_rbf_fast_bit_identical_to_events_rbf():
+    """rbf_fast (in-place passes, folded negation) equals sim.events.rbf bit for bit."""
+    from sim.events import rbf
+    from sim.radio import rbf_fast
+
+    for cfg in (preset("thesis"), preset("kilobot")):
+        d = np.concatenate([np.random.default_rng(0).uniform(0, 120, 5000), [0.0, 33.0, 40.0, 85.0, 85.0001]])
+        np.testing.assert_array_equal(rbf_fast(cfg, d), rbf(cfg, d))

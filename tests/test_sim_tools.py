@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from sim.baselines import HandWrittenSearcher, RandomPolicy, SearcherParams, make_policy
-from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
+from sim.config import OBS_NBR_SENSING, OBS_TARGET, OBS_WALL, preset
 from sim.env import SwarmEnv
 from sim.metrics import compare, episode_metrics, final_coverage, summarise, time_to_find
 from sim.rollout import HistoryActor, SwarmPolicy, rollout
@@ -116,7 +116,9 @@ def test_rollout_records_consistent_trajectories():
     res = rollout(SwarmEnv(cfg, 2, 5, seed=0), make_policy("baseline", cfg), 2, seed=1, record=True)
     tr = res.trajectories
     d = np.linalg.norm(tr.positions - tr.target[:, None, None, :], axis=-1)  # (E, T+1, M)
-    np.testing.assert_array_equal(tr.in_range[:, 1:], d[:, 1:] <= cfg.comm_radius_mm + 1e-3)
+    clear = np.abs(d - cfg.comm_radius_mm) > 1e-3  # float32 positions: skip exact-boundary cases
+    np.testing.assert_array_equal(tr.in_range[clear], (d <= cfg.comm_radius_mm)[clear])
+    assert tr.in_range.any() and not tr.in_range.all()
     np.testing.assert_allclose(res.coverage, tr.in_range[:, 1:].mean(-1))
     assert np.all(np.abs(tr.positions) <= cfg.arena_half_mm + 1e-3)
 

@@ -103,3 +103,15 @@ def test_default_policy_bit_exact_over_2000_control_steps():
     check = avr.verify_simavr(q, render_firmware(q), n_robots=60, n_steps=40, seed=1)
     assert check.ok, check.detail
     assert check.control_steps >= 2000
+
+
+def test_stack_paint_point_has_no_frame(tmp_path):
+    """kf_io_read (where the stack is painted before loop()) pushes nothing, so the peak is exact."""
+    require_avr()
+    import subprocess
+    obj = tmp_path / "io.o"
+    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, "-I", str(avr.STANDIN_DIR), "-c", "-o", str(obj),
+                    str(avr.STANDIN_DIR / "kf_avr_io.c")], check=True)
+    dis = subprocess.run(["avr-objdump", "-d", str(obj)], capture_output=True, text=True, check=True).stdout
+    body = dis.split("<kf_io_read>:")[1].split("\n\n")[0]
+    assert "ret" in body and "push" not in body and "rcall" not in body

@@ -21,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from export import avr, kernel, numfmt  # noqa: E402
 from export.artifact import load_policy  # noqa: E402
+from export.budget import FLASH_LIMIT_B  # noqa: E402
 from export.make_placeholder import init_policy  # noqa: E402
 from export.quantize import calibrate, quantize_policy  # noqa: E402
 from export.render import render_firmware  # noqa: E402
@@ -77,7 +78,8 @@ def main(argv=None) -> int:
     for name, macs, eb, check, plain, asm_mac, c_mac, _, fast in rows:
         step = int(np.median(check.cycles_step))
         step_c = int(np.median(plain.cycles_step))
-        print(f"| {name} | {macs:,} | {eb['flash']:,} B | {eb['sram_static']:,} + {eb['stack']} = "
+        over = "" if eb["flash"] <= FLASH_LIMIT_B else " (does not fit)"
+        print(f"| {name} | {macs:,} | {eb['flash']:,} B{over} | {eb['sram_static']:,} + {eb['stack']} = "
               f"{eb['sram_user']:,} B | {step:,} cyc = {step / 8e3:.1f} ms (plain C {step_c / 8e3:.1f} ms) "
               f"| {asm_mac:.2f} | {c_mac:.1f} | {'bit-exact' if check.ok and plain.ok else 'MISMATCH'}, "
               f"{check.control_steps + plain.control_steps:,} steps |")
