@@ -276,11 +276,15 @@ def fits(world: WorldConfig, t_prev: int, hidden: Sequence[int],
 
 def for_policy(policy: "Policy") -> Budget:
     """The budget of a float policy's architecture."""
+    if getattr(policy, "kind", "mlp") == "gru":  # a recurrent actor (export/gru.py)
+        return estimate_gru(policy.world, policy.hidden_size)
     return estimate(policy.world, policy.t_prev, policy.hidden, policy.activations)
 
 
 def for_quantized(qp: "QuantizedPolicy") -> Budget:
     """The budget of a quantised policy: its e_in, and its distinct activation tables."""
+    if getattr(qp, "kind", "mlp") == "gru":  # a recurrent actor (export/gru_quantize.py)
+        return estimate_gru(qp.world, qp.hidden_size, e_in=qp.e_in)
     acts = [l.activation for l in qp.layers]
     distinct = {l.table.tobytes() for l in qp.layers if l.table is not None}
     return estimate(qp.world, qp.t_prev, qp.layer_sizes[1:-1], acts, e_in=qp.e_in, n_act_tables=len(distinct))

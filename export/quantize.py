@@ -200,6 +200,9 @@ def calibrate(policy: "Policy", episodes: int = 1, n_robots: int | Sequence[int]
     ``episodes`` episodes of ``steps`` control periods (default ``world.episode_steps``) for each
     robot count in ``n_robots``, ``n_envs`` parallel envs each. Deterministic given ``seed``.
     """
+    if getattr(policy, "kind", "mlp") == "gru":  # a recurrent actor: export/gru_quantize.py
+        from .gru_quantize import calibrate_gru
+        return calibrate_gru(policy, episodes, n_robots, seed, steps, n_envs, progress)  # type: ignore[return-value]
     from sim.env import SwarmEnv  # lazy: the exporter's other parts do not need the simulator
     from sim.history import History
 
@@ -296,6 +299,9 @@ def quantize_policy(policy: "Policy", calib: Calibration, *, percentile: float =
     ``percentile`` (<= 100) and ``headroom`` (>= 1 leaves room above the largest value seen) shape
     the range each exponent must cover; ``e_in`` overrides the input exponent.
     """
+    if getattr(policy, "kind", "mlp") == "gru":  # a recurrent actor: export/gru_quantize.py
+        from .gru_quantize import quantize_gru
+        return quantize_gru(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)  # type: ignore
     if not 0.0 < percentile <= 100.0:
         raise QuantizeError(f"percentile must be in (0, 100], got {percentile}")
     if headroom <= 0.0:
@@ -405,6 +411,9 @@ class ErrorReport:
 
 def error_report(policy: "Policy", qp: QuantizedPolicy, calib: Calibration) -> ErrorReport:
     """Compare the float actor with the integer actor on every calibration input."""
+    if getattr(policy, "kind", "mlp") == "gru":  # a recurrent actor: export/gru_quantize.py
+        from .gru_quantize import gru_error_report
+        return gru_error_report(policy, qp, calib)  # type: ignore[return-value]
     from sim.motion import action_to_u8
 
     x_q = qp.quantize_history(calib.inputs)  # (N, in_dim) int8

@@ -2,7 +2,7 @@
 
     python -m export verify --closed-loop [--policy P] [--robots 16 32] [--episodes 200] [--steps N]
                             [--seed S] [--out DIR] [--robots-calib 4 16] [--calib-episodes 1]
-                            [--calib-seed 0] [--percentile 100]
+                            [--calib-steps N] [--calib-seed 0] [--percentile 100] [--goal 0.97]
 
 Quantises the policy exactly as ``python -m export`` does with the same calibration options, then
 for each robot count runs the same episodes (same env seeds) twice: with the float actor and with
@@ -57,6 +57,8 @@ def verify_parser() -> argparse.ArgumentParser:
     ap.add_argument("--robots-calib", type=_positive, nargs="+", default=[4, 16], metavar="N",
                     help="robot counts of the calibration rollouts, as for export (default 4 16)")
     ap.add_argument("--calib-episodes", type=_positive, default=1, help="calibration episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=_positive, default=None,
+                    help="control periods per calibration episode, as for export (default: the world's)")
     ap.add_argument("--calib-seed", type=int, default=0, help="calibration seed, as export's --seed (default 0)")
     ap.add_argument("--percentile", type=float, default=100.0,
                     help="range percentile for exponent choice, as for export (default 100)")
@@ -110,7 +112,8 @@ def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
             data.append(run.metrics().returns)
             pos.append(3 * i + j + 1)
             cols.append(colours[run.label])
-    bp = ax.boxplot(data, positions=pos, widths=0.8, patch_artist=True, showfliers=True)
+    bp = ax.boxplot(data, positions=pos, widths=0.8, patch_artist=True, showfliers=True,
+                    medianprops={"color": "black"})
     for patch, col in zip(bp["boxes"], cols):
         patch.set_facecolor(col)
         patch.set_alpha(0.6)
@@ -139,10 +142,15 @@ def run_verify(argv: Sequence[str]) -> int:
     from .quantize import calibrate, error_report, quantize_policy
 
     out: Path | None = args.out
-    if out is not None:
+    if out is not None:  # fail before the slow part
         if out.exists() and not out.is_dir():
             raise OutputError(f"--out must be a directory, '{out}' is a file")
-        check_writable([p for p in (out / RESULT_JSON,) if out.exists()])
+        base = out.resolve()
+        while not base.exists():  # the nearest existing ancestor must let us create the rest
+            base = base.parent
+        if not base.is_dir():
+            raise OutputError(f"cannot create '{out}': '{base}' is not a directory")
+        check_writable([base / RESULT_JSON])
     policy = _load(args.policy)
     print(f"policy {policy.hash[:16]}: world '{policy.world.name}', t_prev {policy.t_prev}, "
           f"layers {' -> '.join(map(str, policy.layer_sizes))} ({', '.join(policy.activations)})")
@@ -158,8 +166,11 @@ def run_verify(argv: Sequence[str]) -> int:
         raise ExportError(f"--robots {M_max}: {e}") from None
 
     progress = not args.no_progress and sys.stderr.isatty()
+    if getattr(policy, "kind", "mlp") == "gru":  # the recurrent actor has its own quantiser
+        from .gru_quantize import calibrate_gru as calibrate, gru_error_report as error_report, \
+            quantize_gru as quantize_policy
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
-                      progress=progress)
+                      steps=args.calib_steps, progress=progress)
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     report = error_report(policy, qp, calib)
     print(f"quantised as python -m export would (calibration robots {args.robots_calib}, "
@@ -184,7 +195,8 @@ def run_verify(argv: Sequence[str]) -> int:
         doc: dict[str, Any] = {
             "policy_hash": policy.hash, "policy": str(args.policy or "default"), "world": policy.world.name,
             "quantisation": {"e_in": qp.e_in, "robots_calib": list(args.robots_calib),
-                             "calib_episodes": args.calib_episodes, "calib_seed": args.calib_seed,
+                             "calib_episodes": args.calib_episodes, "calib_steps": args.calib_steps,
+                             "calib_seed": args.calib_seed,
                              "percentile": args.percentile, "error_report": report.to_dict()},
             "goal_ratio": args.goal, "passed": passed,
             "comparisons": [c.to_dict() for c in comps],

@@ -8,8 +8,8 @@ OU noise, episode replay and evaluator are reused here):
   ``t_prev`` history: it fits the Kilobot's SRAM whatever the memory horizon;
 * updates are *random updates* (Hausknecht & Stone 2015, the thesis's choice): a minibatch is
   ``batch_windows`` windows cut from stored episodes at random starts ``t_s``. Each window
-  replays ``burn_in`` steps from a zero hidden state without loss or gradient (an episode start
-  inside the window zeroes the state, so a window at the start of an episode is exact), then
+  replays up to ``burn_in`` steps from a zero hidden state without loss or gradient (a window
+  never reaches back before its episode's start, where the zero state is exact), then
   ``unroll`` steps t_s .. t_s+U−1 where
     - the critic regresses Q(s_t, a_t) on y_t = r_t + γ Q'(s_{t+1}, μ'(x_{t+1}, h'_t)) at *every*
       step of the window (the thesis used only the last one; the critic is feed-forward on the full
@@ -219,10 +219,15 @@ def _coerce_int(v: Any) -> int:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class Windows:
-    """A minibatch of N windows (NumPy): L = burn_in + unroll + 1 inputs, unroll transitions."""
+    """A minibatch of N windows (NumPy): L = burn_in + unroll + 1 inputs, unroll transitions.
 
-    x: np.ndarray  #: (N, L, M, D) actor inputs [a_{k-1}, o_k] at k = t_s - burn_in .. t_s + unroll
-    reset: np.ndarray  #: (N, L) bool: zero the hidden state before this input (k <= 0: episode start)
+    A window starts at tuple k_0 = max(0, t_s - burn_in) with a zero hidden state (exact when
+    k_0 = 0: the episode's own start), so step t_s is at position ``off = t_s - k_0``; positions
+    beyond the episode's stored end repeat its last tuple and are never used.
+    """
+
+    x: np.ndarray  #: (N, L, M, D) actor inputs [a_{k-1}, o_k] for k = k_0 .. k_0 + L - 1
+    off: np.ndarray  #: (N,) position of t_s in the window (burn-in steps actually replayed)
     s: np.ndarray  #: (N, U, S) s_t for t = t_s .. t_s + U - 1
     a: np.ndarray  #: (N, U, M, 2) executed actions a_t
     r: np.ndarray  #: (N, U) rewards r_t
@@ -238,12 +243,12 @@ def sample_windows(replay: EpisodeReplay, n: int, burn_in: int, unroll: int, rng
     k = rng.integers(0, total, n)
     e = np.searchsorted(cum, k, side="right")  # (N,) slot
     ts = k - (cum[e] - starts[e])  # (N,) t_s in 0 .. filled - unroll
-    kpos = ts[:, None] - burn_in + np.arange(burn_in + unroll + 1)  # (N, L) tuple index (may be < 0)
-    x = replay.tuples[e[:, None], np.maximum(kpos, 0)]  # (N, L, M, D); inputs before k = 0 are discarded by the reset
+    k0 = np.maximum(ts - burn_in, 0)
+    idx = np.minimum(k0[:, None] + np.arange(burn_in + unroll + 1), replay.filled[e][:, None])  # (N, L)
     t = ts[:, None] + np.arange(unroll)  # (N, U)
     ec = e[:, None]
-    return Windows(x=x, reset=kpos <= 0, s=replay.states[ec, t], a=replay.tuples[ec, t + 1, :, :ACTION_DIM],
-                   r=replay.rewards[ec, t], s2=replay.states[ec, t + 1])
+    return Windows(x=replay.tuples[ec, idx], off=ts - k0, s=replay.states[ec, t],
+                   a=replay.tuples[ec, t + 1, :, :ACTION_DIM], r=replay.rewards[ec, t], s2=replay.states[ec, t + 1])
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,7 +268,7 @@ class MAGRDPG:
         self.critic_target = copy.deepcopy(self.critic)
         for p in list(self.actor_target.parameters()) + list(self.critic_target.parameters()):
             p.requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=lr_actor)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=lr_actor, fused=True)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=lr_critic, fused=True)
 
     @torch.no_grad()
@@ -278,7 +283,9 @@ class MAGRDPG:
         U, B = w.s.shape[1], self.burn_in
         assert L == B + U + 1, f"window of {L} inputs does not match burn_in {B} + unroll {U} + 1"
         X = torch.from_numpy(np.ascontiguousarray(w.x.transpose(0, 2, 1, 3)).reshape(N * M, L, D))  # rows n*M + m
-        reset = torch.from_numpy(np.repeat(w.reset, M, axis=0))  # (N*M, L)
+        off = torch.from_numpy(np.repeat(w.off, M))  # (N*M,) position of t_s
+        pos = off[:, None] + torch.arange(U)  # (N*M, U) positions of t_s .. t_s + U - 1
+        rows = torch.arange(N * M)[:, None]
         s = torch.from_numpy(w.s.reshape(N * U, -1))
         a = torch.from_numpy(w.a.reshape(N * U, M, ACTION_DIM))
         r = torch.from_numpy(w.r.reshape(N * U))
@@ -290,8 +297,8 @@ class MAGRDPG:
 
         # critic: y_t = r_t + γ Q'(s_{t+1}, μ'(x_{t+1}, h'_t)) for every step of the window
         with torch.no_grad():
-            a2_all, _ = self.actor_target(X, h0, reset)  # (N*M, L, 2)
-            a2 = per_step(a2_all[:, B + 1:]).clamp(A_MIN, A_MAX)
+            a2_all, _ = self.actor_target(X, h0)  # (N*M, L, 2)
+            a2 = per_step(a2_all[rows, pos + 1]).clamp(A_MIN, A_MAX)
             y = self.reward_scale * r + self.gamma * self.critic_target(s2, a2)
         q = self.critic(s, a)
         critic_loss = torch.mean((q - y) ** 2)
@@ -299,13 +306,8 @@ class MAGRDPG:
         critic_loss.backward()
         self.critic_opt.step()
 
-        # actor: burn-in without gradient, then BPTT over the unroll
-        if B:
-            with torch.no_grad():
-                _, hb = self.actor(X[:, :B], h0, reset[:, :B])
-        else:
-            hb = h0
-        a_raw, _ = self.actor(X[:, B:B + U], hb, reset[:, B:B + U])  # (N*M, U, 2)
+        # actor: burn-in (positions < off) without gradient, then BPTT over the unroll
+        a_raw, _ = self.actor(X[rows, pos], self.burn_in_state(X, off))  # (N*M, U, 2)
         a_pol = per_step(a_raw)
         a_in = a_pol.detach().requires_grad_(True)
         (dq_da,) = torch.autograd.grad(self.critic(s, a_in).sum(), a_in)
@@ -318,6 +320,18 @@ class MAGRDPG:
         soft_update(self.critic_target, self.critic, self.tau)
         soft_update(self.actor_target, self.actor, self.tau)
         return UpdateStats(critic_loss=float(critic_loss.detach()), q_mean=float(q.detach().mean()))
+
+    @torch.no_grad()
+    def burn_in_state(self, X: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
+        """The online actor's state after replaying each row's first ``off`` inputs from zero (no gradient).
+
+        X (R, L, D) windows, off (R,) in 0..burn_in -> (R, H).
+        """
+        h0 = self.actor.initial_state(X.shape[0])
+        if self.burn_in == 0:
+            return h0
+        hs = self.actor.states(X[:, :self.burn_in], h0)  # (R, B, H) state after each position
+        return torch.where((off > 0)[:, None], hs[torch.arange(X.shape[0]), (off - 1).clamp(min=0)], h0)
 
     def state_dict(self) -> dict:
         return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),

@@ -47,6 +47,7 @@ from .replay import EpisodeReplay
 
 TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
 CHECKPOINT_VERSION = 1
+PLOT_EVERY_S = 60.0  #: redraw learning_curve.png at most this often (and at the end): plotting is slow
 METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
                   "eval_final_coverage", "eval_mean_coverage", "eval_time_to_find", "eval_found_rate",
                   "train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
@@ -155,6 +156,7 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     session_start = time.perf_counter()
     wall_at_start = c.wall_s
     stopped = "done"
+    last_plot = -math.inf
     train_returns: list[float] = []
     losses: list[tuple[float, float]] = []
     try:
@@ -200,7 +202,9 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             over_time = cfg.max_minutes > 0 and (time.perf_counter() - session_start) >= 60 * cfg.max_minutes
             last = c.episodes >= cfg.total_episodes or over_time
             if c.env_steps >= c.next_eval or last:
-                evaluate_and_log(cfg, agent, evaluator, c, train_returns, losses, run_dir, export, log, bar)
+                plot = last or time.perf_counter() - last_plot >= PLOT_EVERY_S
+                evaluate_and_log(cfg, agent, evaluator, c, train_returns, losses, run_dir, export, log, bar, plot)
+                last_plot = time.perf_counter() if plot else last_plot
                 train_returns, losses = [], []
                 while c.next_eval <= c.env_steps:
                     c.next_eval += cfg.eval_every
@@ -223,8 +227,9 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
 
 
 def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: Counters,
-                     train_returns: list[float], losses: list, run_dir: Path, export, log, bar) -> None:
-    """Evaluate deterministically, append a metrics row, export best/last, redraw the curve."""
+                     train_returns: list[float], losses: list, run_dir: Path, export, log, bar,
+                     plot: bool = True) -> None:
+    """Evaluate deterministically, append a metrics row, export best/last, redraw the curve when ``plot``."""
     from .plots import plot_learning_curves
 
     metrics = metrics_row(evaluator(agent.act))
@@ -242,8 +247,9 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
     write_text_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
-    plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
-                         title=f"MAGDDPG, {cfg.n_robots} robots, T_prev {cfg.t_prev} ({cfg.world} world)")
+    if plot:
+        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
+                             title=f"MAGDDPG, {cfg.n_robots} robots, T_prev {cfg.t_prev} ({cfg.world} world)")
     msg = (f"return {row['eval_return']:.1f}  final cov {row['eval_final_coverage']:.2f}  "
            f"find {row['eval_time_to_find']:.0f}")
     if bar is not None:

@@ -8,8 +8,8 @@ import pytest
 
 from export.artifact import Policy, save_policy
 from export.cli import main
-from export.closed_loop import (Comparison, batch_env_seeds, default_n_envs, run_firmware, run_float,
-                                spread_ticks)
+from export.closed_loop import (ROBOT_BUDGET, Comparison, batch_env_seeds, default_n_envs, run_firmware,
+                                run_float, spread_ticks)
 from export.quantize import calibration_from_inputs, quantize_policy
 from export.synthetic import synthetic_qpolicy
 from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
@@ -129,7 +129,7 @@ def test_batches_split_evenly():
     """Default envs per batch respect the robot budget and waste at most one env per batch."""
     for E, M in [(200, 16), (200, 32), (200, 64), (7, 4096), (1, 3)]:
         B = default_n_envs(E, M)
-        assert 1 <= B <= E and (B * M <= 4096 or B == 1)
+        assert 1 <= B <= E and (B * M <= ROBOT_BUDGET or B == 1)
         n = -(-E // B)
         assert n * B - E < n
 
@@ -195,3 +195,14 @@ def test_cli_verify_errors(argv, needle, capsys):
     err = capsys.readouterr().err
     assert rc == 2
     assert err.startswith("error: ") and err.count("\n") == 1 and needle in err
+
+
+def test_cli_verify_refuses_unusable_out_before_running(tmp_path, capsys):
+    """--out naming a file (or a path under one) fails at once with one line, exit 2, nothing written."""
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for out in (f, f / "sub"):
+        rc = main(["verify", "--closed-loop", "--out", str(out), "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1
+    assert f.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

@@ -73,7 +73,7 @@ def main() -> int:
         steps = min(T, 50)
         print(f"\nint8 firmware in the loop, throughput vs batch ({steps} steps per episode)")
         print(f"{'robots':>6} {'envs B':>6} {'B*M':>6} {'episodes':>8} {'s':>7} {'episodes/s':>10} {'robot-steps/s':>13}")
-        for M, B in [(16, 1), (16, 16), (16, 64), (16, 256), (64, 1), (64, 16), (64, 64)]:
+        for M, B in [(16, 1), (16, 16), (16, 64), (16, 128), (16, 256), (64, 1), (64, 16), (64, 32), (64, 64)]:
             E = max(B, 4 if B == 1 else B)
             t0 = time.perf_counter()
             r = run_firmware(qp, M, E, args.seed, steps=steps, n_envs=B)

@@ -1,0 +1,25 @@
+"""Run the doctests of every module in sim/ and export/ (number-formatting helpers document themselves)."""
+from __future__ import annotations
+
+import doctest
+import importlib
+import pkgutil
+
+import pytest
+
+import export
+import sim
+
+MODULES = sorted(f"{pkg.__name__}.{m.name}" for pkg in (sim, export)
+                 for m in pkgutil.iter_modules(pkg.__path__) if not m.name.startswith("__"))
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_module_doctests(name):
+    """The module's doctests pass (modules needing an optional package skip when it is missing)."""
+    try:
+        mod = importlib.import_module(name)
+    except ImportError as e:  # e.g. sim.pettingzoo_env without pettingzoo
+        pytest.skip(f"{name} needs an optional package: {e}")
+    result = doctest.testmod(mod, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert result.failed == 0, f"{result.failed} doctest(s) failed in {name}"

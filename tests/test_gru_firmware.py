@@ -1,0 +1,163 @@
+"""Rungs 2 and 3 for the recurrent policy: the rendered GRU program (host build and AVR in simavr) equals the emulator."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from avr_tools import require_avr
+from export import avr, fwspec
+from export.budget import estimate_gru
+from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.gru import random_gru_policy
+from export.gru_quantize import calibrate_gru, quantize_gru
+from export.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host, verify_host
+from export.render import POLICY_FILE, render_firmware
+from sim.config import preset
+
+needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
+
+
+def qgru(world, hidden: int, seed: int, scale: float = 2.0):
+    """A quantised random GRU calibrated on short rollouts of itself."""
+    p = random_gru_policy(world, hidden, seed=seed, scale=scale)
+    return quantize_gru(p, calibrate_gru(p, episodes=1, n_robots=(4,), seed=seed, steps=min(40, world.episode_steps)))
+
+
+CASES = [  # (name, world, hidden, stream)
+    ("kilobot-h32", preset("kilobot"), 32, StreamSpec(n_robots=96, n_steps=170, rate=0.9)),
+    ("thesis-h8-table3", preset("thesis", period_ticks=4, neighbour_table_size=3), 8,
+     StreamSpec(n_robots=128, n_steps=90, rate=0.6, n_senders=8)),
+]
+
+
+@pytest.fixture(scope="module")
+def builds(tmp_path_factory):
+    return tmp_path_factory.mktemp("gru_host")
+
+
+def test_render_is_deterministic_and_keeps_the_state_in_sram():
+    """The GRU program renders the same text twice, holds x and h instead of a history, and names its exponents."""
+    qp = qgru(preset("kilobot"), 16, seed=1)
+    a = render_firmware(qp, generator_version="t")[POLICY_FILE]
+    assert a == render_firmware(qp, generator_version="t")[POLICY_FILE]
+    assert "int8_t h[KF_HIDDEN];" in a and "s->hist" not in a and "#define KF_HIDDEN 16u" in a
+    assert f"#define KF_RN_SHIFT {qp.cell.rn_shift}u" in a and "kf_gru_update(" in a
+    assert "GRU: input 16" in a and f"e_r {qp.cell.r.e_out}" in a
+    for name in ("KF_LR", "KF_LZ", "KF_LNX", "KF_LNH", "KF_LOUT", "KF_GATE_R", "KF_GATE_K", "KF_TANH"):
+        assert name in a, name
+
+
+@needs_cc
+def test_random_streams_bit_exact(builds):
+    """Over 20,000 searcher control steps of random streams every output byte of the host build equals the emulator."""
+    total = 0
+    for i, (name, world, hidden, spec) in enumerate(CASES):
+        qp = qgru(world, hidden, seed=10 + i, scale=3.0)
+        files = render_firmware(qp, generator_version="test")
+        exe = build_host(files[POLICY_FILE], builds, name=f"gru{i}")
+        rng = np.random.default_rng(np.random.SeedSequence(20 + i))
+        inputs = random_inputs(rng, world.period_ticks, (world.target_uid,), spec,
+                               comm_radius_mm=world.comm_radius_mm, light_threshold=world.light_threshold)
+        emu = FirmwareEmulator(qp, inputs.uids, inputs.calib)
+        want = emu.run(inputs)
+        got = run_host(exe, inputs, world.period_ticks, world.obs_dim)
+        np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=f"{name}: {compare(want, got)}")
+        np.testing.assert_array_equal(got.steps, want.steps, err_msg=f"{name}: {compare(want, got)}")
+        searchers = ~emu.is_beacon
+        assert np.unique(want.commands[searchers]).size > 64, f"{name}: commands barely vary"
+        assert emu.hidden.min() < -64 and emu.hidden.max() > 64, f"{name}: the hidden state hardly moves"
+        total += int(searchers.sum()) * want.steps.shape[1]
+    assert total >= 20_000, f"only {total} control steps compared"
+
+
+@needs_cc
+def test_a_different_cell_is_detected(builds):
+    """The comparison is sensitive: one changed recurrent weight, or a state reset every step, disagrees."""
+    world, hidden, spec = CASES[0][1], 16, StreamSpec(n_robots=24, n_steps=40, rate=0.9)
+    qp = qgru(world, hidden, seed=3)
+    exe = build_host(render_firmware(qp, generator_version="t")[POLICY_FILE], builds, name="sens")
+    rng = np.random.default_rng(np.random.SeedSequence(30))
+    inputs = random_inputs(rng, world.period_ticks, (0,), spec)
+    got = run_host(exe, inputs, world.period_ticks, world.obs_dim)
+    assert compare(FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs), got) == ""
+    w = qp.cell.nh.w.copy()
+    w[3, 5] = w[3, 5] + 1 if w[3, 5] < 127 else 126
+    other = replace(qp, cell=replace(qp.cell, nh=replace(qp.cell.nh, w=w)))
+    assert compare(FirmwareEmulator(other, inputs.uids, inputs.calib).run(inputs), got) != ""
+
+    class Forgetful(FirmwareEmulator):
+        def control_step(self, light):
+            self.hidden = self.qp.initial_state(self.R)
+            return super().control_step(light)
+
+    assert compare(Forgetful(qp, inputs.uids, inputs.calib).run(inputs), got) != ""
+
+
+@needs_cc
+def test_firmware_in_the_loop_replays_on_host(builds):
+    """SwarmEnv driven by the GRU emulator: the recorded stream replays bit-exactly through the host build."""
+    from sim.env import SwarmEnv
+
+    cfg = preset("kilobot", episode_steps=20, arena_half_mm=120.0)
+    M, P, K = 8, cfg.period_ticks, 15
+    qp = qgru(cfg, 12, seed=9)
+    env = SwarmEnv(cfg, 1, M, seed=6)
+    _, info = env.reset()
+    emu = FirmwareEmulator(qp, np.arange(1, M + 1))
+    events, lights = [], []
+    emu.tick_outputs(P)
+    ev = events_from_sim(info["events"], 0, cfg, M)
+    emu.deliver(ev)
+    events.append(ev)
+    for k in range(1, K + 1):
+        lights.append(info["light"][0].copy())
+        q, _ = emu.control_step(info["light"][0])
+        _, _, _, _, info = env.step_u8(q[None])
+        emu.tick_outputs(P)
+        ev = events_from_sim(info["events"], k, cfg, M)
+        emu.deliver(ev)
+        events.append(ev)
+    inputs = FirmwareInputs(uids=np.arange(1, M + 1), calib=emu.calib, light=np.stack(lights, 1),
+                            events=np.concatenate(events), n_ticks=(K + 1) * P)
+    want = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
+    got = run_host(build_host(render_firmware(qp, generator_version="t")[POLICY_FILE], builds, name="loop"),
+                   inputs, P, cfg.obs_dim)
+    np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
+    np.testing.assert_array_equal(got.steps, want.steps)
+
+
+@needs_cc
+def test_verify_host_and_beacon_program():
+    """verify_host (the CLI's --verify host) passes for a GRU program and its beacon-only program."""
+    qp = qgru(preset("kilobot"), 6, seed=2)
+    result = verify_host(qp, render_firmware(qp, target_uids=(0, 9), msg_type=0x11, generator_version="t"),
+                         spec=StreamSpec(n_robots=16, n_steps=12))
+    assert result.ok and result.control_steps > 0, str(result)
+
+
+@pytest.mark.avr
+def test_gru_is_bit_exact_in_simavr_and_fits():
+    """The AVR build of the GRU program in simavr equals the emulator; cycles per step and the exact budget fit."""
+    require_avr(simulate=True)
+    world = preset("kilobot", period_ticks=6, neighbour_table_size=4)
+    qp = qgru(world, 32, seed=11, scale=3.0)
+    files = render_firmware(qp)
+    check = avr.verify_simavr(qp, files, n_robots=12, n_steps=25, seed=4)
+    assert check.ok, str(check)
+    assert check.control_steps >= 200 and check.cycles_step.size > 0
+    assert check.cycles_step_max < 8_000_000 * 0.05, str(check)  # far below one control period (~1 s)
+    exact = avr.exact_budget(files)
+    b = estimate_gru(world, 32).with_exact(exact)
+    assert b.ok and exact["flash"] < 28_160, b.table()
+
+
+def test_same_seed_same_program():
+    """The quantised GRU depends only on its seeds (calibration rollouts included)."""
+    a, b = qgru(preset("thesis"), 8, seed=4), qgru(preset("thesis"), 8, seed=4)
+    for la, lb in zip(a.layers, b.layers):
+        for f in ("w", "b", "shift"):
+            np.testing.assert_array_equal(getattr(la, f), getattr(lb, f))
+    assert dataclasses.replace(a, policy_hash="x").policy_hash == "x" and fwspec.MSG_BYTES == 12
