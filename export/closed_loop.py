@@ -393,18 +393,18 @@ def _pm(s: Summary, signed: bool = False) -> str:
 
 
 def compare(policy: "Policy", qp: "QuantizedPolicy", n_robots: int, episodes: int, seed: int = 0, *,
-            steps: int | None = None, n_envs: int | None = None, bar=None) -> Comparison:
+            steps: int | None = None, n_envs: int | None = None, goal: float = GOAL_RATIO, bar=None) -> Comparison:
     """Float actor vs int8 firmware, same ``episodes`` (same env seeds), one robot count."""
     if policy.world.to_dict() != qp.world.to_dict():
         raise ValueError("the quantised policy was made for another world than the float policy")
     B = n_envs if n_envs is not None else default_n_envs(episodes, n_robots)
     f = run_float(policy, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar)
     q = run_firmware(qp, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar)
-    return Comparison(int(n_robots), f, q)
+    return Comparison(int(n_robots), f, q, goal=goal)
 
 
 def compare_many(policy: "Policy", qp: "QuantizedPolicy", robots: Sequence[int], episodes: int, seed: int = 0,
-                 *, steps: int | None = None, progress: bool = False) -> list[Comparison]:
+                 *, steps: int | None = None, goal: float = GOAL_RATIO, progress: bool = False) -> list[Comparison]:
     """:func:`compare` for each robot count, with one tqdm bar (episode-steps) over all of them."""
     T = steps if steps is not None else policy.world.episode_steps
     bar = None
@@ -415,7 +415,7 @@ def compare_many(policy: "Policy", qp: "QuantizedPolicy", robots: Sequence[int],
                     for m in robots)
         bar = tqdm(total=total, unit="ep-step", desc="closed loop (float + int8)", leave=False)
     try:
-        return [compare(policy, qp, m, episodes, seed, steps=steps, bar=bar) for m in robots]
+        return [compare(policy, qp, m, episodes, seed, steps=steps, goal=goal, bar=bar) for m in robots]
     finally:
         if bar is not None:
             bar.close()

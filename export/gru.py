@@ -269,13 +269,22 @@ class GRUSwarmPolicy:
 
 
 def random_gru_policy(world: WorldConfig, hidden: int, seed: int = 0, scale: float = 1.0,
-                      out_bias: float = 0.5, provenance: dict | None = None) -> GRUPolicy:
+                      out_bias: float = 0.5, out_scale: float = 1.0, provenance: dict | None = None) -> GRUPolicy:
     """A deterministic untrained GRU policy (tests, benchmarks): cell weights U(±scale/√H), output
-    weights U(±1/√H) and biases ``out_bias`` so that the commands spread over [0, 1]."""
+    weights U(±out_scale/√H) and biases ``out_bias`` so that the commands spread over [0, 1]."""
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     D, H = world.tuple_dim, int(hidden)
     b = scale / np.sqrt(H)
     u = lambda *shape, lim=b: rng.uniform(-lim, lim, size=shape).astype(np.float32)  # noqa: E731
     return GRUPolicy(w_ih=u(3 * H, D), w_hh=u(3 * H, H), b_ih=u(3 * H), b_hh=u(3 * H),
-                     w_out=u(ACTION_DIM, H, lim=1.0 / np.sqrt(H)), b_out=np.full(ACTION_DIM, out_bias, np.float32),
+                     w_out=u(ACTION_DIM, H, lim=out_scale / np.sqrt(H)), b_out=np.full(ACTION_DIM, out_bias, np.float32),
                      world=world, provenance=dict(provenance or {"notes": f"random_gru_policy seed {seed}"}))
+
+
+def swarm_policy(policy: Any, world: WorldConfig | None = None) -> Any:
+    """The float actor of any policy artifact as a SwarmPolicy: GRUSwarmPolicy for kind "gru", else
+    :class:`sim.rollout.HistoryActor` around ``policy.act`` (``world``: an override, e.g. episode length)."""
+    if getattr(policy, "kind", "mlp") == KIND:
+        return GRUSwarmPolicy.float_policy(policy)
+    from sim.rollout import HistoryActor
+    return HistoryActor(policy.act, policy.t_prev, world or policy.world)

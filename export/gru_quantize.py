@@ -10,10 +10,12 @@ policy of kind ``"gru"``)::
 * :func:`calibrate_gru` runs the float GRU in its own world and records, per robot-episode, every
   input tuple and the hidden state before each step, and every intermediate of the cell.
 * :func:`quantize_gru` chooses the input exponent ``e_in`` as the MLP quantiser does (at most
-  ``DEFAULT_INPUT_EXP``), one exponent per gate pre-activation (``e_r``, ``e_z``, ``e_n`` for
-  ``W_in x + b_in`` and the candidate's sum, ``e_nh`` for ``W_hn h + b_hn``) from the calibrated
-  ranges, and per row the weight exponent with the overflow proof of :mod:`export.quantize`; the
-  hidden state is at the fixed ``numfmt.HIDDEN_EXP``, gates at ``numfmt.GATE_EXP``.
+  ``DEFAULT_INPUT_EXP``), one exponent per gate pre-activation (``e_r``, ``e_z``, ``e_nx`` for
+  ``W_in x + b_in``, ``e_nh`` for ``W_hn h + b_hn``, ``e_n`` for the candidate's sum) from the
+  calibrated ranges (the table inputs ``e_r``, ``e_z``, ``e_n`` at least ``numfmt.SIGMOID_SAT_EXP`` /
+  ``TANH_SAT_EXP``: only the range where the function still changes needs covering), and per row
+  the weight exponent with the overflow proof of :mod:`export.quantize`; the hidden state is at the
+  fixed ``numfmt.HIDDEN_EXP``, gates at ``numfmt.GATE_EXP``.
 * :class:`QuantizedGRU` is what the renderer (``kilobot_policy_gru.c.j2``) and the emulator consume:
   ``step_int`` is the firmware's control step on int8 tuples.
 * :func:`gru_error_report` compares the integer cell with the float one, step by step from the
@@ -148,7 +150,8 @@ class QuantizedGRU:
                            "acc24_safe": bool(safe), "acc_max": int(amax)})
         return {"format": self.format_name, "rounding": self.rounding, "kind": "gru", "e_in": int(self.e_in),
                 "hidden": self.hidden_size, "hidden_exp": HIDDEN_EXP, "gate_exp": GATE_EXP,
-                "rn_shift": int(self.cell.rn_shift), "layer_sizes": self.layer_sizes, "layers": layers,
+                "rn_shift": int(self.cell.rn_shift), "nx_shift": int(self.cell.nx_shift), "e_n": int(self.cell.e_n),
+                "layer_sizes": self.layer_sizes, "layers": layers,
                 "policy_hash": self.policy_hash, "world": self.world.name}
 
     def banner_actor(self) -> str:
@@ -156,7 +159,7 @@ class QuantizedGRU:
         c = self.cell
         return (f"GRU: input {self.in_dim} ([a_prev, obs]), {self.hidden_size} hidden units int8 at exponent "
                 f"{HIDDEN_EXP}, linear output 2; e_in {self.e_in}, e_r {c.r.e_out}, e_z {c.z.e_out}, "
-                f"e_n {c.nx.e_out}, e_nh {c.nh.e_out}")
+                f"e_nx {c.nx.e_out}, e_nh {c.nh.e_out}, e_n {c.e_n}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,8 +277,11 @@ def quantize_gru(policy: GRUPolicy, calib: GRUCalibration, *, percentile: float 
     H = policy.hidden_size
     cap = 14 if gate_exp_max is None else int(gate_exp_max)
 
-    def exp_of(*keys: str) -> int:
-        return min(cap, choose_exp(max(_range(v[k], percentile, headroom) for k in keys)))
+    def exp_of(*keys: str, finest_needed: int | None = None) -> int:
+        e = choose_exp(max(_range(v[k], percentile, headroom) for k in keys))
+        if finest_needed is not None:  # a table input: beyond its saturation every value reads the same entry
+            e = max(e, finest_needed)
+        return min(cap, e)
 
     W_ih, W_hh = policy.w_ih.astype(np.float64), policy.w_hh.astype(np.float64)
     b_ih, b_hh = policy.b_ih.astype(np.float64), policy.b_hh.astype(np.float64)
@@ -284,20 +290,25 @@ def quantize_gru(policy: GRUPolicy, calib: GRUCalibration, *, percentile: float 
     layers, acc24, amax = [], [], []
     for g, name in ((0, "r"), (1, "z")):
         W = np.concatenate([W_ih[blk[g]], W_hh[blk[g]] * h_scale], 1)  # (H, D + H)
-        l, f, a = _gate_layer(f"gate {name}", W, b_ih[blk[g]] + b_hh[blk[g]], e_in, exp_of(f"a_{name}"))
+        e = exp_of(f"a_{name}", finest_needed=numfmt.SIGMOID_SAT_EXP)
+        l, f, a = _gate_layer(f"gate {name}", W, b_ih[blk[g]] + b_hh[blk[g]], e_in, e)
         layers.append(l), acc24.append(f), amax.append(a)
-    l_nx, f, a = _gate_layer("n (input part)", W_ih[blk[2]], b_ih[blk[2]], e_in, exp_of("nx", "pre_n"))
+    e_n = exp_of("pre_n", finest_needed=numfmt.TANH_SAT_EXP)  # the tanh table's input
+    l_nx, f, a = _gate_layer("n (input part)", W_ih[blk[2]], b_ih[blk[2]], e_in, min(exp_of("nx"), e_n))
     layers.append(l_nx), acc24.append(f), amax.append(a)
-    e_nh = max(exp_of("nh"), l_nx.e_out - GATE_EXP)  # rn_shift = 8 + e_nh - e_n >= 0
+    e_n = max(e_n, l_nx.e_out)  # nx_shift = e_n - e_nx >= 0 (l_nx may have chosen a coarser grid)
+    if e_n - l_nx.e_out > 7:  # pragma: no cover - weights far larger than any trained GRU's
+        raise QuantizeError("the candidate's input part needs a much coarser exponent than its table")
+    e_nh = max(exp_of("nh"), e_n - GATE_EXP)  # rn_shift = 8 + e_nh - e_n >= 0
     l_nh, f, a = _gate_layer("n (hidden part)", W_hh[blk[2]], b_hh[blk[2]], HIDDEN_EXP, e_nh)
-    if l_nh.e_out < l_nx.e_out - GATE_EXP:  # pragma: no cover - needs weights ~2^8 larger than the input part's
+    if l_nh.e_out < e_n - GATE_EXP:  # pragma: no cover - needs weights ~2^8 larger than the input part's
         raise QuantizeError("the candidate's hidden part needs a coarser exponent than the format allows")
     layers.append(l_nh), acc24.append(f), amax.append(a)
     r, z = layers[0], layers[1]
     cell = QuantGRUCell(r=r, z=z, nx=l_nx, nh=l_nh, r_table=numfmt.gate_table(r.e_out),
                         k_table=numfmt.gate_table(z.e_out, complement=True),
-                        n_table=numfmt.act_table("tanh", l_nx.e_out, HIDDEN_EXP),
-                        rn_shift=GATE_EXP + l_nh.e_out - l_nx.e_out)
+                        n_table=numfmt.act_table("tanh", e_n, HIDDEN_EXP),
+                        rn_shift=GATE_EXP + l_nh.e_out - e_n, nx_shift=e_n - l_nx.e_out)
     wq, bq, shift, _, a = _quantize_layer("output", policy.w_out.astype(np.float64) * 255.0,
                                           policy.b_out.astype(np.float64) * 255.0, HIDDEN_EXP, 0,
                                           may_lower_e_out=False)

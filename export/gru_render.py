@@ -37,7 +37,8 @@ def gru_policy_context(qp: "QuantizedGRU", uids: tuple[int, ...]) -> dict[str, A
     defines, tables = _io_context(qp, uids, [_define("KF_HIDDEN", _u(H), "GRU hidden units (int8 state at exponent 7)")], [
         _define("KF_Y_LEN", _u(2 * H, "uint16_t"), "scratch: two gate vectors (int16)"),
         _define("KF_RN_SHIFT", _u(c.rn_shift), f"r * (W_hn h + b_hn): exponent {numfmt.GATE_EXP} + e_nh "
-                                                f"{c.nh.e_out} -> e_n {c.nx.e_out}"),
+                                                f"{c.nh.e_out} -> e_n {c.e_n}"),
+        _define("KF_NX_SHIFT", _u(c.nx_shift), f"W_in x + b_in: exponent e_nx {c.nx.e_out} -> e_n {c.e_n} (left shift)"),
     ])
     tables += [
         c_array("KF_GATE_R", "uint8_t", c.r_table,
@@ -45,7 +46,7 @@ def gru_policy_context(qp: "QuantizedGRU", uids: tuple[int, ...]) -> dict[str, A
         c_array("KF_GATE_K", "uint8_t", c.k_table,
                 comment=f"k = 1 - sigmoid(a_z) at exponent {numfmt.GATE_EXP}; index a_z + 128, a_z at exponent {c.z.e_out}"),
         c_array("KF_TANH", "int8_t", c.n_table,
-                comment=f"n = tanh(p) at exponent {numfmt.HIDDEN_EXP}; index p + 128, p at exponent {c.nx.e_out}"),
+                comment=f"n = tanh(p) at exponent {numfmt.HIDDEN_EXP}; index p + 128, p at exponent {c.e_n}"),
     ]
     layers = []
     for name, k, what in LAYERS:

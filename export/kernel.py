@@ -43,7 +43,7 @@ import numpy as np
 from . import numfmt
 from .numfmt import QuantLayer
 
-GROUP_SIZES = (8, 4, 2, 1)  #: rows per group, largest first (the AVR kernel has one loop per size)
+GROUP_SIZES = (8, 2, 1)  #: rows per group, largest first (the AVR kernel has one loop per size)
 FAST_MAX_IN = 510  #: widest layer the AVR kernel takes (it counts input pairs of a segment in 8 bits)
 FAST_MAX_OUT = 2047  #: the AVR kernel counts groups of 8 rows in 8 bits
 FAST_CLAMPS = ((numfmt.INT8_MIN, numfmt.INT8_MAX), (0, 255))  #: clamps the AVR kernel implements
@@ -52,7 +52,7 @@ ACC32_LIMIT = 2 ** 31
 
 
 def row_groups(n_out: int) -> list[tuple[int, int]]:
-    """(first row, rows) of each group: 8 while 8 are left, then 4, 2, 1.
+    """(first row, rows) of each group: 8 while 8 are left, then 2 while 2 are left, then 1.
 
     >>> row_groups(19)
     [(0, 8), (8, 8), (16, 2), (18, 1)]
@@ -125,27 +125,46 @@ def kernel_bias(layer: QuantLayer) -> np.ndarray:
     wsum = (layer.w.astype(np.int64) + 128).sum(axis=1)  # (n_out,) sum of w'
     b = layer.b.astype(np.int64) + rounding(layer.shift) - 128 * wsum + 16384 * n_in
     if is_fast(layer):
-        code = np.array([avr_shift_code(int(s)) for s in layer.shift], np.int64)
+        code = np.array([avr_shift_code(int(s), layer.lo == 0) for s in layer.shift], np.int64)
         b = (b & 0xFFFFFF) | (code << 24)
     return (b & 0xFFFFFFFF).astype(np.uint32).view(np.int32)
 
 
-def avr_shift_code(s: int) -> int:
+def avr_shift_code(s: int, unsigned: bool = False) -> int:
     """The AVR kernel's per-row requantisation code (top byte of a fast bias) for shift ``s`` (0..23).
 
-    With v = r28:r1:r0 (24 bits), the value ``v >> 8`` is already in r28:r1, so for 8 <= s <= 11
-    the code is just the bit count ``s - 8``; 12..15 shift left ``16 - s`` and drop a byte (0x20);
-    16..23 first drop another byte (0x40); below 8 the 24-bit paths (0x80, with 0x20: left).
+    ``unsigned``: the row clamps to ``0..255`` (else ``-128..127``). With v = h:m:l the row's 24-bit
+    value, the kernel's inline path takes codes 1..7 (int8 clamp, s = 8 + code: ``h:m`` shifted right
+    by the code); every other row goes through its general routine: ``0x80 | 0x40 (0..255) |
+    class << 3 | n`` with the classes (see :data:`AVR_CODE_CLASSES`) right16 ``h:m >> n`` (s = 8 + n),
+    left16 ``(E:h:m << n) >> 8`` (s = 16 - n), left24 ``(E:h:m:l << n) >> 8`` (s = 8 - n),
+    right24 ``h:m:l >> n`` (s = n) and high8 ``h >> n`` (s = 16 + n), E being h's sign byte.
 
-    >>> [avr_shift_code(s) for s in (9, 12, 15, 17, 23, 2, 6)]
-    [1, 36, 33, 65, 97, 130, 162]
+    >>> [avr_shift_code(s) for s in (9, 10, 15)]
+    [1, 2, 7]
+    >>> [hex(avr_shift_code(s)) for s in (8, 7, 4, 2, 16, 23)]
+    ['0x80', '0x91', '0x94', '0x9a', '0xa0', '0xa7']
+    >>> [hex(avr_shift_code(s, unsigned=True)) for s in (9, 14, 15)]
+    ['0xc1', '0xca', '0xc9']
     """
     assert 0 <= s <= 23, f"shift {s} is never 24-bit exact"
-    if s < 8:
-        return 0x80 | s if s < 4 else 0xA0 | (8 - s)
-    c = s - 8 if s < 16 else s - 16
-    code = c if c < 4 else 0x20 | (8 - c)
-    return code | (0x40 if s >= 16 else 0)
+    if not unsigned and 9 <= s <= 15:
+        return s - 8
+    if 8 <= s <= 11:
+        cls, n = "right16", s - 8
+    elif 12 <= s <= 15:
+        cls, n = "left16", 16 - s
+    elif s >= 16:
+        cls, n = "high8", s - 16
+    elif s >= 4:
+        cls, n = "left24", 8 - s
+    else:
+        cls, n = "right24", s
+    return 0x80 | (0x40 if unsigned else 0) | AVR_CODE_CLASSES[cls] << 3 | n
+
+
+#: Classes of the AVR kernel's general requantisation routine (bits 5..3 of a row's code).
+AVR_CODE_CLASSES = {"right16": 0, "left16": 1, "left24": 2, "right24": 3, "high8": 4}
 
 
 @dataclass(frozen=True)
@@ -210,14 +229,17 @@ def run(kl: KernelLayer, x: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 #: Accumulator registers of group row r (low, mid, high byte); high bytes are r16..r23 so that
 #: ``sbci hi, 0`` can propagate the borrow without a zero register (the inner loop uses all 32).
+#: A group of k < 8 rows uses the last k triples, so that every group ends in the same row code.
 AVR_ACC = (("r2", "r3", "r16"), ("r4", "r5", "r17"), ("r6", "r7", "r18"), ("r8", "r9", "r19"),
            ("r10", "r11", "r20"), ("r12", "r13", "r21"), ("r14", "r15", "r22"), ("r24", "r25", "r23"))
-#: Stack frame of kf_dense_avr (offsets from Y = SP, so the first byte is Y+1).
-AVR_FRAME = {"X1": 1, "ODD1": 3, "PAIRS1": 4, "X2": 5, "ODD2": 7, "PAIRS2": 8, "Y": 9, "B": 11, "W": 13,
-             "T": 15, "G8": 18, "REM": 19}
+#: The kernel's state between row groups: a static block (.bss, 19 bytes), read with lds / sts.
+AVR_FRAME = {"T": 0, "W": 3, "B": 5, "Y": 7, "X1": 9, "E1": 11, "Q1": 12, "X2": 13, "E2": 15, "Q2": 16,
+             "G8": 17, "REM": 18}
 AVR_FRAME_SIZE = 19
+AVR_UNROLL = 4  #: inputs per MAC loop iteration (entered Duff-style: the first pass takes n mod 4)
 ASM_BEGIN = "/* ---- BEGIN kf_dense_avr: generated by export.kernel.avr_asm_block(), do not edit ---- */"
 ASM_END = "/* ---- END kf_dense_avr ---- */"
+_BRANCH_WORDS = 63  #: reach of a conditional branch (words after the branch)
 
 
 def _avr_asm_lines() -> list[str]:
@@ -225,165 +247,209 @@ def _avr_asm_lines() -> list[str]:
 
     Per group of k rows: the accumulators start at T = 128 * sum(x') and *subtract* every unsigned
     product w' * x' (``sub, sbc, sbci 0``: 3 cycles, no zero register), so after the inputs
-    A = T - sum; the row's value is ``v = b' - A`` (mod 2^24), then ``floor(v / 2^s)`` by byte moves
-    and single-bit shifts, the clamp, and an int16 store. Inner loop: ``lpm`` 3 + ``mul`` 2 + 3 per
-    MAC, plus ``ld``/``subi``/loop counting shared by the k rows (two inputs per iteration).
+    A = T - sum; the row's value is ``v = b' - A`` (mod 2^24), then ``floor(v / 2^s)`` (inline for
+    int8 rows with s = 7..15, :func:`avr_shift_code`), the clamp, and an int16 store. Inner loop:
+    ``lpm`` 3 + ``mul`` 2 + 3 per MAC, plus ``ld``/``subi`` and 1 cycle of loop counting per input
+    shared by the k rows (4 inputs per iteration).
     """
-    F = AVR_FRAME
     out: list[str] = []
     a = out.append
 
-    def sp_to_y() -> None:
-        a("in r28, 0x3d"); a("in r29, 0x3e")
+    def f(name: str, off: int = 0) -> str:  # a frame byte (static)
+        return f".Lkf_f+{AVR_FRAME[name] + off}"
 
-    def body(k: int) -> None:  # one input, k rows
-        a("ld r28, X+"); a("subi r28, 0x80")
-        for lo, mid, hi in AVR_ACC[:k]:
-            a("lpm r0, Z+"); a("mul r0, r28"); a(f"sub {lo}, r0"); a(f"sbc {mid}, r1"); a(f"sbci {hi}, 0")
+    def y(name: str, off: int = 0) -> str:  # the same through Y = .Lkf_f
+        return f"Y+{AVR_FRAME[name] + off}"
 
-    def segment(xo: int, k: int) -> None:  # r0 = n & 1, r1 = n >> 1; Y = frame on entry; clobbers Y
-        a(f"ldd r26, Y+{xo}"); a(f"ldd r27, Y+{xo + 1}"); a("movw r28, r0")
-        a(f"rcall .Lkf_mac{k}")
+    def lds2(r_lo: str, r_hi: str, name: str) -> None:
+        a(f"lds {r_lo}, {f(name)}"); a(f"lds {r_hi}, {f(name, 1)}")
 
-    def group(k: int) -> None:  # Y = frame on entry and on exit
-        a(f"ldd r0, Y+{F['T']}"); a(f"ldd r1, Y+{F['T'] + 1}"); a(f"ldd r26, Y+{F['T'] + 2}")
-        for lo, _, hi in AVR_ACC[:k]:
+    def sts2(name: str, r_lo: str, r_hi: str) -> None:
+        a(f"sts {f(name)}, {r_lo}"); a(f"sts {f(name, 1)}, {r_hi}")
+
+    def seg(i: int) -> None:  # X, r28 (n & 3), r29 (iterations) of input segment i
+        lds2("r26", "r27", f"X{i}"); a(f"lds r28, {f(f'E{i}')}"); a(f"lds r29, {f(f'Q{i}')}")
+
+    def init_rows(rows) -> None:  # accumulators = T (in r0, r1, r26)
+        for lo, _, hi in rows:
             a(f"movw {lo}, r0"); a(f"mov {hi}, r26")
-        a(f"ldd r30, Y+{F['W']}"); a(f"ldd r31, Y+{F['W'] + 1}")
-        a(f"ldd r0, Y+{F['ODD1']}"); a(f"ldd r1, Y+{F['PAIRS1']}")
-        segment(F["X1"], k)
-        sp_to_y()
-        a(f"ldd r26, Y+{F['ODD2']}"); a(f"ldd r27, Y+{F['PAIRS2']}"); a("movw r0, r26"); a("or r26, r27")
-        a(f"breq .Lkf_noseg2_{k}")
-        segment(F["X2"], k)
-        sp_to_y()
-        a(f".Lkf_noseg2_{k}:")
-        a(f"std Y+{F['W']}, r30"); a(f"std Y+{F['W'] + 1}, r31")
-        a(f"ldd r30, Y+{F['B']}"); a(f"ldd r31, Y+{F['B'] + 1}")
-        a(f"ldd r26, Y+{F['Y']}"); a(f"ldd r27, Y+{F['Y'] + 1}")
-        for lo, mid, hi in AVR_ACC[:k]:
-            a("lpm r0, Z+"); a("lpm r1, Z+"); a("lpm r28, Z+"); a("lpm r29, Z+")  # b' (24 bits), s
-            a(f"sub r0, {lo}"); a(f"sbc r1, {mid}"); a(f"sbc r28, {hi}")  # v = b' - A
-            a("rcall .Lkf_post")
-        sp_to_y()
-        a(f"std Y+{F['B']}, r30"); a(f"std Y+{F['B'] + 1}, r31")
-        a(f"std Y+{F['Y']}, r26"); a(f"std Y+{F['Y'] + 1}, r27")
 
+    a(".pushsection .bss"); a(".Lkf_f:"); a(f".skip {AVR_FRAME_SIZE}"); a(".popsection")
     a(".global kf_dense_avr"); a(".type kf_dense_avr, @function"); a("kf_dense_avr:")
     saved = [f"r{i}" for i in range(2, 18)] + ["r28", "r29"]
     for r in saved:
         a(f"push {r}")
-    sp_to_y(); a(f"sbiw r28, {AVR_FRAME_SIZE}")
-    a("in r0, 0x3f"); a("cli"); a("out 0x3e, r29"); a("out 0x3f, r0"); a("out 0x3d, r28")
-    a(f"std Y+{F['X1']}, r22"); a(f"std Y+{F['X1'] + 1}, r23")
-    a(f"std Y+{F['X2']}, r18"); a(f"std Y+{F['X2'] + 1}, r19")
-    a(f"std Y+{F['Y']}, r16"); a(f"std Y+{F['Y'] + 1}, r17")
+    a("ldi r28, lo8(.Lkf_f)"); a("ldi r29, hi8(.Lkf_f)")
     a("movw r30, r24")  # Z = L (SRAM): w 0, b 2, shift 4, n_in 6, n_out 8, lo 10, hi 12, fast 14
-    a("ld r24, Z"); a("ldd r25, Z+1"); a(f"std Y+{F['W']}, r24"); a(f"std Y+{F['W'] + 1}, r25")
-    a("ldd r24, Z+2"); a("ldd r25, Z+3"); a(f"std Y+{F['B']}, r24"); a(f"std Y+{F['B'] + 1}, r25")
+    a("ld r24, Z"); a("ldd r25, Z+1"); a(f"std {y('W')}, r24"); a(f"std {y('W', 1)}, r25")
+    a("ldd r24, Z+2"); a("ldd r25, Z+3"); a(f"std {y('B')}, r24"); a(f"std {y('B', 1)}, r25")
+    a(f"std {y('Y')}, r16"); a(f"std {y('Y', 1)}, r17")
     a("ldd r24, Z+8"); a("ldd r25, Z+9")  # n_out < 2048: G8 = n_out / 8, REM = n_out % 8
-    a("mov r0, r24"); a("andi r24, 7"); a(f"std Y+{F['REM']}, r24")
+    a("mov r0, r24"); a("andi r24, 7"); a(f"std {y('REM')}, r24")
     for _ in range(3):
         a("lsr r25"); a("ror r0")
-    a(f"std Y+{F['G8']}, r0")
-    a("clt"); a("ldd r24, Z+10"); a("ldd r25, Z+11"); a("or r24, r25"); a("brne 1f"); a("set"); a("1:")  # T: clamp 0..255
+    a(f"std {y('G8')}, r0")
     a("ldd r2, Z+6"); a("ldd r3, Z+7"); a("sub r2, r20"); a("sbc r3, r21")  # n2 = n_in - n1 (<= 510)
-    for n, odd, pairs in (("r20", "ODD1", "PAIRS1"), ("r2", "ODD2", "PAIRS2")):
-        a(f"movw r24, {n}"); a("lsr r25"); a("ror r24"); a("rol r25")  # r24 = n >> 1, r25 = n & 1
-        a(f"std Y+{F[odd]}, r25"); a(f"std Y+{F[pairs]}, r24")
-    # S = sum of x' over both segments (24 bits), T = 128 * S (mod 2^24)
-    a("movw r26, r18"); a("movw r24, r2"); a("clr r1"); a("clr r2"); a("clr r3"); a("clr r4"); a("rcall .Lkf_sum")
-    a("movw r26, r22"); a("movw r24, r20"); a("rcall .Lkf_sum")
-    a("lsr r4"); a("ror r3"); a("ror r2"); a("clr r0"); a("ror r0")
-    a(f"std Y+{F['T']}, r0"); a(f"std Y+{F['T'] + 1}, r2"); a(f"std Y+{F['T'] + 2}, r3")
-    # groups of 8 rows, then 4, 2, 1 (export.kernel.row_groups)
-    a(".Lkf_loop8:")
-    a(f"ldd r24, Y+{F['G8']}"); a("subi r24, 1"); a("brcc 1f"); a("rjmp .Lkf_tail"); a("1:")
-    a(f"std Y+{F['G8']}, r24")
-    group(8)
-    a("rjmp .Lkf_loop8")
-    a(".Lkf_tail:")
-    a(f"ldd r24, Y+{F['REM']}")
-    for k, bit in ((4, 2), (2, 1), (1, 0)):
-        a(f"sbrs r24, {bit}"); a(f"rjmp .Lkf_skip{k}")
-        group(k)
-        a(f"ldd r24, Y+{F['REM']}")
-        a(f".Lkf_skip{k}:")
-    sp_to_y(); a(f"adiw r28, {AVR_FRAME_SIZE}")
-    a("in r0, 0x3f"); a("cli"); a("out 0x3e, r29"); a("out 0x3f, r0"); a("out 0x3d, r28")
+    # segments x1[n1], x2[n2]; one segment (T clear) when either is empty or they are contiguous
+    a("clt"); a("mov r24, r20"); a("or r24, r21"); a("brne .Lkf_s1")
+    a("movw r22, r18"); a("movw r20, r2"); a("rjmp .Lkf_s3")
+    a(".Lkf_s1:"); a("mov r24, r2"); a("or r24, r3"); a("breq .Lkf_s3")
+    a("movw r24, r22"); a("add r24, r20"); a("adc r25, r21"); a("cp r24, r18"); a("cpc r25, r19")
+    a("brne .Lkf_s2"); a("add r20, r2"); a("adc r21, r3"); a("rjmp .Lkf_s3")
+    a(".Lkf_s2:"); a("set")
+    a(".Lkf_s3:"); a("clr r4"); a("clr r5"); a("clr r6")  # S = sum of x' (24 bits); r1 = 0 (ABI)
+    for i, (x, n) in ((1, (("r22", "r23"), ("r20", "r21"))), (2, (("r18", "r19"), ("r2", "r3")))):
+        if i == 2:
+            a("brtc .Lkf_s4")
+        a(f"std {y(f'X{i}')}, {x[0]}"); a(f"std {y(f'X{i}', 1)}, {x[1]}")
+        a(f"mov r24, {n[0]}"); a("andi r24, 3"); a(f"std {y(f'E{i}')}, r24")
+        a(f"movw r24, {n[0]}"); a("adiw r24, 3"); a("lsr r25"); a("ror r24"); a("lsr r25"); a("ror r24")
+        a(f"std {y(f'Q{i}')}, r24")  # ceil(n / 4) <= 128
+        a(f"movw r26, {x[0]}"); a(f"movw r24, {n[0]}"); a("rcall .Lkf_sum")
+    a(".Lkf_s4:"); a("lsr r6"); a("ror r5"); a("ror r4"); a("clr r0"); a("ror r0")  # T = 128 S mod 2^24
+    a(f"std {y('T')}, r0"); a(f"std {y('T', 1)}, r4"); a(f"std {y('T', 2)}, r5")
+    a("rjmp .Lkf_next")
+    # the groups left after those of 8 rows: 2, then 1 (export.kernel.row_groups)
+    a(".Lkf_tail:"); a(f"lds r24, {f('REM')}"); a("cpi r24, 2"); a("brlo .Lkf_t1"); a("rjmp .Lkf_g2")
+    a(".Lkf_t1:"); a("sbrc r24, 0"); a("rjmp .Lkf_g1"); a("rjmp .Lkf_done")
+    # groups of 8 rows (inline: the hot path)
+    a(".Lkf_next:"); a(f"lds r24, {f('G8')}"); a("subi r24, 1"); a("brcs .Lkf_tail"); a(f"sts {f('G8')}, r24")
+    a(f"lds r0, {f('T')}"); a(f"lds r1, {f('T', 1)}"); a(f"lds r26, {f('T', 2)}")
+    init_rows(AVR_ACC)
+    lds2("r30", "r31", "W")
+    seg(1); a("rcall .Lkf_mac8"); a("brtc .Lkf_g8b"); seg(2); a("rcall .Lkf_mac8")
+    a(".Lkf_g8b:"); sts2("W", "r30", "r31"); lds2("r30", "r31", "B"); lds2("r26", "r27", "Y")
+    # the rows' epilogue, entered at row 8 - k: v = b' - A, requantise, clamp, store int16 at X+
+    _avr_rows(a, [".Lkf_row8:", f"sts {f('B')}, r30", f"sts {f('B', 1)}, r31", f"sts {f('Y')}, r26",
+                  f"sts {f('Y', 1)}, r27", "rjmp .Lkf_next"])
+    # tail groups (2 and 1 rows: a few per call at most), through shared pieces
+    for k in (2, 1):
+        a(f".Lkf_g{k}:"); a(f"subi r24, {k}"); a(f"sts {f('REM')}, r24")
+        a("rcall .Lkf_tpre"); a(f"rcall .Lkf_init{8 - k}")
+        a("rcall .Lkf_seg1"); a(f"rcall .Lkf_mac{k}"); a(f"brtc .Lkf_g{k}b"); a("rcall .Lkf_seg2"); a(f"rcall .Lkf_mac{k}")
+        a(f".Lkf_g{k}b:"); a("rcall .Lkf_tpost"); a(f"rjmp .Lkf_row{8 - k}")
+    a(".Lkf_tpre:"); a(f"lds r0, {f('T')}"); a(f"lds r1, {f('T', 1)}"); a(f"lds r26, {f('T', 2)}")
+    lds2("r30", "r31", "W"); a("ret")
+    for r in (6, 7):
+        a(f".Lkf_init{r}:")
+        init_rows(AVR_ACC[r:r + 1])
+    a("ret")
+    for i in (1, 2):
+        a(f".Lkf_seg{i}:"); seg(i); a("ret")
+    a(".Lkf_tpost:"); sts2("W", "r30", "r31"); lds2("r30", "r31", "B"); lds2("r26", "r27", "Y"); a("ret")
+    a(".Lkf_done:")
     for r in reversed(saved):
         a(f"pop {r}")
     a("clr r1"); a("ret")
-    # r4:r3:r2 += sum (x ^ 0x80) over X[0..r25:r24-1]; r1 = 0; clobbers r17, r24, r25, X
-    a(".Lkf_sum:")
-
-    def one() -> None:
-        a("ld r17, X+"); a("subi r17, 0x80"); a("add r2, r17"); a("adc r3, r1"); a("adc r4, r1")
-    a("sbrs r24, 0"); a("rjmp 1f"); one()
-    a("1:"); a("sbrs r24, 1"); a("rjmp 2f"); one(); one()
-    a("2:"); a("lsr r25"); a("ror r24"); a("lsr r25"); a("ror r24"); a("sbiw r24, 0"); a("breq 4f")
-    a("3:"); one(); one(); one(); one(); a("sbiw r24, 1"); a("brne 3b")
-    a("4:"); a("ret")
-    # MAC loops: X = inputs, Z = weights, r28 = n & 1, r29 = n >> 1
-    for k in (8, 4, 2, 1):
-        a(f".Lkf_mac{k}:")
-        a("sbrs r28, 0"); a("rjmp 1f")
-        body(k)
-        a("1:"); a("tst r29"); a("brne 2f"); a("ret")
-        a("2:")
-        body(k); body(k)
-        if k <= 4:  # the loop fits a conditional branch (+-64 words)
-            a("dec r29"); a("brne 2b"); a("ret")
+    _avr_sum(a)
+    # MAC loops: X = inputs, Z = weights, r28 = n & 3, r29 = ceil(n / 4); rows AVR_ACC[8 - k:]
+    for k in (8, 2, 1):
+        rows = AVR_ACC[8 - k:]
+        a(f".Lkf_mac{k}:"); a("sbrc r28, 1"); a(f"rjmp .Lkf_m{k}a"); a("sbrc r28, 0"); a(f"rjmp .Lkf_m{k}e1")
+        for e in (0, 3, 2, 1):  # entered at the body that leaves n mod 4 (or 4) inputs in the first pass
+            a(f".Lkf_m{k}e{e}:"); a("ld r28, X+"); a("subi r28, 0x80")
+            for lo, mid, hi in rows:
+                a("lpm r0, Z+"); a("mul r0, r28"); a(f"sub {lo}, r0"); a(f"sbc {mid}, r1"); a(f"sbci {hi}, 0")
+        a("dec r29")
+        if AVR_UNROLL * (2 + 5 * k) < _BRANCH_WORDS:  # the loop fits a conditional branch
+            a(f"brne .Lkf_m{k}e0"); a("ret")
         else:
-            a("dec r29"); a("breq 3f"); a("rjmp 2b")
-            a("3:"); a("ret")
-    # requantise: v = r28:r1:r0 (24-bit), s = r29; y = clamp(floor(v / 2^s)) -> X+ (int16);
-    # SREG.T set: clamp 0..255, clear: -128..127
-    a(".Lkf_post:")  # the value v >> 8 is r28:r1; the code says how to finish (avr_shift_code)
-    a("cpi r29, 4"); a("brsh .Lkf_p_other")
-    a(".Lkf_p_right:")  # 16-bit r28:r1 shifted right by r29 (0..3)
-    a("tst r29"); a("breq 4f")
-    a("2:"); a("asr r28"); a("ror r1"); a("dec r29"); a("brne 2b")
-    # clamp and store the 16-bit r28:r1; SREG.T set: 0..255, clear: -128..127
-    a("4:"); a("brts 6f")
-    a("mov r0, r1"); a("lsl r0"); a("sbc r0, r0"); a("cp r28, r0"); a("brne 5f")
-    a("st X+, r1"); a("st X+, r0"); a("ret")
-    a("5:"); a("ldi r29, 0x7f"); a("sbrc r28, 7"); a("ldi r29, 0x80"); a("st X+, r29")
-    a("lsl r28"); a("sbc r28, r28"); a("st X+, r28"); a("ret")
-    a("6:"); a("tst r28"); a("brne 7f")
-    a("st X+, r1"); a("st X+, r28"); a("ret")
-    a("7:"); a("ldi r29, 0xff"); a("sbrc r28, 7"); a("ldi r29, 0"); a("st X+, r29")
-    a("clr r29"); a("st X+, r29"); a("ret")
-    a(".Lkf_p_other:")
-    a("sbrc r29, 7"); a("rjmp .Lkf_p_small")
-    a("sbrs r29, 6"); a("rjmp .Lkf_p_left")
-    a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28")  # s >= 16: drop another byte
-    a("andi r29, 0x3f"); a("cpi r29, 4"); a("brlo .Lkf_p_right")
-    a(".Lkf_p_left:")  # shift r28:r1 left by t = r29 & 7 (1..4) into a sign byte r0, keep r0:r28
-    a("andi r29, 7"); a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0")
-    a("3:"); a("lsl r1"); a("rol r28"); a("rol r0"); a("dec r29"); a("brne 3b")
-    a("mov r1, r28"); a("mov r28, r0"); a("rjmp 4b")
-    a(".Lkf_p_small:")  # s < 8: the 24-bit v; 0x80 | s (s < 4) right, 0xA0 | t left by t = 8 - s
-    a("sbrc r29, 5"); a("rjmp .Lkf_p_left24")
-    a("andi r29, 7"); a("breq 1f")
-    a("3:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r29"); a("brne 3b")
-    a("1:"); a("mov r29, r28"); a("mov r28, r1"); a("mov r1, r0"); a("rjmp .Lkf_p_fix")
-    a(".Lkf_p_left24:")  # E:r28:r1:r0 <<= t with E = r29 (a count-free chain), keep E:r28:r1
-    a("andi r29, 7"); a("cpi r29, 2"); a("brlo .Lkf_p_t1"); a("breq .Lkf_p_t2"); a("cpi r29, 3"); a("breq .Lkf_p_t3")
-    sign = ("mov r29, r28", "lsl r29", "sbc r29, r29")  # r29 = sign extension of r28
-    for t in (4, 3, 2, 1):
-        if t < 4:
-            a(f".Lkf_p_t{t}:")
-        for ln in sign:
-            a(ln)
-        a(f"rjmp .Lkf_p_sh{t}")
-    for t in (4, 3, 2, 1):  # falls through: entering at sh<t> shifts t bits left
-        a(f".Lkf_p_sh{t}:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29")
-    a(".Lkf_p_fix:")  # 24-bit r29:r28:r1 -> 16-bit r28:r1, saturated when it does not fit
-    a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0"); a("cp r29, r0"); a("brne 8f"); a("rjmp 4b")
-    a("8:"); a("ldi r28, 0x7f"); a("sbrc r29, 7"); a("ldi r28, 0x80"); a("rjmp 4b")
+            a(f"breq .Lkf_m{k}x"); a(f"rjmp .Lkf_m{k}e0"); a(f".Lkf_m{k}x:"); a("ret")
+        a(f".Lkf_m{k}a:"); a("sbrc r28, 0"); a(f"rjmp .Lkf_m{k}e3"); a(f"rjmp .Lkf_m{k}e2")
+    _avr_post(a)
     a(".size kf_dense_avr, .-kf_dense_avr")
     return out
+
+
+def _avr_rows(a, after: list[str]) -> None:
+    """The 8 rows' epilogue (``.Lkf_row0`` .. ``.Lkf_row7``, then ``after``), each row with its
+    out-of-line pieces: the saturation stubs where the rows' branches reach them, the others last."""
+    def row(r: int) -> list[str]:
+        lo, mid, hi = AVR_ACC[r]
+        return [f".Lkf_row{r}:",
+                "lpm r0, Z+", "lpm r1, Z+", "lpm r28, Z+", "lpm r29, Z+",  # b' (24 bits), code
+                f"sub r0, {lo}", f"sbc r1, {mid}", f"sbc r28, {hi}",  # v = b' - A = r28:r1:r0
+                "sbrc r29, 7", f"rjmp .Lkf_slow{r}",
+                f".Lkf_sh{r}:", "asr r28", "ror r1", "dec r29", f"brne .Lkf_sh{r}",  # code 1..7: s = 8 + code
+                f".Lkf_chk{r}:", "mov r0, r1", "lsl r0", "sbc r0, r0", "cp r28, r0", f"brne .Lkf_sat{r}",
+                "st X+, r1", "st X+, r0"]
+
+    def sat(r: int) -> list[str]:
+        return [f".Lkf_sat{r}:", "rcall .Lkf_sat", f"rjmp .Lkf_row{r + 1}"]
+
+    def slow(r: int) -> list[str]:
+        return [f".Lkf_slow{r}:", f"cpi r29, 0x{avr_shift_code(7):02x}", f"brne .Lkf_s8_{r}",
+                "lsl r0", "rol r1", "rol r28", f"brvs .Lkf_ov{r}", f"rjmp .Lkf_chk{r}",  # s = 7: v << 1 >> 8
+                f".Lkf_ov{r}:", "ror r28", f"rjmp .Lkf_sat{r}",  # v >> 7 is not 16 bits: saturate by its sign
+                f".Lkf_s8_{r}:", f"cpi r29, 0x{avr_shift_code(8):02x}", f"brne .Lkf_gen{r}", f"rjmp .Lkf_chk{r}",
+                f".Lkf_gen{r}:", "rcall .Lkf_post", f"rjmp .Lkf_row{r + 1}"]
+
+    code = [ln for r in range(3) for ln in row(r)] + ["rjmp .Lkf_row3"] + [ln for r in range(5) for ln in sat(r)]
+    code += [ln for r in range(3, 8) for ln in row(r)] + after + [ln for r in range(5, 8) for ln in sat(r)]
+    code += [ln for r in range(8) for ln in slow(r)]
+    for ln in code:
+        a(ln)
+
+
+def _avr_sum(a) -> None:
+    """``.Lkf_sum``: r6:r5:r4 += sum (x ^ 0x80) over X[0..r25:r24-1] (1..510); r1 = 0; 16-bit
+    partial sums (r8:r7) over chunks of at most 256 inputs; clobbers r7, r8, r17, r24, r25, X."""
+    def one() -> None:
+        a("ld r17, X+"); a("subi r17, 0x80"); a("add r7, r17"); a("adc r8, r1")
+    a(".Lkf_sum:"); a("clr r7"); a("clr r8")
+    a("mov r17, r24"); a("andi r17, 7"); a("adiw r24, 7"); a("lsr r25"); a("ror r24"); a("lsr r24"); a("lsr r24")
+    a("ldi r25, 32"); a("cp r24, r25"); a("brsh .Lkf_sum0"); a("mov r25, r24")  # r25 = passes in this chunk
+    a(".Lkf_sum0:"); a("sub r24, r25")  # r24 = passes left after it; the first pass takes n mod 8 (or 8)
+    a("sbrc r17, 2"); a("rjmp .Lkf_sum4"); a("sbrc r17, 1"); a("rjmp .Lkf_sum2")
+    a("sbrc r17, 0"); a("rjmp .Lkf_sume1"); a("rjmp .Lkf_sume0")
+    a(".Lkf_sum2:"); a("sbrc r17, 0"); a("rjmp .Lkf_sume3"); a("rjmp .Lkf_sume2")
+    a(".Lkf_sum4:"); a("sbrc r17, 1"); a("rjmp .Lkf_sum6"); a("sbrc r17, 0"); a("rjmp .Lkf_sume5"); a("rjmp .Lkf_sume4")
+    a(".Lkf_sum6:"); a("sbrc r17, 0"); a("rjmp .Lkf_sume7"); a("rjmp .Lkf_sume6")
+    a(".Lkf_sumc:"); a("clr r7"); a("clr r8"); a("ldi r25, 32"); a("cp r24, r25"); a("brsh .Lkf_sumd")
+    a("mov r25, r24")
+    a(".Lkf_sumd:"); a("sub r24, r25")
+    for e in (0, 7, 6, 5, 4, 3, 2, 1):
+        a(f".Lkf_sume{e}:"); one()
+    a("dec r25"); a("brne .Lkf_sume0")
+    a("add r4, r7"); a("adc r5, r8"); a("adc r6, r1")  # fold the chunk into the 24-bit sum
+    a("tst r24"); a("brne .Lkf_sumc"); a("ret")
+
+
+def _avr_post(a) -> None:
+    """``.Lkf_post``, the general requantisation (codes with bit 7 set, :func:`avr_shift_code`):
+    v = r28:r1:r0, code r29; floor(v / 2^s) to the 16-bit r28:r1 (saturated), clamp, int16 store
+    at X+; preserves every register but r0, r1, r28, r29. ``.Lkf_sat``: the int8 saturation by
+    the sign of r28 (-128 or 127)."""
+    a(".Lkf_post:"); a("push r24"); a("push r25"); a("mov r24, r29"); a("mov r25, r29"); a("andi r25, 7")
+    a("sbrc r24, 5"); a("rjmp .Lkf_ph8"); a("sbrc r24, 4"); a("rjmp .Lkf_p24"); a("sbrc r24, 3"); a("rjmp .Lkf_pl16")
+    a("tst r25"); a("breq .Lkf_pc16")  # right16: r28:r1 >>= n
+    a(".Lkf_pr16:"); a("asr r28"); a("ror r1"); a("dec r25"); a("brne .Lkf_pr16"); a("rjmp .Lkf_pc16")
+    a(".Lkf_pl16:"); a("mov r29, r28"); a("lsl r29"); a("sbc r29, r29")  # left16: E:r28:r1 <<= n (>= 1)
+    a(".Lkf_pl16l:"); a("lsl r1"); a("rol r28"); a("rol r29"); a("dec r25"); a("brne .Lkf_pl16l")
+    a("mov r1, r28"); a("mov r28, r29"); a("rjmp .Lkf_pc16")
+    a(".Lkf_ph8:"); a("tst r25"); a("breq .Lkf_ph8b")  # high8: r28 >>= n
+    a(".Lkf_ph8l:"); a("asr r28"); a("dec r25"); a("brne .Lkf_ph8l")
+    a(".Lkf_ph8b:"); a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28"); a("rjmp .Lkf_pc16")
+    a(".Lkf_p24:"); a("sbrc r24, 3"); a("rjmp .Lkf_pr24")
+    a("mov r29, r28"); a("lsl r29"); a("sbc r29, r29")  # left24: E:r28:r1:r0 <<= n (>= 1), keep E:r28:r1
+    a(".Lkf_pl24:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29"); a("dec r25"); a("brne .Lkf_pl24")
+    a("rjmp .Lkf_pc24")
+    a(".Lkf_pr24:"); a("tst r25"); a("breq .Lkf_pr24b")  # right24: r28:r1:r0 >>= n
+    a(".Lkf_pr24l:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r25"); a("brne .Lkf_pr24l")
+    a(".Lkf_pr24b:"); a("mov r29, r28"); a("mov r28, r1"); a("mov r1, r0")
+    a(".Lkf_pc24:")  # 24-bit r29:r28:r1 -> 16-bit r28:r1, saturated
+    a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0"); a("cp r29, r0"); a("breq .Lkf_pc16")
+    a("ldi r28, 0x7f"); a("ldi r25, 0xff"); a("sbrs r29, 7"); a("rjmp .Lkf_pc24b"); a("ldi r28, 0x80"); a("clr r25")
+    a(".Lkf_pc24b:"); a("mov r1, r25")
+    a(".Lkf_pc16:"); a("sbrc r24, 6"); a("rjmp .Lkf_pu8")  # clamp the 16-bit r28:r1
+    a("pop r25"); a("pop r24")
+    a("mov r0, r1"); a("lsl r0"); a("sbc r0, r0"); a("cp r28, r0"); a("brne .Lkf_sat")
+    a("st X+, r1"); a("st X+, r0"); a("ret")
+    a(".Lkf_pu8:"); a("pop r25"); a("pop r24"); a("tst r28"); a("breq .Lkf_pu8b")
+    a("clr r1"); a("sbrs r28, 7"); a("dec r1")  # 0 below, 255 above
+    a(".Lkf_pu8b:"); a("st X+, r1"); a("clr r1"); a("st X+, r1"); a("ret")
+    a(".Lkf_sat:"); a("ldi r29, 0x7f"); a("sbrc r28, 7"); a("ldi r29, 0x80"); a("st X+, r29")
+    a("lsl r28"); a("sbc r28, r28"); a("st X+, r28"); a("ret")
 
 
 def avr_asm_block() -> str:

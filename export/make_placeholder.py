@@ -1,7 +1,9 @@
-"""Make the shipped placeholder policy ``export/data/default_policy.npz`` (an untrained actor).
+"""Make an untrained placeholder policy (the architecture of the shipped default policy).
 
-Until a trained reference policy exists, ``python -m export`` exports this one so that the whole
-pipeline (calibrate, quantise, budget, render, verify) runs out of the box. It is **untrained**: a
+``export/data/default_policy.npz`` is now a *trained* reference policy (see ``docs/report.md`` and
+``tests/bench/reproduce_thesis.py``); before it existed, ``python -m export`` exported this
+placeholder so that the whole pipeline ran out of the box. The placeholder stays useful as a
+deterministic, training-free policy of the same shape. It is **untrained**: a
 seeded random initialisation per thesis §4.3.1 (hidden layers U[-1/sqrt(f), 1/sqrt(f)] with f the
 layer's input width, output layer U[-3e-3, 3e-3]), so its robots barely move.
 
@@ -9,7 +11,9 @@ Its architecture: hidden sizes (32, 32) ELU in the ``kilobot`` world and the lar
 (at most :data:`MAX_T_PREV`) that the analytic budget (:mod:`export.budget`) accepts with at least
 :data:`FLASH_HEADROOM_B` of flash to spare (room for error in the code-size estimate).
 
-Regenerate with ``python -m export.make_placeholder`` (deterministic: same seed, same bytes).
+Make it with ``python -m export.make_placeholder --out P.npz`` (deterministic: same seed, same
+bytes); the default output is ``placeholder_policy.npz`` in the current directory, never the shipped
+default policy.
 """
 from __future__ import annotations
 
@@ -29,7 +33,7 @@ HIDDEN = (32, 32)
 ACTIVATION = "elu"
 MAX_T_PREV = 20  #: the thesis studies histories of 1..10 periods; 20 is ample for a placeholder
 FLASH_HEADROOM_B = 1_500  #: flash left free for error in the code estimate
-OUT = Path(__file__).resolve().parent / "data" / "default_policy.npz"
+OUT = Path("placeholder_policy.npz")  #: default output (the shipped default policy is trained; see the module doc)
 NOTE = "placeholder: untrained random initialisation; replace with a trained policy"
 
 

@@ -42,14 +42,20 @@ observation exponent: ``[ACT[q_l], ACT[q_r], obs]``) and the int8 hidden state `
   ``a_r`` and ``a_z`` read the concatenation ``[x, h]`` (``kf_dense2``'s two segments, no copy);
   the columns of ``h`` are quantised from the float weights times ``2**(e_x - HIDDEN_EXP)``, so one
   accumulator exponent serves both parts. ``a_r`` has its exponent ``e_r``, ``a_z`` its ``e_z``;
-  ``nx = W_in x + b_in`` and ``nh = W_hn h + b_hn`` are requantised to ``e_n`` and ``e_nh``.
+  ``nx = W_in x + b_in`` and ``nh = W_hn h + b_hn`` are requantised to ``e_nx`` and ``e_nh``.
 * **Gates**: ``r = R[a_r + 128]`` and ``k = K[a_z + 128]`` from 256-entry **uint8** tables at
   ``GATE_EXP = 8`` (real ``g / 256``; :func:`gate_table`): ``R`` is σ, ``K`` is ``1 - σ``
   (``k = 1 - z``: a saturated "keep" gate is exactly 0, so a GRU that holds its state holds it
   bit for bit; 1.0 itself saturates to 255/256).
-* **Candidate**: ``p = saturate_int8(nx + rshift_round(r * nh, s_rn))`` with
-  ``s_rn = GATE_EXP + e_nh - e_n >= 0`` (the gate × state product at exponent ``8 + e_nh``, rounded
-  half-up to ``e_n``), then ``n = TANH[p + 128]`` (:func:`act_table` ``("tanh", e_n, 7)``).
+* **Candidate**: ``p = saturate_int8(nx * 2**s_nx + rshift_round(r * nh, s_rn))`` at the table's
+  exponent ``e_n = e_nx + s_nx`` (``s_nx >= 0``: an exact left shift, written as a multiply in C),
+  with ``s_rn = GATE_EXP + e_nh - e_n >= 0`` (the gate × state product at exponent ``8 + e_nh``,
+  rounded half-up to ``e_n``), then ``n = TANH[p + 128]`` (:func:`act_table` ``("tanh", e_n, 7)``).
+* **Table exponents**: a table's input exponent need not cover the whole calibrated range, only the
+  part where the function still changes: ``SIGMOID_SAT_EXP = 4`` (±8 covers where the uint8 σ table
+  reaches 0 and 255) and ``TANH_SAT_EXP = 5`` (±4 covers where the int8 tanh reaches ±127/128). The
+  quantiser takes the finer of that and the calibrated exponent; larger values saturate to the same
+  table entry the exact value would give.
 * **State update**: ``h' = saturate_int8(h + rshift_round(k * (n - h), GATE_EXP))``, i.e.
   ``(1 - z) n + z h`` with one gate × state product rounded half-up. ``|k (n - h)| / 256 < |n - h|``,
   so ``h'`` lies between ``h`` and ``n`` and the saturation never acts (kept for safety).
@@ -255,6 +261,8 @@ class QuantLayer:
 # --- the GRU cell (module doc, "The GRU cell") --------------------------------------------
 GATE_EXP = 8  #: gates r and k = 1 - z: uint8 at exponent 8 (real g / 256)
 HIDDEN_EXP = 7  #: hidden state h and candidate n: int8 at exponent 7 (real h / 128)
+SIGMOID_SAT_EXP = 4  #: coarsest gate-table exponent needed: ±8 covers σ's uint8 saturation (-6.24, 5.13)
+TANH_SAT_EXP = 5  #: coarsest tanh-table exponent needed: ±4 covers tanh's int8 saturation (±3.1)
 
 
 def gate_table(e_a: int, complement: bool = False) -> np.ndarray:
@@ -281,8 +289,9 @@ class QuantGRUCell:
     nh: QuantLayer  #: (H, H) over h -> W_hn h + b_hn int8 at e_nh
     r_table: np.ndarray  #: (256,) uint8 gate_table(r.e_out)
     k_table: np.ndarray  #: (256,) uint8 gate_table(z.e_out, complement=True): 1 - z
-    n_table: np.ndarray  #: (256,) int8 act_table("tanh", nx.e_out, HIDDEN_EXP)
-    rn_shift: int  #: GATE_EXP + nh.e_out - nx.e_out: r * nh -> exponent e_n
+    n_table: np.ndarray  #: (256,) int8 act_table("tanh", e_n, HIDDEN_EXP), e_n = nx.e_out + nx_shift
+    rn_shift: int  #: GATE_EXP + nh.e_out - e_n: r * nh -> exponent e_n
+    nx_shift: int = 0  #: e_n - nx.e_out >= 0: nx -> exponent e_n (exact left shift)
 
     def __post_init__(self) -> None:
         H, DH = self.r.w.shape
@@ -299,8 +308,14 @@ class QuantGRUCell:
             t = getattr(self, name)
             assert t.shape == (256,) and t.dtype == np.uint8, f"{name} must be (256,) uint8"
         assert self.n_table.shape == (256,) and self.n_table.dtype == np.int8, "n_table must be (256,) int8"
-        assert self.rn_shift == GATE_EXP + self.nh.e_out - self.nx.e_out and 0 <= self.rn_shift <= MAX_SHIFT, \
-            f"rn_shift {self.rn_shift} != {GATE_EXP} + e_nh {self.nh.e_out} - e_n {self.nx.e_out} (or out of range)"
+        assert 0 <= self.nx_shift <= 7, f"nx_shift must be in 0..7, got {self.nx_shift}"
+        assert self.rn_shift == GATE_EXP + self.nh.e_out - self.e_n and 0 <= self.rn_shift <= MAX_SHIFT, \
+            f"rn_shift {self.rn_shift} != {GATE_EXP} + e_nh {self.nh.e_out} - e_n {self.e_n} (or out of range)"
+
+    @property
+    def e_n(self) -> int:
+        """Exponent of the candidate's pre-activation (the tanh table's input)."""
+        return self.nx.e_out + self.nx_shift
 
     @property
     def hidden(self) -> int:
@@ -321,7 +336,7 @@ class QuantGRUCell:
         k = self.k_table.astype(np.int64)[a_z + 128]
         nx = dense_int(x, self.nx.w, self.nx.b, self.nx.shift, INT8_MIN, INT8_MAX)
         nh = dense_int(h, self.nh.w, self.nh.b, self.nh.shift, INT8_MIN, INT8_MAX)
-        pre = saturate(nx + rshift_round(r * nh, self.rn_shift), INT8_MIN, INT8_MAX)
+        pre = saturate(nx * (1 << self.nx_shift) + rshift_round(r * nh, self.rn_shift), INT8_MIN, INT8_MAX)
         n = self.n_table.astype(np.int64)[pre + 128]
         h2 = saturate(h + rshift_round(k * (n - h), GATE_EXP), INT8_MIN, INT8_MAX)
         return {"a_r": a_r, "a_z": a_z, "r": r, "k": k, "nx": nx, "nh": nh, "pre_n": pre, "n": n, "h": h2}

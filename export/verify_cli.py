@@ -62,7 +62,7 @@ def verify_parser() -> argparse.ArgumentParser:
     ap.add_argument("--calib-seed", type=int, default=0, help="calibration seed, as export's --seed (default 0)")
     ap.add_argument("--percentile", type=float, default=100.0,
                     help="range percentile for exponent choice, as for export (default 100)")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
     return ap
 
 
@@ -178,10 +178,8 @@ def run_verify(argv: Sequence[str]) -> int:
           f"e_in {qp.e_in}, mean |du| {report.du_mean:.5f}, max |du| {report.du_max:.5f}, "
           f"same uint8 command {100 * report.same_command:.1f}%")
 
-    comps = compare_many(policy, qp, args.robots, args.episodes, args.seed, steps=args.steps,
-                         progress=not args.no_progress)
-    for c in comps:
-        c.goal = args.goal
+    comps = compare_many(policy, qp, args.robots, args.episodes, args.seed, steps=args.steps, goal=args.goal,
+                         progress=progress)
     print()
     for c in comps:
         print(c.table())

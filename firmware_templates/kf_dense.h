@@ -7,7 +7,7 @@
  * export/kernel.py renders for this kernel (KernelLayer.w / .b / .shift / .fast), and ONE set of
  * arrays serves both the portable C below (host, Kilombo) and the AVR assembly kernel:
  *   w      PROGMEM int8, n_out * n_in bytes: offset-binary weights (W + 128, stored as W ^ 0x80),
- *          rows in groups of 8 (then 4, 2, 1 for the rest), each group interleaved input-major:
+ *          rows in groups of 8 (then of 2, then 1 for the rest), each group interleaved input-major:
  *          group rows g0..g0+k-1 hold w[g0*n_in + i*k + r] = W[g0+r][i] ^ 0x80.
  *   b      PROGMEM int32, n_out: the bias with the rounding constant and the offset-binary
  *          corrections folded in; for `fast` layers the low 24 bits hold it and the top byte

@@ -21,6 +21,8 @@ import sys
 import typing
 from pathlib import Path
 
+from sim.config import PRESETS as WORLD_PRESETS
+
 from .config import FIELD_TYPES, TRAIN_PRESETS, ConfigError, TrainConfig, coerce
 
 ALIASES = {"n_robots": ["--robots"], "t_prev": ["--history"]}
@@ -59,13 +61,22 @@ def add_config_options(p: argparse.ArgumentParser) -> None:
         g.add_argument(*flags, **kw)
 
 
+def train_preset(name: str) -> str:
+    """argparse type of --preset, with a hint when a world preset is given instead."""
+    if name in TRAIN_PRESETS:
+        return name
+    hint = f"'{name}' is a world: use --world {name}; " if name in WORLD_PRESETS else ""
+    raise argparse.ArgumentTypeError(f"{hint}training presets are {', '.join(TRAIN_PRESETS)}")
+
+
 def build_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m learn", description="MAGDDPG trainer for Kilobot swarm policies.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
 
     t = sub.add_parser("train", help="train a policy (MAGDDPG)", description="Train a swarm policy with MAGDDPG.")
-    t.add_argument("--preset", default=None, choices=list(TRAIN_PRESETS),
-                   help="training preset (default: 'default', the thesis hyper-parameters)")
+    t.add_argument("--preset", default=None, type=train_preset, metavar="{" + ",".join(TRAIN_PRESETS) + "}",
+                   help="training preset (default: 'default', the thesis hyper-parameters); "
+                        "the world is chosen with --world")
     t.add_argument("--config", default=None, help="JSON file of TrainConfig fields")
     t.add_argument("--out", default=None, help="run directory (default runs/<task>__<exp>__<seed>__<time>)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")

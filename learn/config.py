@@ -1,13 +1,10 @@
 """Training configuration: one documented dataclass, training presets, and validation.
 
-The defaults are the thesis's MAGDDPG hyper-parameters (§4.3, §4.3.1) with two exceptions, both
-because the actor has to run on a Kilobot:
-
-* the actor is small enough for the ATmega328P (``t_prev = 10``, two hidden layers of 32 ELUs,
-  checked against :mod:`export.budget`); the thesis's actor had four hidden layers on a
-  20-step history (widths in its Fig. 4.2, which we do not have);
-* the critic's widths (thesis Fig. 4.2, not available) are our choice: three hidden ELU layers of
-  256, 128 and 64 units.
+The defaults are the thesis's MAGDDPG hyper-parameters (§4.3, §4.3.1), except the actor, which
+has to run on a Kilobot: ``t_prev = 10`` and two hidden layers of 32 ELUs fit the ATmega328P
+(checked against :mod:`export.budget`); the thesis's actor had four hidden layers on a 20-step
+history. The thesis gives neither γ nor the layer widths (its Fig. 4.2 is not available to us): γ is
+0.99 as in DDPG, and the critic has three hidden ELU layers of 256, 128 and 64 units.
 
 Training presets (``--preset``; distinct from the *world* preset, ``--world``):
 
@@ -16,7 +13,8 @@ Training presets (``--preset``; distinct from the *world* preset, ``--world``):
 ``thesis``   ``default`` with the thesis's history length (20).
 ``fast``     tuned for wall clock on a small CPU: 16 environments in parallel, bigger minibatches,
              faster target tracking, higher learning rates (see ``TRAIN_PRESETS`` for the values
-             and the README for why).
+             and the README for why), and phantom neighbours (:mod:`learn.augment`) so that a
+             policy trained with a few robots keeps working in large swarms.
 ``quick``    ``fast`` with a 5-minute budget and a small replay memory: learns something
              measurable (beats the random baseline) in minutes.
 """
@@ -66,9 +64,10 @@ class TrainConfig:
     noise_theta: float = 0.15  #: OU mean reversion per control step
     noise_sigma: float = 0.2  #: OU noise scale per control step
     noise_mu: float = 0.0  #: OU mean (added to the actor's action)
+    phantom_neighbours: float = 0.0  #: training only: up to this many phantom neighbours per robot and step in the RBF histogram (learn/augment.py; 0 = off)
     # --- speed -------------------------------------------------------------------------------
     n_envs: int = 1  #: environments stepped together (each contributes one transition per step)
-    threads: int = 2  #: torch CPU threads
+    threads: int = 1  #: torch CPU threads (1: on a shared 2-core CPU, 2 threads made updates 10-20x slower)
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 20_000  #: evaluate every this many transitions (at the next episode end)
     eval_episodes: int = 20  #: deterministic evaluation episodes (run as one vectorised batch)
@@ -107,6 +106,7 @@ class TrainConfig:
              f"reward_scale must be > 0, got {self.reward_scale}")
         need(self.extra_action_penalty >= 0 and math.isfinite(self.extra_action_penalty),
              f"extra_action_penalty must be >= 0, got {self.extra_action_penalty}")
+        need(0 <= self.phantom_neighbours <= 1000, f"phantom_neighbours must be in [0, 1000], got {self.phantom_neighbours}")
         need(self.noise_theta >= 0, f"noise_theta must be >= 0, got {self.noise_theta}")
         need(self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}")
         need(1 <= self.n_envs <= 4096, f"n_envs must be in 1..4096, got {self.n_envs}")
@@ -218,6 +218,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "replay_size": 200_000,
         "eval_every": 25_600,
         "eval_episodes": 50,
+        "phantom_neighbours": 16.0,
         "exp_name": "fast",
     },
     "quick": {
@@ -232,6 +233,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "replay_size": 100_000,
         "eval_every": 12_800,
         "eval_episodes": 50,
+        "phantom_neighbours": 16.0,
         "max_minutes": 5.0,
         "exp_name": "quick",
     },

@@ -41,6 +41,7 @@ from sim.history import History
 from .checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
 from .config import ConfigError, TrainConfig
 from .evaluate import Evaluator, metrics_row
+from .augment import PhantomNeighbours
 from .magddpg import MAGDDPG
 from .noise import OUNoise
 from .replay import EpisodeReplay
@@ -104,11 +105,12 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
 
     # --- seeding: one SeedSequence, one stream per consumer; no global NumPy RNG -------------
     torch.set_num_threads(cfg.threads)
-    ss_init, ss_env, ss_noise, ss_replay, ss_eval = np.random.SeedSequence(cfg.seed).spawn(5)
+    ss_init, ss_env, ss_noise, ss_replay, ss_eval, ss_aug = np.random.SeedSequence(cfg.seed).spawn(6)
     torch.manual_seed(int(ss_init.generate_state(1, np.uint64)[0]))
     env_rng = np.random.default_rng(ss_env)  # episode reset seeds
     noise_rng = np.random.default_rng(ss_noise)
     sample_rng = np.random.default_rng(ss_replay)
+    aug_rng = np.random.default_rng(ss_aug)  # phantom neighbours (off unless phantom_neighbours > 0)
     eval_seed = int(ss_eval.generate_state(1, np.uint32)[0])
 
     # --- environments, networks, memory -------------------------------------------------------
@@ -118,6 +120,7 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     replay = EpisodeReplay(cfg.replay_size, T, M, world.tuple_dim, state_dim, cfg.t_prev)
     noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
     history = History(cfg.t_prev, world.obs_dim)
+    phantoms = PhantomNeighbours(world, cfg.phantom_neighbours, aug_rng)
     evaluator = Evaluator(world, M, cfg.t_prev, cfg.eval_episodes, eval_seed)
     c = Counters()
 
@@ -129,6 +132,7 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         env_rng.bit_generator.state = ck["rng"]["env"]
         noise_rng.bit_generator.state = ck["rng"]["noise"]
         sample_rng.bit_generator.state = ck["rng"]["replay"]
+        aug_rng.bit_generator.state = ck["rng"]["augment"]
         torch.set_rng_state(ck["rng"]["torch"])
         c = Counters(**ck["counters"])
         log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
@@ -140,7 +144,8 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         return {"version": CHECKPOINT_VERSION, "config": cfg.to_dict(), "agent": agent.state_dict(),
                 "replay": replay.state_dict(),
                 "rng": {"env": env_rng.bit_generator.state, "noise": noise_rng.bit_generator.state,
-                        "replay": sample_rng.bit_generator.state, "torch": torch.get_rng_state()},
+                        "replay": sample_rng.bit_generator.state, "augment": aug_rng.bit_generator.state,
+                        "torch": torch.get_rng_state()},
                 "counters": vars(c)}
 
     def export(name: str, metrics: dict) -> None:
@@ -164,8 +169,9 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             # ---- one batch of B synchronised episodes (Algorithm 4, "for episode") ----------
             t0 = time.perf_counter()
             obs, _ = env.reset(seed=int(env_rng.integers(2 ** 31)))
-            h = history.reset(obs)  # (B, M, history_dim): (a_0 = 0, o_1) repeated
             noise.reset()
+            phantoms.reset(B)
+            h = history.reset(phantoms(obs))  # (B, M, history_dim): (a_0 = 0, o_1) repeated
             replay.begin(history.buf[:, :, 0], env.state())
             learning = c.episodes >= cfg.warmup_episodes
             ep_return = np.zeros(B)
@@ -173,6 +179,7 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             for t in range(T):
                 a = np.clip(agent.act(h) + noise.sample(), 0.0, 1.0).astype(np.float32)  # (B, M, 2)
                 obs, reward, _, truncated, _ = env.step(a)
+                obs = phantoms(obs)
                 h = history.push(a, obs)
                 effort = np.mean(np.sum(a * a, axis=-1), axis=-1)  # (B,) (1/M) Σ_i ||a_i||²
                 r_learn = reward - world.reward_scale * cfg.extra_action_penalty * effort

@@ -261,12 +261,18 @@ def test_save_is_atomic(tmp_path, monkeypatch):
     assert sorted(x.name for x in tmp_path.iterdir()) == ["p.npz"]
 
 
-def test_default_placeholder_loads():
-    """The shipped placeholder loads, is honest about being untrained, and is < 200 KB."""
+def test_default_policy_loads():
+    """The shipped default policy loads, is < 200 KB, and is a trained kilobot actor with its provenance."""
     from importlib import resources
     ref = resources.files("export").joinpath("data", "default_policy.npz")
     with resources.as_file(ref) as path:
         p = load_policy(path)
         assert path.stat().st_size < 200_000
-    assert p.world.name == "kilobot" and "untrained" in p.provenance["notes"]
+    assert p.world.name == "kilobot" and "untrained" not in p.provenance["notes"]
     assert p.activations == ("elu", "elu", "identity") and p.hidden == [32, 32]
+    prov = p.provenance
+    assert prov["trainer"].startswith("kiloforge.learn") and prov["config"]["world"] == "kilobot"
+    assert prov["config"]["t_prev"] == p.t_prev and list(prov["config"]["actor_hidden"]) == p.hidden
+    assert isinstance(prov["seed"], int) and prov["wall_s"] > 0 and prov["date"]
+    # trained: the output layer has left its near-zero initialisation U[-3e-3, 3e-3] (thesis §4.3.1)
+    assert np.abs(np.asarray(p.weights[-1])).max() > 0.05

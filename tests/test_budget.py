@@ -111,8 +111,8 @@ def test_for_policy_matches_estimate():
     assert b.to_dict()["flash"]["total"] == bud.estimate(KB, 6, (12, 7), ["tanh", "tanh"]).flash_total
 
 
-def test_placeholder_fits_with_headroom():
-    """The shipped placeholder fits with at least the documented flash headroom."""
+def test_default_policy_fits_with_headroom():
+    """The shipped default policy fits with at least the documented flash headroom."""
     from importlib import resources
 
     from export.make_placeholder import FLASH_HEADROOM_B

@@ -150,7 +150,7 @@ def test_bad_arguments(capsys):
 
 @pytest.mark.skipif(not (HAS_RENDER and HAS_ENV), reason="needs export.render (render_firmware), its templates and sim.env")
 def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
-    """The default placeholder exports: C, kilobot_target.c and a manifest with hash and format."""
+    """The shipped default policy exports: C, kilobot_target.c and a manifest with hash and format."""
     out = tmp_path / "kilobot_policy.c"
     rc, stdout, err = run(["--out", str(out), "--target-uids", "0,5"] + FAST, capsys)
     assert rc == 0, err

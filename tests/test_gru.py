@@ -121,7 +121,7 @@ def _cell_reference(cell: numfmt.QuantGRUCell, x: list[int], h: list[int]) -> li
     out = []
     for j in range(len(h)):
         r, k = int(cell.r_table[a_r[j] + 128]), int(cell.k_table[a_z[j] + 128])
-        p = min(max(nx[j] + rr(r * nh[j], cell.rn_shift), -128), 127)
+        p = min(max(nx[j] * 2 ** cell.nx_shift + rr(r * nh[j], cell.rn_shift), -128), 127)
         n = int(cell.n_table[p + 128])
         out.append(min(max(h[j] + rr(k * (n - h[j]), 8), -128), 127))
     return out
@@ -170,7 +170,8 @@ def test_quantized_gru_tracks_the_float_policy():
     assert rep.du_mean < 0.01 and rep.h_drift_mean < 0.02, rep.table()
     assert "free-running" in rep.table() and rep.to_dict()["kind"] == "gru"
     c = qp.cell
-    assert c.rn_shift == numfmt.GATE_EXP + c.nh.e_out - c.nx.e_out
+    assert c.rn_shift == numfmt.GATE_EXP + c.nh.e_out - c.e_n and c.e_n == c.nx.e_out + c.nx_shift
+    assert c.r.e_out >= numfmt.SIGMOID_SAT_EXP and c.e_n >= numfmt.TANH_SAT_EXP
     assert all(a < 2 ** 31 for a in qp.acc_max) and len(qp.layers) == 5
 
 

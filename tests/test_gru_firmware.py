@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from avr_tools import require_avr
-from export import avr, fwspec
+from export import avr, fwspec, numfmt
 from export.budget import estimate_gru
 from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
 from export.gru import random_gru_policy
@@ -20,16 +20,29 @@ from sim.config import preset
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
 
 
-def qgru(world, hidden: int, seed: int, scale: float = 2.0):
-    """A quantised random GRU calibrated on short rollouts of itself."""
-    p = random_gru_policy(world, hidden, seed=seed, scale=scale)
-    return quantize_gru(p, calibrate_gru(p, episodes=1, n_robots=(4,), seed=seed, steps=min(40, world.episode_steps)))
+def qgru(world, hidden: int, seed: int, scale: float = 2.0, out_scale: float = 1.0, nx_shift: int | None = None,
+         **quant):
+    """A quantised random GRU calibrated on short rollouts of itself (``quant``: quantize_gru options;
+    ``nx_shift`` forces the candidate's input shift, moving the tanh table to a finer exponent)."""
+    p = random_gru_policy(world, hidden, seed=seed, scale=scale, out_scale=out_scale)
+    cal = calibrate_gru(p, episodes=1, n_robots=(4,), seed=seed, steps=min(40, world.episode_steps))
+    qp = quantize_gru(p, cal, **quant)
+    if nx_shift is not None:
+        c = qp.cell
+        e_n = c.nx.e_out + nx_shift
+        qp = replace(qp, cell=replace(c, nx_shift=nx_shift, rn_shift=numfmt.GATE_EXP + c.nh.e_out - e_n,
+                                      n_table=numfmt.act_table("tanh", e_n, numfmt.HIDDEN_EXP)))
+    return qp
 
 
-CASES = [  # (name, world, hidden, stream)
-    ("kilobot-h32", preset("kilobot"), 32, StreamSpec(n_robots=96, n_steps=170, rate=0.9)),
+CASES = [  # (name, world, hidden, stream, qgru options): large weights and narrow ranges so that every
+    # saturation is reached (case 0: gate exponents capped at 4, the tables' saturating range), and
+    # finer exponents (case 1)
+    ("kilobot-h32", preset("kilobot"), 32, StreamSpec(n_robots=96, n_steps=170, rate=0.9),
+     {"scale": 6.0, "out_scale": 4.0, "headroom": 0.7, "gate_exp_max": 4}),
     ("thesis-h8-table3", preset("thesis", period_ticks=4, neighbour_table_size=3), 8,
-     StreamSpec(n_robots=128, n_steps=90, rate=0.6, n_senders=8)),
+     StreamSpec(n_robots=128, n_steps=90, rate=0.6, n_senders=8),
+     {"scale": 3.0, "out_scale": 4.0, "headroom": 0.5, "nx_shift": 1}),
 ]
 
 
@@ -50,12 +63,31 @@ def test_render_is_deterministic_and_keeps_the_state_in_sram():
         assert name in a, name
 
 
+def _paths_hit(qp, obs: np.ndarray, commands: np.ndarray) -> dict[str, bool]:
+    """Replay the cell over the recorded observations and commands: which saturations and extremes occurred."""
+    R, S, _ = obs.shape
+    h, q_prev = qp.initial_state(R), np.zeros((R, 2), np.int64)
+    seen: dict[str, list] = {}
+    for t in range(S):
+        x = np.concatenate([qp.action_table.astype(np.int64)[q_prev], obs[:, t].astype(np.int64)], 1)
+        g = qp.cell.gates(x, h)
+        for k in ("a_r", "a_z", "nx", "nh", "pre_n", "k", "h"):
+            seen.setdefault(k, []).append((int(g[k].min()), int(g[k].max())))
+        h, q_prev = g["h"], commands[:, t].astype(np.int64)
+    lo = {k: min(a for a, _ in v) for k, v in seen.items()}
+    hi = {k: max(b for _, b in v) for k, v in seen.items()}
+    return {"a_r saturates": lo["a_r"] == -128 and hi["a_r"] == 127, "a_z saturates": lo["a_z"] == -128 and hi["a_z"] == 127,
+            "candidate saturates": lo["pre_n"] == -128 and hi["pre_n"] == 127,
+            "keep gate 0 and 255": lo["k"] == 0 and hi["k"] == 255, "state spans int8": lo["h"] < -64 and hi["h"] > 64,
+            "commands 0 and 255": int(commands.min()) == 0 and int(commands.max()) == 255}
+
+
 @needs_cc
 def test_random_streams_bit_exact(builds):
     """Over 20,000 searcher control steps of random streams every output byte of the host build equals the emulator."""
-    total = 0
-    for i, (name, world, hidden, spec) in enumerate(CASES):
-        qp = qgru(world, hidden, seed=10 + i, scale=3.0)
+    total, hit_any = 0, {}
+    for i, (name, world, hidden, spec, opts) in enumerate(CASES):
+        qp = qgru(world, hidden, seed=10 + i, **opts)
         files = render_firmware(qp, generator_version="test")
         exe = build_host(files[POLICY_FILE], builds, name=f"gru{i}")
         rng = np.random.default_rng(np.random.SeedSequence(20 + i))
@@ -68,8 +100,11 @@ def test_random_streams_bit_exact(builds):
         np.testing.assert_array_equal(got.steps, want.steps, err_msg=f"{name}: {compare(want, got)}")
         searchers = ~emu.is_beacon
         assert np.unique(want.commands[searchers]).size > 64, f"{name}: commands barely vary"
-        assert emu.hidden.min() < -64 and emu.hidden.max() > 64, f"{name}: the hidden state hardly moves"
+        hit = _paths_hit(qp, want.obs[searchers], want.commands[searchers])
+        assert hit["state spans int8"], f"{name}: the hidden state hardly moves"
+        hit_any = {k: hit_any.get(k, False) or v for k, v in hit.items()}
         total += int(searchers.sum()) * want.steps.shape[1]
+    assert all(hit_any.values()), f"never exercised: {[k for k, v in hit_any.items() if not v]}"
     assert total >= 20_000, f"only {total} control steps compared"
 
 
@@ -161,3 +196,25 @@ def test_same_seed_same_program():
         for f in ("w", "b", "shift"):
             np.testing.assert_array_equal(getattr(la, f), getattr(lb, f))
     assert dataclasses.replace(a, policy_hash="x").policy_hash == "x" and fwspec.MSG_BYTES == 12
+
+
+def test_export_cli_writes_a_gru_program(tmp_path, capsys):
+    """`python -m export --policy gru.npz` calibrates, quantises, checks the budget and writes C + manifest."""
+    import json
+
+    from export.artifact import save_policy
+    from export.cli import main
+
+    p = random_gru_policy(preset("kilobot"), 10, seed=6, scale=2.0)
+    path = save_policy(p, tmp_path / "gru.npz")
+    out = tmp_path / "kilobot_policy.c"
+    assert main(["--policy", str(path), "--out", str(out), "--robots-calib", "3", "--calib-steps", "20",
+                 "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "GRU quantisation error" in text and "GRU actor" in text and "free-running" in text
+    c = out.read_text()
+    assert "#define KF_HIDDEN 10u" in c and f"policy sha256   {p.hash}" in c
+    man = json.loads((tmp_path / "kilobot_policy.c.manifest.json").read_text())
+    assert man["quantization"]["kind"] == "gru" and man["layer_sizes"] == [16, 10, 2]
+    assert man["budget"]["kind"] == "gru" and man["error"]["kind"] == "gru"
+    assert (tmp_path / "kilobot_target.c").is_file()

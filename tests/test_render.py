@@ -44,6 +44,11 @@ def test_every_template_is_rendered():
     """Every *.j2 in firmware_templates/ is loaded by some render (here: the golden and a wide policy)."""
     golden_files()
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
+    from export.gru import random_gru_policy  # the recurrent program (kilobot_policy_gru.c.j2)
+    from export.gru_quantize import calibration_from_sequences, quantize_gru
+    gru = random_gru_policy(preset("kilobot"), 4)
+    render_firmware(quantize_gru(gru, calibration_from_sequences(gru, np.zeros((1, 2, gru.in_dim)))),
+                    generator_version="t")
     on_disk = {p.relative_to(TEMPLATE_DIR).as_posix() for p in TEMPLATE_DIR.rglob("*.j2")}
     assert on_disk, "no templates found"
     assert on_disk <= templates_loaded(), f"never rendered: {sorted(on_disk - templates_loaded())}"

@@ -1,0 +1,32 @@
+"""Phantom neighbours (training-time density randomisation of the RBF histogram)."""
+import numpy as np
+
+from learn.augment import PhantomNeighbours
+from sim.config import OBS_RBF, preset
+from sim.events import rbf
+
+
+def test_off_leaves_observations_unchanged():
+    """λ_max = 0 returns the observations untouched."""
+    cfg = preset("thesis")
+    obs = np.random.default_rng(0).random((3, 4, cfg.obs_dim)).astype(np.float32)
+    ph = PhantomNeighbours(cfg, 0.0, np.random.default_rng(1))
+    ph.reset(3)
+    np.testing.assert_array_equal(ph(obs.copy()), obs)
+
+
+def test_adds_only_to_rbf_bins_with_the_expected_mass():
+    """Only the RBF bins change, and their mean increase matches λ times the mean RBF of a uniform-in-disc distance."""
+    cfg = preset("thesis")
+    B, M = 200, 8
+    obs = np.zeros((B, M, cfg.obs_dim), np.float32)
+    ph = PhantomNeighbours(cfg, 6.0, np.random.default_rng(2))
+    ph.reset(B)
+    out = ph(obs.copy())
+    np.testing.assert_array_equal(out[..., :OBS_RBF], 0)
+    d = cfg.comm_radius_mm * np.sqrt(np.random.default_rng(3).random(200_000))
+    per_phantom = rbf(cfg, d).sum(-1).mean()
+    want = ph.lam.mean() * per_phantom  # E[Σ bins] per robot
+    got = out[..., OBS_RBF:].sum(-1).mean()
+    assert abs(got - want) < 0.05 * want, (got, want)
+    assert out[..., OBS_RBF:].min() >= 0
