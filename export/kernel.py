@@ -16,7 +16,7 @@ int8 input with :func:`numfmt.acc_bound`.
 
 Array formats (also in ``kf_dense.h``):
 
-* ``w``: int8, rows in groups of 8 (then 4, 2, 1 for the rest, :func:`row_groups`), each group
+* ``w``: int8, rows in groups of 8 (then of 2, then 1 for the rest, :func:`row_groups`), each group
   interleaved input-major so the AVR streams it with ``lpm Z+`` for 8 rows per loaded input:
   ``w[g0*n + i*k + r] = W[g0+r, i] + 128`` (as a byte: the bit pattern of ``W ^ 0x80``).
 * ``b``: int32 folded bias ``b'``; for ``fast`` layers ``(b' mod 2^24) | (code << 24)`` with the
@@ -27,12 +27,17 @@ Array formats (also in ``kf_dense.h``):
   kernel. :func:`all_fast` true: the renderer may ``#define KF_DENSE_ALL_FAST`` (drops the portable
   kernel from the AVR build, about 1 KB of flash).
 
-The AVR kernel (:func:`avr_asm_block`, embedded in ``kf_dense.c``): per group of up to 8 rows the
-inner loop costs ``lpm`` 3 + ``mul`` 2 + 3-byte subtract 3 = 8 cycles per MAC plus the input load
-and loop counting shared by the rows (8.56 cycles per MAC for 8 rows); each row then costs about
-40 cycles (bias, requantisation, clamp, int16 store), each group about 90 and each call about 300
-(register saves, the pass over the input for ``S``). Measured in simavr: 9.3 cycles per MAC over
-the default 320-32-32-2 policy, 10.7 for a 32x32 layer.
+The AVR kernel (:func:`avr_asm_block`, embedded in ``kf_dense.c``): per group of 8 rows the inner
+loop costs ``lpm`` 3 + ``mul`` 2 + 3-byte subtract 3 = 8 cycles per MAC plus the input's ``ld`` and
+``subi`` (3) and 1 cycle of loop counting (4 inputs per pass) shared by the 8 rows: 8.5 cycles per
+MAC. Each row then costs (bias, requantisation, clamp, int16 store) 26 + 4 (s - 8) cycles when it is
+int8 with s = 9..15 (inline: 30 at s = 9), 31 at s = 8, 35 at s = 7 and about 50 otherwise (see
+:func:`avr_shift_code`); each group of 8 about 66 and each call about 220 plus 5.75 per input
+(register saves, the pass over the input for ``S``; a layer of fewer than 8 rows sums x' in its
+own MAC loop instead). Measured in simavr (``tests/bench/bench_avr.py``): 9.0 cycles per MAC over
+the default 320-32-32-2 policy, 10.1 for a 32x32 layer, 10.5 over a 32-32-32-2 network. The kernel
+keeps its state between row groups in a static 20-byte block: it is not reentrant (never call it
+from an interrupt).
 """
 from __future__ import annotations
 
@@ -44,7 +49,7 @@ from . import numfmt
 from .numfmt import QuantLayer
 
 GROUP_SIZES = (8, 2, 1)  #: rows per group, largest first (the AVR kernel has one loop per size)
-FAST_MAX_IN = 510  #: widest layer the AVR kernel takes (it counts input pairs of a segment in 8 bits)
+FAST_MAX_IN = 510  #: widest layer the AVR kernel takes (it counts passes of 4 inputs in 8 bits)
 FAST_MAX_OUT = 2047  #: the AVR kernel counts groups of 8 rows in 8 bits
 FAST_CLAMPS = ((numfmt.INT8_MIN, numfmt.INT8_MAX), (0, 255))  #: clamps the AVR kernel implements
 ACC24_LIMIT = 2 ** (numfmt.ACC_BITS_NARROW - 1)
@@ -130,41 +135,37 @@ def kernel_bias(layer: QuantLayer) -> np.ndarray:
     return (b & 0xFFFFFFFF).astype(np.uint32).view(np.int32)
 
 
+#: Class bits of the AVR kernel's general requantisation codes (see :func:`avr_shift_code`).
+AVR_CODE_CLASSES = {"right16": 0x00, "left16": 0x10, "left24": 0x20}
+
+
 def avr_shift_code(s: int, unsigned: bool = False) -> int:
     """The AVR kernel's per-row requantisation code (top byte of a fast bias) for shift ``s`` (0..23).
 
     ``unsigned``: the row clamps to ``0..255`` (else ``-128..127``). With v = h:m:l the row's 24-bit
-    value, the kernel's inline path takes codes 1..7 (int8 clamp, s = 8 + code: ``h:m`` shifted right
-    by the code); every other row goes through its general routine: ``0x80 | 0x40 (0..255) |
-    class << 3 | n`` with the classes (see :data:`AVR_CODE_CLASSES`) right16 ``h:m >> n`` (s = 8 + n),
-    left16 ``(E:h:m << n) >> 8`` (s = 16 - n), left24 ``(E:h:m:l << n) >> 8`` (s = 8 - n),
-    right24 ``h:m:l >> n`` (s = n) and high8 ``h >> n`` (s = 16 + n), E being h's sign byte.
+    value, int8 rows with s = 9..15 take the inline path: code ``s - 8`` shifts ``h:m`` right;
+    every other row has bit 7 set: ``0x80 | 0x40 (0..255) | class | n`` with the classes
+    (:data:`AVR_CODE_CLASSES`) right16 ``h:m >> n`` (s = 8 + n), left16 ``(E:h:m << n) >> 8``
+    (s = 16 - n) and left24 ``(E:h:m:l << n) >> 8`` (s = 8 - n), E being h's sign byte; the
+    kernel's row stubs take int8 s = 7 and s = 8 without the general routine.
 
     >>> [avr_shift_code(s) for s in (9, 10, 15)]
     [1, 2, 7]
-    >>> [hex(avr_shift_code(s)) for s in (8, 7, 4, 2, 16, 23)]
-    ['0x80', '0x91', '0x94', '0x9a', '0xa0', '0xa7']
-    >>> [hex(avr_shift_code(s, unsigned=True)) for s in (9, 14, 15)]
-    ['0xc1', '0xca', '0xc9']
+    >>> [hex(avr_shift_code(s)) for s in (8, 7, 4, 0, 16, 23)]
+    ['0x80', '0xa1', '0xa4', '0xa8', '0x88', '0x8f']
+    >>> [hex(avr_shift_code(s, unsigned=True)) for s in (9, 14, 15, 16)]
+    ['0xc1', '0xd2', '0xd1', '0xc8']
     """
     assert 0 <= s <= 23, f"shift {s} is never 24-bit exact"
     if not unsigned and 9 <= s <= 15:
         return s - 8
-    if 8 <= s <= 11:
-        cls, n = "right16", s - 8
-    elif 12 <= s <= 15:
-        cls, n = "left16", 16 - s
-    elif s >= 16:
-        cls, n = "high8", s - 16
-    elif s >= 4:
+    if s < 8:
         cls, n = "left24", 8 - s
+    elif unsigned and 12 <= s <= 15:
+        cls, n = "left16", 16 - s
     else:
-        cls, n = "right24", s
-    return 0x80 | (0x40 if unsigned else 0) | AVR_CODE_CLASSES[cls] << 3 | n
-
-
-#: Classes of the AVR kernel's general requantisation routine (bits 5..3 of a row's code).
-AVR_CODE_CLASSES = {"right16": 0, "left16": 1, "left24": 2, "right24": 3, "high8": 4}
+        cls, n = "right16", s - 8
+    return 0x80 | (0x40 if unsigned else 0) | AVR_CODE_CLASSES[cls] | n
 
 
 @dataclass(frozen=True)
@@ -232,14 +233,15 @@ def run(kl: KernelLayer, x: np.ndarray) -> np.ndarray:
 #: A group of k < 8 rows uses the last k triples, so that every group ends in the same row code.
 AVR_ACC = (("r2", "r3", "r16"), ("r4", "r5", "r17"), ("r6", "r7", "r18"), ("r8", "r9", "r19"),
            ("r10", "r11", "r20"), ("r12", "r13", "r21"), ("r14", "r15", "r22"), ("r24", "r25", "r23"))
-#: The kernel's state between row groups: a static block (.bss, 19 bytes), read with lds / sts.
+#: The kernel's state between row groups: a static block (.bss, 20 bytes), read with lds / sts.
+#: Per input segment i: X<i> its address, E<i> = n mod 4, Q<i> = ceil(n / 4) (the MAC loop's entry
+#: and passes); T = 128 * sum(x') (24 bits); W, B, Y the next group's weights, biases, outputs;
+#: P2 = 0xff while a group of 8 runs through the second segment.
 AVR_FRAME = {"T": 0, "W": 3, "B": 5, "Y": 7, "X1": 9, "E1": 11, "Q1": 12, "X2": 13, "E2": 15, "Q2": 16,
-             "G8": 17, "REM": 18}
-AVR_FRAME_SIZE = 19
-AVR_UNROLL = 4  #: inputs per MAC loop iteration (entered Duff-style: the first pass takes n mod 4)
+             "G8": 17, "REM": 18, "P2": 19}
+AVR_FRAME_SIZE = 20
 ASM_BEGIN = "/* ---- BEGIN kf_dense_avr: generated by export.kernel.avr_asm_block(), do not edit ---- */"
 ASM_END = "/* ---- END kf_dense_avr ---- */"
-_BRANCH_WORDS = 63  #: reach of a conditional branch (words after the branch)
 
 
 def _avr_asm_lines() -> list[str]:
@@ -248,9 +250,11 @@ def _avr_asm_lines() -> list[str]:
     Per group of k rows: the accumulators start at T = 128 * sum(x') and *subtract* every unsigned
     product w' * x' (``sub, sbc, sbci 0``: 3 cycles, no zero register), so after the inputs
     A = T - sum; the row's value is ``v = b' - A`` (mod 2^24), then ``floor(v / 2^s)`` (inline for
-    int8 rows with s = 7..15, :func:`avr_shift_code`), the clamp, and an int16 store. Inner loop:
+    int8 rows with s = 9..15, in the row's stub for s = 7 and 8, else in ``.Lkf_post``; see
+    :func:`avr_shift_code`), the clamp, and an int16 store. Inner loop:
     ``lpm`` 3 + ``mul`` 2 + 3 per MAC, plus ``ld``/``subi`` and 1 cycle of loop counting per input
-    shared by the k rows (4 inputs per iteration).
+    shared by the k rows (4 inputs per pass). Groups of 2 and 1 rows (the last of a layer) sum x'
+    in their own loop (a layer of fewer than 8 rows needs no pass for T).
     """
     out: list[str] = []
     a = out.append
@@ -258,8 +262,8 @@ def _avr_asm_lines() -> list[str]:
     def f(name: str, off: int = 0) -> str:  # a frame byte (static)
         return f".Lkf_f+{AVR_FRAME[name] + off}"
 
-    def y(name: str, off: int = 0) -> str:  # the same through Y = .Lkf_f
-        return f"Y+{AVR_FRAME[name] + off}"
+    def std(name: str, reg: str, off: int = 0) -> None:  # through Y = .Lkf_f
+        a(f"std Y+{AVR_FRAME[name] + off}, {reg}")
 
     def lds2(r_lo: str, r_hi: str, name: str) -> None:
         a(f"lds {r_lo}, {f(name)}"); a(f"lds {r_hi}, {f(name, 1)}")
@@ -267,12 +271,21 @@ def _avr_asm_lines() -> list[str]:
     def sts2(name: str, r_lo: str, r_hi: str) -> None:
         a(f"sts {f(name)}, {r_lo}"); a(f"sts {f(name, 1)}, {r_hi}")
 
-    def seg(i: int) -> None:  # X, r28 (n & 3), r29 (iterations) of input segment i
+    def seg(i: int) -> None:  # X, r28 (n & 3), r29 (passes) of input segment i
         lds2("r26", "r27", f"X{i}"); a(f"lds r28, {f(f'E{i}')}"); a(f"lds r29, {f(f'Q{i}')}")
 
-    def init_rows(rows) -> None:  # accumulators = T (in r0, r1, r26)
-        for lo, _, hi in rows:
-            a(f"movw {lo}, r0"); a(f"mov {hi}, r26")
+    def body(rows, s_sum: bool = False) -> None:  # one input, the group's rows
+        a("ld r28, X+"); a("subi r28, 0x80")
+        if s_sum:  # r6:r5:r4 += x' (r7 = 0)
+            a("add r4, r28"); a("adc r5, r7"); a("adc r6, r7")
+        for lo, mid, hi in rows:
+            a("lpm r0, Z+"); a("mul r0, r28"); a(f"sub {lo}, r0"); a(f"sbc {mid}, r1"); a(f"sbci {hi}, 0")
+
+    def tt() -> None:  # T = 128 S mod 2^24 = r5:r4:r0 from S = r6:r5:r4
+        a("lsr r6"); a("ror r5"); a("ror r4"); a("clr r0"); a("ror r0")
+
+    def dispatch(k: int) -> None:  # enter the MAC loop where the first pass takes n mod 4 (or 4) inputs
+        a("sbrc r28, 1"); a(f"rjmp .Lkf_m{k}a"); a("sbrc r28, 0"); a(f"rjmp .Lkf_m{k}e1")
 
     a(".pushsection .bss"); a(".Lkf_f:"); a(f".skip {AVR_FRAME_SIZE}"); a(".popsection")
     a(".global kf_dense_avr"); a(".type kf_dense_avr, @function"); a("kf_dense_avr:")
@@ -281,14 +294,14 @@ def _avr_asm_lines() -> list[str]:
         a(f"push {r}")
     a("ldi r28, lo8(.Lkf_f)"); a("ldi r29, hi8(.Lkf_f)")
     a("movw r30, r24")  # Z = L (SRAM): w 0, b 2, shift 4, n_in 6, n_out 8, lo 10, hi 12, fast 14
-    a("ld r24, Z"); a("ldd r25, Z+1"); a(f"std {y('W')}, r24"); a(f"std {y('W', 1)}, r25")
-    a("ldd r24, Z+2"); a("ldd r25, Z+3"); a(f"std {y('B')}, r24"); a(f"std {y('B', 1)}, r25")
-    a(f"std {y('Y')}, r16"); a(f"std {y('Y', 1)}, r17")
+    a("ld r24, Z"); a("ldd r25, Z+1"); std("W", "r24"); std("W", "r25", 1)
+    a("ldd r24, Z+2"); a("ldd r25, Z+3"); std("B", "r24"); std("B", "r25", 1)
+    std("Y", "r16"); std("Y", "r17", 1); std("P2", "r1")
     a("ldd r24, Z+8"); a("ldd r25, Z+9")  # n_out < 2048: G8 = n_out / 8, REM = n_out % 8
-    a("mov r0, r24"); a("andi r24, 7"); a(f"std {y('REM')}, r24")
+    a("mov r11, r24"); a("andi r24, 7"); std("REM", "r24")
     for _ in range(3):
-        a("lsr r25"); a("ror r0")
-    a(f"std {y('G8')}, r0")
+        a("lsr r25"); a("ror r11")
+    std("G8", "r11")
     a("ldd r2, Z+6"); a("ldd r3, Z+7"); a("sub r2, r20"); a("sbc r3, r21")  # n2 = n_in - n1 (<= 510)
     # segments x1[n1], x2[n2]; one segment (T clear) when either is empty or they are contiguous
     a("clt"); a("mov r24, r20"); a("or r24, r21"); a("brne .Lkf_s1")
@@ -298,63 +311,60 @@ def _avr_asm_lines() -> list[str]:
     a("brne .Lkf_s2"); a("add r20, r2"); a("adc r21, r3"); a("rjmp .Lkf_s3")
     a(".Lkf_s2:"); a("set")
     a(".Lkf_s3:"); a("clr r4"); a("clr r5"); a("clr r6")  # S = sum of x' (24 bits); r1 = 0 (ABI)
-    for i, (x, n) in ((1, (("r22", "r23"), ("r20", "r21"))), (2, (("r18", "r19"), ("r2", "r3")))):
-        if i == 2:
-            a("brtc .Lkf_s4")
-        a(f"std {y(f'X{i}')}, {x[0]}"); a(f"std {y(f'X{i}', 1)}, {x[1]}")
-        a(f"mov r24, {n[0]}"); a("andi r24, 3"); a(f"std {y(f'E{i}')}, r24")
-        a(f"movw r24, {n[0]}"); a("adiw r24, 3"); a("lsr r25"); a("ror r24"); a("lsr r25"); a("ror r24")
-        a(f"std {y(f'Q{i}')}, r24")  # ceil(n / 4) <= 128
-        a(f"movw r26, {x[0]}"); a(f"movw r24, {n[0]}"); a("rcall .Lkf_sum")
-    a(".Lkf_s4:"); a("lsr r6"); a("ror r5"); a("ror r4"); a("clr r0"); a("ror r0")  # T = 128 S mod 2^24
-    a(f"std {y('T')}, r0"); a(f"std {y('T', 1)}, r4"); a(f"std {y('T', 2)}, r5")
+    a("adiw r28, 9"); a("movw r26, r22"); a("movw r24, r20"); a("rcall .Lkf_segp")  # Y = frame + X1
+    a("brtc .Lkf_s4"); a("adiw r28, 4"); a("movw r26, r18"); a("movw r24, r2"); a("rcall .Lkf_segp")
+    a(".Lkf_s4:"); tt(); sts2("T", "r0", "r4"); a(f"sts {f('T', 2)}, r5")
     a("rjmp .Lkf_next")
     # the groups left after those of 8 rows: 2, then 1 (export.kernel.row_groups)
     a(".Lkf_tail:"); a(f"lds r24, {f('REM')}"); a("cpi r24, 2"); a("brlo .Lkf_t1"); a("rjmp .Lkf_g2")
     a(".Lkf_t1:"); a("sbrc r24, 0"); a("rjmp .Lkf_g1"); a("rjmp .Lkf_done")
-    # groups of 8 rows (inline: the hot path)
+    # groups of 8 rows: the hot path, MAC loop inline
     a(".Lkf_next:"); a(f"lds r24, {f('G8')}"); a("subi r24, 1"); a("brcs .Lkf_tail"); a(f"sts {f('G8')}, r24")
     a(f"lds r0, {f('T')}"); a(f"lds r1, {f('T', 1)}"); a(f"lds r26, {f('T', 2)}")
-    init_rows(AVR_ACC)
-    lds2("r30", "r31", "W")
-    seg(1); a("rcall .Lkf_mac8"); a("brtc .Lkf_g8b"); seg(2); a("rcall .Lkf_mac8")
+    for lo, _, hi in AVR_ACC:
+        a(f"movw {lo}, r0"); a(f"mov {hi}, r26")
+    lds2("r30", "r31", "W"); seg(1)
+    a(".Lkf_m8d:"); dispatch(8)
+    for e in (0, 3, 2, 1):
+        a(f".Lkf_m8e{e}:"); body(AVR_ACC)
+    a("dec r29"); a("breq .Lkf_m8x"); a("rjmp .Lkf_m8e0")
+    a(".Lkf_m8a:"); a("sbrc r28, 0"); a("rjmp .Lkf_m8e3"); a("rjmp .Lkf_m8e2")
+    a(".Lkf_m8s:"); a(f"lds r28, {f('P2')}"); a("com r28"); a(f"sts {f('P2')}, r28"); a("breq .Lkf_g8b")
+    seg(2); a("rjmp .Lkf_m8d")
+    a(".Lkf_m8x:"); a("brts .Lkf_m8s")  # two segments: the second, once (P2 toggles)
     a(".Lkf_g8b:"); sts2("W", "r30", "r31"); lds2("r30", "r31", "B"); lds2("r26", "r27", "Y")
     # the rows' epilogue, entered at row 8 - k: v = b' - A, requantise, clamp, store int16 at X+
     _avr_rows(a, [".Lkf_row8:", f"sts {f('B')}, r30", f"sts {f('B', 1)}, r31", f"sts {f('Y')}, r26",
                   f"sts {f('Y', 1)}, r27", "rjmp .Lkf_next"])
-    # tail groups (2 and 1 rows: a few per call at most), through shared pieces
+    # tail groups (2 and 1 rows, the last of the layer): accumulators from 0, T from their own sum
     for k in (2, 1):
-        a(f".Lkf_g{k}:"); a(f"subi r24, {k}"); a(f"sts {f('REM')}, r24")
-        a("rcall .Lkf_tpre"); a(f"rcall .Lkf_init{8 - k}")
-        a("rcall .Lkf_seg1"); a(f"rcall .Lkf_mac{k}"); a(f"brtc .Lkf_g{k}b"); a("rcall .Lkf_seg2"); a(f"rcall .Lkf_mac{k}")
-        a(f".Lkf_g{k}b:"); a("rcall .Lkf_tpost"); a(f"rjmp .Lkf_row{8 - k}")
-    a(".Lkf_tpre:"); a(f"lds r0, {f('T')}"); a(f"lds r1, {f('T', 1)}"); a(f"lds r26, {f('T', 2)}")
-    lds2("r30", "r31", "W"); a("ret")
-    for r in (6, 7):
-        a(f".Lkf_init{r}:")
-        init_rows(AVR_ACC[r:r + 1])
-    a("ret")
-    for i in (1, 2):
-        a(f".Lkf_seg{i}:"); seg(i); a("ret")
-    a(".Lkf_tpost:"); sts2("W", "r30", "r31"); lds2("r30", "r31", "B"); lds2("r26", "r27", "Y"); a("ret")
+        a(f".Lkf_g{k}:"); a(f"subi r24, {k}"); a(f"sts {f('REM')}, r24"); a(f"rcall .Lkf_tpre{8 - k}")
+        a(f"rcall .Lkf_mac{k}"); a(f"brtc .Lkf_g{k}b"); a("rcall .Lkf_seg2"); a(f"rcall .Lkf_mac{k}")
+        a(f".Lkf_g{k}b:"); a(f"rcall .Lkf_addt{8 - k}"); a(f"rjmp .Lkf_row{8 - k}")
+    for r in (6, 7):  # accumulators of rows r..7 and S = 0, r7 = 0, Z = W, segment 1
+        lo, mid, hi = AVR_ACC[r]
+        a(f".Lkf_tpre{r}:"); a(f"clr {lo}"); a(f"clr {mid}"); a(f"clr {hi}")
+    a("clr r4"); a("clr r5"); a("clr r6"); a("clr r7"); lds2("r30", "r31", "W")
+    a(".Lkf_seg1:"); seg(1); a("ret")
+    a(".Lkf_seg2:"); seg(2); a("ret")
+    for r in (6, 7):  # A += T for rows r..7; W, B, Y for the epilogue
+        a(f".Lkf_addt{r}:"); tt()
+        for lo, mid, hi in AVR_ACC[r:]:
+            a(f"add {lo}, r0"); a(f"adc {mid}, r4"); a(f"adc {hi}, r5")
+        if r == 6:
+            a("rjmp .Lkf_addt")
+    a(".Lkf_addt:"); sts2("W", "r30", "r31"); lds2("r30", "r31", "B"); lds2("r26", "r27", "Y"); a("ret")
     a(".Lkf_done:")
     for r in reversed(saved):
         a(f"pop {r}")
     a("clr r1"); a("ret")
     _avr_sum(a)
-    # MAC loops: X = inputs, Z = weights, r28 = n & 3, r29 = ceil(n / 4); rows AVR_ACC[8 - k:]
-    for k in (8, 2, 1):
+    for k in (2, 1):  # tail MAC loops (X, r28 = n & 3, r29 = passes), summing x' too
         rows = AVR_ACC[8 - k:]
-        a(f".Lkf_mac{k}:"); a("sbrc r28, 1"); a(f"rjmp .Lkf_m{k}a"); a("sbrc r28, 0"); a(f"rjmp .Lkf_m{k}e1")
-        for e in (0, 3, 2, 1):  # entered at the body that leaves n mod 4 (or 4) inputs in the first pass
-            a(f".Lkf_m{k}e{e}:"); a("ld r28, X+"); a("subi r28, 0x80")
-            for lo, mid, hi in rows:
-                a("lpm r0, Z+"); a("mul r0, r28"); a(f"sub {lo}, r0"); a(f"sbc {mid}, r1"); a(f"sbci {hi}, 0")
-        a("dec r29")
-        if AVR_UNROLL * (2 + 5 * k) < _BRANCH_WORDS:  # the loop fits a conditional branch
-            a(f"brne .Lkf_m{k}e0"); a("ret")
-        else:
-            a(f"breq .Lkf_m{k}x"); a(f"rjmp .Lkf_m{k}e0"); a(f".Lkf_m{k}x:"); a("ret")
+        a(f".Lkf_mac{k}:"); dispatch(k)
+        for e in (0, 3, 2, 1):
+            a(f".Lkf_m{k}e{e}:"); body(rows, s_sum=True)
+        a("dec r29"); a(f"brne .Lkf_m{k}e0"); a("ret")
         a(f".Lkf_m{k}a:"); a("sbrc r28, 0"); a(f"rjmp .Lkf_m{k}e3"); a(f"rjmp .Lkf_m{k}e2")
     _avr_post(a)
     a(".size kf_dense_avr, .-kf_dense_avr")
@@ -362,8 +372,8 @@ def _avr_asm_lines() -> list[str]:
 
 
 def _avr_rows(a, after: list[str]) -> None:
-    """The 8 rows' epilogue (``.Lkf_row0`` .. ``.Lkf_row7``, then ``after``), each row with its
-    out-of-line pieces: the saturation stubs where the rows' branches reach them, the others last."""
+    """The 8 rows' epilogue (``.Lkf_row0`` .. ``.Lkf_row7``, then ``after``), then each row's
+    out-of-line piece (the rows whose code has bit 7 set), then ``.Lkf_sat``."""
     def row(r: int) -> list[str]:
         lo, mid, hi = AVR_ACC[r]
         return [f".Lkf_row{r}:",
@@ -371,85 +381,72 @@ def _avr_rows(a, after: list[str]) -> None:
                 f"sub r0, {lo}", f"sbc r1, {mid}", f"sbc r28, {hi}",  # v = b' - A = r28:r1:r0
                 "sbrc r29, 7", f"rjmp .Lkf_slow{r}",
                 f".Lkf_sh{r}:", "asr r28", "ror r1", "dec r29", f"brne .Lkf_sh{r}",  # code 1..7: s = 8 + code
-                f".Lkf_chk{r}:", "mov r0, r1", "lsl r0", "sbc r0, r0", "cp r28, r0", f"brne .Lkf_sat{r}",
-                "st X+, r1", "st X+, r0"]
-
-    def sat(r: int) -> list[str]:
-        return [f".Lkf_sat{r}:", "rcall .Lkf_sat", f"rjmp .Lkf_row{r + 1}"]
+                f".Lkf_chk{r}:", "mov r0, r1", "lsl r0", "sbc r0, r0",  # int8 when r28 = sext(r1)
+                "cpse r28, r0", "rcall .Lkf_sat", "st X+, r1", "st X+, r0"]
 
     def slow(r: int) -> list[str]:
         return [f".Lkf_slow{r}:", f"cpi r29, 0x{avr_shift_code(7):02x}", f"brne .Lkf_s8_{r}",
                 "lsl r0", "rol r1", "rol r28", f"brvs .Lkf_ov{r}", f"rjmp .Lkf_chk{r}",  # s = 7: v << 1 >> 8
-                f".Lkf_ov{r}:", "ror r28", f"rjmp .Lkf_sat{r}",  # v >> 7 is not 16 bits: saturate by its sign
+                f".Lkf_ov{r}:", "sbc r28, r28", "neg r28", "subi r28, 0x81",  # not 16 bits: 0x80 / 0x7f saturate
+                f"rjmp .Lkf_chk{r}",
                 f".Lkf_s8_{r}:", f"cpi r29, 0x{avr_shift_code(8):02x}", f"brne .Lkf_gen{r}", f"rjmp .Lkf_chk{r}",
                 f".Lkf_gen{r}:", "rcall .Lkf_post", f"rjmp .Lkf_row{r + 1}"]
 
-    code = [ln for r in range(3) for ln in row(r)] + ["rjmp .Lkf_row3"] + [ln for r in range(5) for ln in sat(r)]
-    code += [ln for r in range(3, 8) for ln in row(r)] + after + [ln for r in range(5, 8) for ln in sat(r)]
-    code += [ln for r in range(8) for ln in slow(r)]
-    for ln in code:
+    code = [ln for r in range(8) for ln in row(r)] + after + [ln for r in range(8) for ln in slow(r)]
+    code += [".Lkf_sat:", "lsl r28", "sbc r0, r0", "ldi r29, 0x7f", "eor r29, r0", "mov r1, r29", "ret"]
+    for ln in code:  # .Lkf_sat: r1:r0 = -128 or 127 (int16) by the sign of r28
         a(ln)
 
 
 def _avr_sum(a) -> None:
-    """``.Lkf_sum``: r6:r5:r4 += sum (x ^ 0x80) over X[0..r25:r24-1] (1..510); r1 = 0; 16-bit
-    partial sums (r8:r7) over chunks of at most 256 inputs; clobbers r7, r8, r17, r24, r25, X."""
+    """``.Lkf_segp``: store segment X = r27:r26, n = r25:r24 (1..510) at Y (X, E, Q); then, when
+    the layer has groups of 8 (r11 > 0), ``.Lkf_sum``: r6:r5:r4 += sum (x ^ 0x80) over the
+    segment, as 16-bit partial sums r8:r7 over at most 64 passes of 4 inputs; r1 = 0; clobbers
+    r7, r8, r9, r17, r24, r25, X."""
     def one() -> None:
         a("ld r17, X+"); a("subi r17, 0x80"); a("add r7, r17"); a("adc r8, r1")
-    a(".Lkf_sum:"); a("clr r7"); a("clr r8")
-    a("mov r17, r24"); a("andi r17, 7"); a("adiw r24, 7"); a("lsr r25"); a("ror r24"); a("lsr r24"); a("lsr r24")
-    a("ldi r25, 32"); a("cp r24, r25"); a("brsh .Lkf_sum0"); a("mov r25, r24")  # r25 = passes in this chunk
-    a(".Lkf_sum0:"); a("sub r24, r25")  # r24 = passes left after it; the first pass takes n mod 8 (or 8)
-    a("sbrc r17, 2"); a("rjmp .Lkf_sum4"); a("sbrc r17, 1"); a("rjmp .Lkf_sum2")
-    a("sbrc r17, 0"); a("rjmp .Lkf_sume1"); a("rjmp .Lkf_sume0")
-    a(".Lkf_sum2:"); a("sbrc r17, 0"); a("rjmp .Lkf_sume3"); a("rjmp .Lkf_sume2")
-    a(".Lkf_sum4:"); a("sbrc r17, 1"); a("rjmp .Lkf_sum6"); a("sbrc r17, 0"); a("rjmp .Lkf_sume5"); a("rjmp .Lkf_sume4")
-    a(".Lkf_sum6:"); a("sbrc r17, 0"); a("rjmp .Lkf_sume7"); a("rjmp .Lkf_sume6")
-    a(".Lkf_sumc:"); a("clr r7"); a("clr r8"); a("ldi r25, 32"); a("cp r24, r25"); a("brsh .Lkf_sumd")
-    a("mov r25, r24")
-    a(".Lkf_sumd:"); a("sub r24, r25")
-    for e in (0, 7, 6, 5, 4, 3, 2, 1):
+    a(".Lkf_segp:"); a("std Y+0, r26"); a("std Y+1, r27"); a("mov r17, r24"); a("andi r17, 3"); a("std Y+2, r17")
+    a("adiw r24, 3"); a("lsr r25"); a("ror r24"); a("lsr r25"); a("ror r24"); a("std Y+3, r24")
+    a("tst r11"); a("breq .Lkf_sumx"); a("mov r25, r24"); a("mov r24, r17")  # r24 = E, r25 = Q
+    a(".Lkf_sum:"); a("ldi r17, 64"); a("cp r25, r17"); a("brsh .Lkf_sum0"); a("mov r17, r25")
+    a(".Lkf_sum0:"); a("sub r25, r17"); a("mov r9, r17"); a("clr r7"); a("clr r8")
+    a("sbrc r24, 1"); a("rjmp .Lkf_suma"); a("sbrc r24, 0"); a("rjmp .Lkf_sume1")
+    for e in (0, 3, 2, 1):
         a(f".Lkf_sume{e}:"); one()
-    a("dec r25"); a("brne .Lkf_sume0")
+    a("dec r9"); a("brne .Lkf_sume0")
     a("add r4, r7"); a("adc r5, r8"); a("adc r6, r1")  # fold the chunk into the 24-bit sum
-    a("tst r24"); a("brne .Lkf_sumc"); a("ret")
+    a("clr r24"); a("tst r25"); a("brne .Lkf_sum")
+    a(".Lkf_sumx:"); a("ret")
+    a(".Lkf_suma:"); a("sbrc r24, 0"); a("rjmp .Lkf_sume3"); a("rjmp .Lkf_sume2")
 
 
 def _avr_post(a) -> None:
     """``.Lkf_post``, the general requantisation (codes with bit 7 set, :func:`avr_shift_code`):
     v = r28:r1:r0, code r29; floor(v / 2^s) to the 16-bit r28:r1 (saturated), clamp, int16 store
-    at X+; preserves every register but r0, r1, r28, r29. ``.Lkf_sat``: the int8 saturation by
-    the sign of r28 (-128 or 127)."""
-    a(".Lkf_post:"); a("push r24"); a("push r25"); a("mov r24, r29"); a("mov r25, r29"); a("andi r25, 7")
-    a("sbrc r24, 5"); a("rjmp .Lkf_ph8"); a("sbrc r24, 4"); a("rjmp .Lkf_p24"); a("sbrc r24, 3"); a("rjmp .Lkf_pl16")
-    a("tst r25"); a("breq .Lkf_pc16")  # right16: r28:r1 >>= n
+    at X+; preserves every register but r0, r1, r28, r29."""
+    a(".Lkf_post:"); a("sbrs r29, 4"); a("rjmp .Lkf_pg")
+    # left16 (only 0..255 rows have it): E:r28:r1 <<= n (>= 1), then E:r28 clamped to 0..255
+    a("andi r29, 15"); a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0")
+    a(".Lkf_pl16:"); a("lsl r1"); a("rol r28"); a("rol r0"); a("dec r29"); a("brne .Lkf_pl16")
+    a("tst r0"); a("breq .Lkf_pl16s"); a("clr r28"); a("sbrs r0, 7"); a("com r28"); a("clr r0")
+    a(".Lkf_pl16s:"); a("st X+, r28"); a("st X+, r0"); a("ret")
+    a(".Lkf_pg:"); a("push r24"); a("push r25"); a("mov r24, r29"); a("mov r25, r29"); a("andi r25, 15")
+    a("sbrc r24, 5"); a("rjmp .Lkf_pl24")
+    a("cpi r25, 8"); a("brlo .Lkf_pr8")  # right16: r28:r1 >>= n (a byte at once first)
+    a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28"); a("subi r25, 8")
+    a(".Lkf_pr8:"); a("tst r25"); a("breq .Lkf_pc16")
     a(".Lkf_pr16:"); a("asr r28"); a("ror r1"); a("dec r25"); a("brne .Lkf_pr16"); a("rjmp .Lkf_pc16")
-    a(".Lkf_pl16:"); a("mov r29, r28"); a("lsl r29"); a("sbc r29, r29")  # left16: E:r28:r1 <<= n (>= 1)
-    a(".Lkf_pl16l:"); a("lsl r1"); a("rol r28"); a("rol r29"); a("dec r25"); a("brne .Lkf_pl16l")
-    a("mov r1, r28"); a("mov r28, r29"); a("rjmp .Lkf_pc16")
-    a(".Lkf_ph8:"); a("tst r25"); a("breq .Lkf_ph8b")  # high8: r28 >>= n
-    a(".Lkf_ph8l:"); a("asr r28"); a("dec r25"); a("brne .Lkf_ph8l")
-    a(".Lkf_ph8b:"); a("mov r1, r28"); a("lsl r28"); a("sbc r28, r28"); a("rjmp .Lkf_pc16")
-    a(".Lkf_p24:"); a("sbrc r24, 3"); a("rjmp .Lkf_pr24")
-    a("mov r29, r28"); a("lsl r29"); a("sbc r29, r29")  # left24: E:r28:r1:r0 <<= n (>= 1), keep E:r28:r1
-    a(".Lkf_pl24:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29"); a("dec r25"); a("brne .Lkf_pl24")
-    a("rjmp .Lkf_pc24")
-    a(".Lkf_pr24:"); a("tst r25"); a("breq .Lkf_pr24b")  # right24: r28:r1:r0 >>= n
-    a(".Lkf_pr24l:"); a("asr r28"); a("ror r1"); a("ror r0"); a("dec r25"); a("brne .Lkf_pr24l")
-    a(".Lkf_pr24b:"); a("mov r29, r28"); a("mov r28, r1"); a("mov r1, r0")
-    a(".Lkf_pc24:")  # 24-bit r29:r28:r1 -> 16-bit r28:r1, saturated
-    a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0"); a("cp r29, r0"); a("breq .Lkf_pc16")
-    a("ldi r28, 0x7f"); a("ldi r25, 0xff"); a("sbrs r29, 7"); a("rjmp .Lkf_pc24b"); a("ldi r28, 0x80"); a("clr r25")
-    a(".Lkf_pc24b:"); a("mov r1, r25")
-    a(".Lkf_pc16:"); a("sbrc r24, 6"); a("rjmp .Lkf_pu8")  # clamp the 16-bit r28:r1
-    a("pop r25"); a("pop r24")
-    a("mov r0, r1"); a("lsl r0"); a("sbc r0, r0"); a("cp r28, r0"); a("brne .Lkf_sat")
-    a("st X+, r1"); a("st X+, r0"); a("ret")
-    a(".Lkf_pu8:"); a("pop r25"); a("pop r24"); a("tst r28"); a("breq .Lkf_pu8b")
-    a("clr r1"); a("sbrs r28, 7"); a("dec r1")  # 0 below, 255 above
-    a(".Lkf_pu8b:"); a("st X+, r1"); a("clr r1"); a("st X+, r1"); a("ret")
-    a(".Lkf_sat:"); a("ldi r29, 0x7f"); a("sbrc r28, 7"); a("ldi r29, 0x80"); a("st X+, r29")
-    a("lsl r28"); a("sbc r28, r28"); a("st X+, r28"); a("ret")
+    a(".Lkf_pl24:"); a("mov r29, r28"); a("lsl r29"); a("sbc r29, r29")  # left24: E:r28:r1:r0 <<= n, keep E:r28:r1
+    a(".Lkf_pl24l:"); a("lsl r0"); a("rol r1"); a("rol r28"); a("rol r29"); a("dec r25"); a("brne .Lkf_pl24l")
+    a("mov r0, r28"); a("lsl r0"); a("sbc r0, r0"); a("cp r29, r0"); a("breq .Lkf_pc16")  # saturate to 16 bits
+    a("lsl r29"); a("sbc r29, r29"); a("mov r28, r29"); a("ldi r25, 0x7f"); a("eor r28, r25"); a("mov r1, r29")
+    a("com r1")  # 0x8000 or 0x7fff by the sign of E
+    a(".Lkf_pc16:"); a("pop r25"); a("sbrc r24, 6"); a("rjmp .Lkf_pu8")  # clamp the 16-bit r28:r1
+    a("pop r24"); a("mov r0, r1"); a("lsl r0"); a("sbc r0, r0")
+    a("cpse r28, r0"); a("rcall .Lkf_sat"); a("rjmp .Lkf_pst")
+    a(".Lkf_pu8:"); a("pop r24"); a("clr r0"); a("tst r28"); a("breq .Lkf_pst")
+    a("mov r1, r0"); a("sbrs r28, 7"); a("com r1")  # 0 below, 255 above
+    a(".Lkf_pst:"); a("st X+, r1"); a("st X+, r0"); a("ret")
 
 
 def avr_asm_block() -> str:

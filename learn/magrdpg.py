@@ -87,8 +87,8 @@ class RecurrentConfig:
     gamma: float = 0.99  #: discount factor
     tau: float = 0.005  #: soft target update rate
     lr_critic: float = 1e-3  #: Adam learning rate of the critic
-    lr_actor: float = 1e-3  #: Adam learning rate of the actor
-    grad_clip: float = 0.0  #: clip the actor's gradient norm to this (0 = no clipping)
+    lr_actor: float = 3e-4  #: Adam learning rate of the actor (1e-3, MAGDDPG's fast value, was less stable)
+    grad_clip: float = 1.0  #: clip the actor's gradient norm to this (0 = no clipping)
     replay_size: int = 200_000  #: replay memory capacity in transitions (whole episodes)
     warmup_episodes: int = 32  #: episodes (summed over envs) with the initial policy before learning
     episodes: int = 100_000  #: learning episodes (summed over envs) after the warm-up

@@ -36,12 +36,12 @@ def _inputs(rng: np.random.Generator, n_in: int, k: int) -> np.ndarray:
 
 
 def _suite(seed: int) -> tuple[list[QuantLayer], list[tuple[int, int, np.ndarray]], list[np.ndarray]]:
-    """Layers covering every group size (8, 4, 2, 1), odd/even widths, every shift, both clamps,
+    """Layers covering every group size (8, 2, 1), odd/even widths, every shift, both clamps,
     extreme weights and inputs, 24-bit and int32 paths; requests with random ring-buffer splits."""
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     layers = [
         _layer(rng, 32, 32, shifts=[9]),
-        _layer(rng, 15, 33, shifts=rng.integers(0, 24, 15)),  # groups 8, 4, 2, 1; odd width
+        _layer(rng, 15, 33, shifts=rng.integers(0, 24, 15)),  # groups 8, 2, 2, 2, 1; odd width
         _layer(rng, 2, 40, clamp=(0, 255), shifts=[14, 15]),  # the output layer's clamp
         _layer(rng, 31, 1, shifts=np.arange(31)),  # every shift 0..30 (s > 23 is never 24-bit exact)
         _layer(rng, 9, 64, extreme=True, shifts=[0, 7, 8, 15, 16, 23, 12, 9, 1]),
@@ -67,12 +67,13 @@ def test_kernel_doctests():
 
 
 def test_row_groups_cover_rows_in_order():
-    """Row groups are 8 while 8 are left, then 4, 2, 1, contiguous and complete."""
+    """Row groups are 8 while 8 are left, then 2 while 2 are left, then 1, contiguous and complete."""
     for n in range(1, 70):
         g = kernel.row_groups(n)
         assert [g0 for g0, _ in g] == list(np.cumsum([0] + [k for _, k in g])[:-1])
         assert sum(k for _, k in g) == n
         assert all(k == 8 for _, k in g[:n // 8]) and all(k < 8 for _, k in g[n // 8:])
+        assert [k for _, k in g[n // 8:]] == [2] * (n % 8 // 2) + [1] * (n % 2)
 
 
 def test_kernel_arithmetic_matches_numfmt():
@@ -158,3 +159,29 @@ def test_avr_kernel_random_layers_bit_exact():
     run = avr.run_kernel(kls, reqs)
     for o, ref in zip(run.outputs, refs):
         np.testing.assert_array_equal(o, ref)
+
+
+@pytest.mark.avr
+def test_avr_kernel_requantisation_edges_bit_exact():
+    """Every shift 0..23 and both clamps, with values at the saturation edges and near +-2^23, are exact in simavr."""
+    require_avr(simulate=True)
+    layers, reqs, refs = [], [], []
+    for lo, hi in kernel.FAST_CLAMPS:
+        for s in range(24):
+            r = (1 << s) >> 1  # the rounding constant: acc + r = b + r when every weight is 0
+            ys = (-32769, -257, -129, -128, -1, 0, 1, 127, 128, 255, 256, 32768)
+            b = [y * (1 << s) - r + d for y in ys for d in (0, -1) if abs(y * (1 << s) + d) < 2 ** 23]
+            b += [2 ** 23 - 1 - r, 1 - 2 ** 23 - r]  # the 24-bit limits of acc + r
+            b = np.clip(b, np.iinfo(np.int32).min, np.iinfo(np.int32).max)
+            layers.append(QuantLayer(w=np.zeros((len(b), 1), np.int8), b=np.asarray(b, np.int32),
+                                     shift=np.full(len(b), s, np.uint8), lo=lo, hi=hi, activation="identity",
+                                     e_in=0, e_out=0, e_act=0, table=None))
+            x = np.array([[-128], [5]])
+            for xi in x:
+                reqs.append((len(layers) - 1, 1, xi))
+                refs.append(numfmt.dense_int(xi, layers[-1].w, layers[-1].b, layers[-1].shift, lo, hi))
+    kls = [kernel.kernel_layer(L) for L in layers]
+    assert all(k.fast for k in kls)
+    run = avr.run_kernel(kls, reqs)
+    for (li, _, _), o, ref in zip(reqs, run.outputs, refs):
+        np.testing.assert_array_equal(o, ref, err_msg=f"shift {layers[li].shift[0]} clamp {layers[li].lo}")

@@ -70,8 +70,9 @@ def main(argv=None) -> int:
         plain = avr.verify_simavr(qp, files, n_robots=4, n_steps=3, seed=1, portable=True)
         asm_mac, asm_layers = kernel_cycles(qp, portable=False)
         c_mac, c_layers = kernel_cycles(qp, portable=True)
-        rows.append((name, sum(l.w.size for l in qp.layers), eb, check, plain, asm_mac, c_mac, asm_layers,
-                     all(kernel.is_fast(l) for l in qp.layers)))
+        per_mac = [c / l.w.size for c, l in zip(asm_layers, qp.layers)]
+        rows.append((name, sum(l.w.size for l in qp.layers), eb, check, plain, asm_mac, c_mac,
+                     (asm_layers, per_mac), all(kernel.is_fast(l) for l in qp.layers)))
     print("| network | MACs | flash (of 28,160) | SRAM static + peak stack (of 1,536) | loop() at a control step "
           "| dense cycles/MAC asm | plain C | simavr vs emulator |")
     print("|---|---:|---:|---:|---:|---:|---:|---|")
@@ -84,8 +85,9 @@ def main(argv=None) -> int:
               f"| {asm_mac:.2f} | {c_mac:.1f} | {'bit-exact' if check.ok and plain.ok else 'MISMATCH'}, "
               f"{check.control_steps + plain.control_steps:,} steps |")
     print()
-    for name, _, _, _, _, _, _, layers, fast in rows:
-        print(f"{name}: cycles per kf_dense call (assembly) {layers}; all layers 24-bit fast: {fast}")
+    for name, _, _, _, _, _, _, (layers, per_mac), fast in rows:
+        print(f"{name}: cycles per kf_dense call (assembly) {layers}, per MAC "
+              f"{' / '.join(f'{m:.2f}' for m in per_mac)}; all layers 24-bit fast: {fast}")
     return 0
 
 

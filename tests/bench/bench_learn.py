@@ -114,7 +114,7 @@ def report(runs: list[Path], episodes: int = 200, big_episodes: int = 100) -> No
     from sim.rollout import HistoryActor, rollout
 
     print(f"\ngoal: final coverage >= {GOAL_COVERAGE} (mean over the last 25 % of each episode)")
-    print(f"{'run':<40} {'robots':>6} {'seed':>4} {'first >= goal (eval)':>22} {'best eval':>10} "
+    print(f"{'run':<40} {'robots':>6} {'seed':>4} {'first >= goal (eval)':>22} {'max eval':>10} "
           f"{'fresh: best':>11} {'fresh: last':>11} {'hand-written':>12} {'random':>7} {'wall min':>8}")
     for run in runs:
         cfg = json.loads((run / "config.json").read_text())

@@ -58,6 +58,8 @@ ROBOT_RUNS = [
 ]
 HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 5, ["--seed", "1", "--eval-episodes", "20", "--exp-name", f"th_h{t}"])
                 for t in (1, 2, 5, 10)]
+#: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
+KILOBOT_RESUME = {"kb4_s1": 14}
 SHIPPED = ROOT / "export" / "data" / "default_policy.npz"
 STAGES = ("kilobot", "ship", "robots", "history", "eval", "closed", "plots")
 
@@ -72,8 +74,8 @@ def sh(cmd: list[str], dry: bool, log: Path | None = None, background: bool = Fa
     return p if background else p.wait()
 
 
-def train(runs: list[tuple], args) -> None:
-    """Train each run not already present, at most ``args.jobs`` at once."""
+def train(runs: list[tuple], args, resume: dict[str, float] | None = None) -> None:
+    """Train each run not already present, at most ``args.jobs`` at once; then resume those in ``resume``."""
     todo = []
     for name, robots, t_prev, minutes, extra in runs:
         out = RUNS / name
@@ -84,8 +86,15 @@ def train(runs: list[tuple], args) -> None:
                "--actor-hidden", "32", "32", "--max-minutes", f"{minutes * args.minutes_scale:g}",
                *extra, "--out", str(out)]
         todo.append((cmd, RUNS / f"{name}.log"))
+        if name in (resume or {}):
+            todo.append(([PY, "-m", "learn", "train", "--out", str(out), "--resume", "--quiet", "--max-minutes",
+                          f"{resume[name] * args.minutes_scale:g}"], RUNS / f"{name}.resume.log"))
     running: list[subprocess.Popen] = []
     for cmd, log in todo:
+        if "--resume" in cmd:  # continue a run: wait until its first session has ended
+            for p in running:
+                if str(p.args[p.args.index("--out") + 1]) == cmd[cmd.index("--out") + 1]:
+                    p.wait()
         while len([p for p in running if p.poll() is None]) >= args.jobs:
             time.sleep(5)
         p = sh(cmd, args.dry_run, log, background=True)
@@ -136,8 +145,14 @@ def evaluate(args) -> None:
             if (RUNS / name / "policy_best.npz").exists() or args.dry_run]
     sh([PY, "-m", "learn", "evaluate", "--policy", *pols, "--robots", "16", "32", "--episodes",
         str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_thesis"), "--no-gif", "--quiet"], args.dry_run)
+    # the baselines and the shipped policy in two commands (so the baselines could run while the reference
+    # policy was still training); the same episode seed gives the same episodes, merged in plot_eval
+    sh([PY, "-m", "learn", "evaluate", "--policy", str(RUNS / "kb4_s2" / "policy_best.npz"), "--robots", "4", "16", "32",
+        "--episodes", str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot_baselines"), "--no-gif",
+        "--quiet"], args.dry_run)
     sh([PY, "-m", "learn", "evaluate", "--policy", str(SHIPPED), "--robots", "4", "16", "32", "--episodes",
-        str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot"), "--no-gif", "--quiet"], args.dry_run)
+        str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot"), "--no-gif", "--quiet", "--no-baselines"],
+       args.dry_run)
 
 
 def closed_loop(args) -> None:
@@ -187,11 +202,53 @@ def plot_curves(runs: list[tuple], label_key: str, title: str, path: Path) -> li
     return summary
 
 
-def eval_table(path: Path) -> list[str]:
+def merged_eval(paths: list[Path]) -> dict | None:
+    """Several evaluation.json files of the same episodes (same world, seed, steps) as one."""
+    docs = [json.loads(p.read_text()) for p in paths if p.exists()]
+    if not docs:
+        return None
+    base = docs[0]
+    for d in docs[1:]:
+        assert (d["seed"], d["steps"], d["episodes"], d["world"]) == (base["seed"], base["steps"], base["episodes"],
+                                                                     base["world"]), "evaluations of other episodes"
+        for m, r in d["robots"].items():
+            for key in ("mean_reward_over_time", "metrics", "returns"):
+                base["robots"].setdefault(m, {}).setdefault(key, {}).update(r[key])
+    return base
+
+
+def plot_eval(d: dict, keep: list[str], prefix: Path) -> None:
+    """Thesis figures 5.11-5.14: mean reward over time and return box plots, one pair per swarm size."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    for m, r in d["robots"].items():
+        names = [k for k in keep if k in r["returns"]] or list(r["returns"])
+        fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+        for k in names:
+            a.plot(np.arange(1, len(r["mean_reward_over_time"][k]) + 1), r["mean_reward_over_time"][k], label=k)
+        a.set(xlabel="time step", ylabel=f"mean reward ({d['episodes']} episodes)", title=f"{m} robots")
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+        b.boxplot([r["returns"][k] for k in names], tick_labels=names)
+        b.set(ylabel="undiscounted return", title=f"{m} robots, {d['steps']} steps")
+        b.tick_params(axis="x", labelrotation=15, labelsize=8)
+        fig.tight_layout()
+        fig.savefig(f"{prefix}_{m}.png", dpi=110)
+        plt.close(fig)
+        print(f"wrote {prefix}_{m}.png")
+
+
+def eval_table(path: Path | dict) -> list[str]:
     """Markdown rows of an evaluation.json: robots, policy, return, final coverage, time to find."""
-    if not path.exists():
+    if isinstance(path, dict):
+        d = path
+    elif not path.exists():
         return [f"(missing: {path.relative_to(ROOT)})"]
-    d = json.loads(path.read_text())
+    else:
+        d = json.loads(path.read_text())
     rows = ["| robots | policy | return | final coverage | mean coverage | steps to find |",
             "|---:|---|---:|---:|---:|---:|"]
     for m, r in d["robots"].items():
@@ -237,9 +294,19 @@ def plots(args) -> None:
                   f"{s['best_return']:.1f} | {s['best_cov']:.3f} | {s['last_return']:.1f} | {s['last_cov']:.3f} |"
                   for s in summary] or ["(no runs)"]
         lines.append("")
-    for title, p in (("Evaluation, thesis world", OUT / "eval_thesis" / "evaluation.json"),
-                     ("Evaluation, kilobot world (shipped policy)", OUT / "eval_kilobot" / "evaluation.json")):
-        lines += [f"## {title}", "", *eval_table(p), ""]
+    thesis = merged_eval([OUT / "eval_thesis" / "evaluation.json"])
+    if thesis is not None:
+        plot_eval(thesis, [], OUT / "eval_thesis")
+    lines += ["## Evaluation, thesis world", "", *eval_table(OUT / "eval_thesis" / "evaluation.json"), ""]
+    kb = merged_eval([OUT / "eval_kilobot" / "evaluation.json", OUT / "eval_kilobot_baselines" / "evaluation.json"])
+    if kb is not None:
+        keep = [k for k in kb["robots"][next(iter(kb["robots"]))]["returns"] if "default_policy" in k]
+        keep += ["hand-written", "random"]
+        for r in kb["robots"].values():  # only the shipped policy and the baselines
+            for key in ("mean_reward_over_time", "metrics", "returns"):
+                r[key] = {k: v for k, v in r[key].items() if k in keep}
+        plot_eval(kb, keep, OUT / "eval_kilobot")
+        lines += ["## Evaluation, kilobot world (shipped policy)", "", *eval_table(kb), ""]
     lines += ["## Float vs int8 in the closed loop", ""]
     for name in ("closed_loop_kilobot", "closed_loop_thesis"):
         lines += closed_table(OUT / name / "closed_loop.json") + [""]
@@ -263,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"unknown stage(s) {', '.join(bad)}; choose from {', '.join(STAGES)}")
     if "kilobot" in stages:
-        train(KILOBOT_RUNS, args)
+        train(KILOBOT_RUNS, args, KILOBOT_RESUME)
     if "ship" in stages:
         ship(args)
     if "robots" in stages:
