@@ -11,7 +11,7 @@ Stages (default: all, in this order):
               episode seed 1 (not the report's seed 0), and save the best as
               ``export/data/default_policy.npz`` with its provenance.
 ``robots``    thesis Experiment 1 (thesis world): learning with 1, 2, 4, 8 robots.
-``history``   thesis Experiment 2: T_prev in {1, 2, 5, 10} with 2 robots, equal short budgets.
+``history``   thesis Experiment 2: T_prev in {1, 2, 5, 10} with 2 robots, 4 minutes each.
 ``eval``      thesis §5.1.2: the Experiment 1 policies on 16 and 32 robots (500 steps) with the
               random and hand-written baselines; the shipped policy on 4, 16, 32 robots (kilobot).
 ``closed``    float actor vs int8 firmware emulator in the closed loop (``python -m export verify``),
@@ -56,7 +56,7 @@ ROBOT_RUNS = [
     ("goal4_s1", 4, 10, 45, ["--seed", "1", "--eval-episodes", "20"]),
     ("th_r8_s1", 8, 10, 8, ["--seed", "1", "--eval-episodes", "20", "--exp-name", "th_r8"]),
 ]
-HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 5, ["--seed", "1", "--eval-episodes", "20", "--exp-name", f"th_h{t}"])
+HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--seed", "1", "--eval-episodes", "20", "--exp-name", f"th_h{t}"])
                 for t in (1, 2, 5, 10)]
 #: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
 KILOBOT_RESUME = {"kb4_s1": 14}
@@ -128,6 +128,8 @@ def ship(args) -> None:
         "notes": "trained reference policy (MAGDDPG, kilobot world); see docs/report.md",
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "source_run": f"runs/{path.parent.name}/{path.name}",
+        "sessions": (f"{1 + (path.parent.name in KILOBOT_RESUME)} training session(s): --max-minutes per session, "
+                     "continued with --resume; wall_s is the total"),
         "selection": {"robots": 16, "episodes": args.select_episodes, "episode_seed": 1,
                       "criterion": "highest mean final coverage, then return",
                       "candidates": {k: {"final_coverage": v[0], "return": v[1]} for k, v in score.items()}},
@@ -251,8 +253,8 @@ def eval_table(path: Path | dict) -> list[str]:
         d = json.loads(path.read_text())
     rows = ["| robots | policy | return | final coverage | mean coverage | steps to find |",
             "|---:|---|---:|---:|---:|---:|"]
-    for m, r in d["robots"].items():
-        for pol, met in r["metrics"].items():
+    for m, r in sorted(d["robots"].items(), key=lambda kv: int(kv[0])):
+        for pol, met in sorted(r["metrics"].items()):
             s = met["summary"]
             rows.append(f"| {m} | {pol} | {s['return']['mean']:.1f} ± {s['return']['ci95']:.1f} | "
                         f"{s['final_coverage']['mean']:.3f} ± {s['final_coverage']['ci95']:.3f} | "
