@@ -77,7 +77,7 @@ def export_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
-    src.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped untrained placeholder)")
+    src.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
     ap.add_argument("--robots-calib", type=_positive, nargs="+", default=[4, 16], metavar="N",
@@ -255,7 +255,7 @@ def run_export(argv: Sequence[str]) -> int:
     options = {"target_uids": list(target_uids), "robots_calib": list(args.robots_calib),
                "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
                "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
-               "source": str(args.onnx or args.policy or "default placeholder")}
+               "source": str(args.onnx or args.policy or "default reference policy")}
     contents = {out: files[POLICY_FILE], target_path: files[TARGET_FILE]}
     if args.kilolib is not None:
         from . import avr

@@ -96,6 +96,8 @@ def build_parser() -> ArgumentParser:
     e.add_argument("--no-gif", action="store_true", help="skip the episode GIF")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
 
+    sub.add_parser("train-recurrent", add_help=False,
+                   help="train a recurrent (GRU) policy with MAGRDPG (python -m learn train-recurrent --help)")
     sub.add_parser("export-onnx", add_help=False,
                    help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
 
@@ -212,6 +214,10 @@ def main(argv: list[str] | None = None) -> int:
     from export.errors import ExportError
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "train-recurrent":  # MAGRDPG (learn/magrdpg.py) has its own parser
+        from .magrdpg import main_train_recurrent
+
+        return main_train_recurrent(argv[1:])
     if argv and argv[0] == "export-onnx":  # its own parser lives with the exporter (learn/onnx_export.py)
         from .onnx_export import main_export_onnx
 

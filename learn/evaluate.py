@@ -21,6 +21,7 @@ from sim.baselines import make_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
+from export.gru import swarm_policy  # MLP: HistoryActor; GRU: its stateful actor
 from sim.rollout import HistoryActor, RolloutResult, rollout
 
 MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache friendly)
@@ -75,7 +76,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
     world = WorldConfig.from_dict({**world.to_dict(), "episode_steps": steps})
 
     contenders: list[Contender] = [
-        Contender(name, (lambda p=p: HistoryActor(p.act, p.t_prev, world))) for name, p in policies.items()]
+        Contender(name, (lambda p=p: swarm_policy(p, world))) for name, p in policies.items()]
     if baselines:
         contenders += [Contender("hand-written", lambda: make_policy("baseline", world)),
                        Contender("random", lambda: make_policy("random", world))]

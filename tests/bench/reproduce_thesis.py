@@ -155,6 +155,10 @@ def evaluate(args) -> None:
     sh([PY, "-m", "learn", "evaluate", "--policy", str(SHIPPED), "--robots", "4", "16", "32", "--episodes",
         str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot"), "--no-gif", "--quiet", "--no-baselines"],
        args.dry_run)
+    if not args.dry_run:  # keep only evaluation.json: the report's figures are drawn from it by ``plots``
+        for d in ("eval_thesis", "eval_kilobot_baselines", "eval_kilobot"):
+            for png in (OUT / d).glob("*.png"):
+                png.unlink()
 
 
 def closed_loop(args) -> None:
