@@ -17,11 +17,11 @@ from typing import Callable
 
 import numpy as np
 
+from export.gru import swarm_policy  # MLP: HistoryActor; GRU: its stateful actor
 from sim.baselines import make_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
-from export.gru import swarm_policy  # MLP: HistoryActor; GRU: its stateful actor
 from sim.rollout import HistoryActor, RolloutResult, rollout
 
 MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache friendly)
