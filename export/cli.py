@@ -15,6 +15,7 @@ budget, renders the firmware and writes ``<out>``, ``kilobot_target.c`` beside i
 Will it fit, before training::
 
     python -m export budget --history 20 --hidden 64 32 [--preset kilobot]
+    python -m export budget --gru 32 [--preset kilobot]
 
 Float actor vs int8 firmware in the simulator (firmware in the loop, :mod:`export.verify_cli`)::
 
@@ -103,9 +104,12 @@ def export_parser() -> argparse.ArgumentParser:
 def budget_parser() -> argparse.ArgumentParser:
     from .numfmt import ACTIVATIONS
     ap = _Parser(prog="python -m export budget",
-                 description="Will an actor with this history and these hidden layers fit on a Kilobot? "
-                             "Exit 0 fits, 1 does not.")
-    ap.add_argument("--history", type=_positive, required=True, help="t_prev: history length in control periods")
+                 description="Will an actor with this history and these hidden layers (or a GRU actor of "
+                             "--gru units) fit on a Kilobot? Exit 0 fits, 1 does not.")
+    ap.add_argument("--history", type=_positive, default=None,
+                    help="t_prev: history length in control periods (MLP actor; required without --gru)")
+    ap.add_argument("--gru", type=_positive, default=None, metavar="H",
+                    help="a recurrent actor instead: one GRU layer of H units (learn train-recurrent)")
     ap.add_argument("--hidden", type=_positive, nargs="*", default=[], metavar="W", help="hidden layer widths")
     ap.add_argument("--preset", default="kilobot", help="world preset (default kilobot)")
     ap.add_argument("--activation", default="elu", choices=[a for a in ACTIVATIONS if a != "identity"] + ["identity"],
@@ -127,7 +131,14 @@ def run_budget(argv: Sequence[str]) -> int:
         world = preset(args.preset)
     except ValueError as e:
         raise ExportError(str(e)) from None
-    b = bud.estimate(world, args.history, args.hidden, [args.activation] * len(args.hidden))
+    if args.gru is not None:
+        if args.history is not None or args.hidden:
+            raise ExportError("--gru sizes a recurrent actor: leave out --history and --hidden")
+        b = bud.estimate_gru(world, args.gru)
+    elif args.history is None:
+        raise ExportError("give --history T_PREV (MLP actor) or --gru H (recurrent actor)")
+    else:
+        b = bud.estimate(world, args.history, args.hidden, [args.activation] * len(args.hidden))
     print(b.table())
     if b.ok:
         return EXIT_OK

@@ -52,6 +52,7 @@ def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
 class UpdateStats:
     critic_loss: float
     q_mean: float
+    bc_pass: float = float("nan")  #: MAGRDPG with demonstrations: fraction of demo steps passing the Q-filter
 
 
 class MAGDDPG:

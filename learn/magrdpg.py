@@ -21,6 +21,12 @@ OU noise, episode replay and evaluator are reused here):
 * everything else (noise, warm-up, soft target updates, evaluation, run directory, metrics
   columns, plots) is as in :mod:`learn.train`, so the curves of both trainers overlay.
 
+Guidance by demonstrations (``--demo-policy searcher``, :mod:`learn.demos`): demonstrator episodes
+are collected first, the actor is pretrained on them by behaviour cloning (``bc_updates``), and
+then every minibatch also holds ``demo_windows`` demonstration windows: the critic learns from them,
+and the actor gets, besides eq. 3.2, a behaviour-cloning term of weight ``bc_weight`` on the demo
+steps where the critic rates the demonstrated joint action above its own (the Q-filter).
+
 ``python -m learn train-recurrent --robots 2 --out runs/gru2`` (wired in ``learn/__main__.py`` via
 :func:`main_train_recurrent`) or ``python -m learn.magrdpg ...``.
 """
@@ -54,6 +60,7 @@ from sim.rollout import rollout
 
 from .checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
 from .config import ConfigError
+from .demos import DEMO_POLICIES, bc_pretrain, collect_demos, demonstrator
 from .evaluate import Evaluator, metrics_row
 from .magddpg import A_MAX, A_MIN, UpdateStats, invert_gradients, soft_update
 from .networks import Critic
@@ -105,6 +112,14 @@ class RecurrentConfig:
     eval_episodes: int = 20  #: deterministic evaluation episodes (fixed seeds, as MAGDDPG's evaluator)
     checkpoint_every: int = 1  #: write a checkpoint every this many evaluations (0 = only at the end)
     max_minutes: float = 0.0  #: stop at the first episode end after this wall-clock time (0 = no limit)
+    # --- guidance by demonstrations (learn.demos) --------------------------------------------
+    demo_policy: str = "none"  #: demonstrator: none, or searcher (the hand-written searcher, turning left)
+    demo_episodes: int = 1024  #: demonstrator episodes collected before training (kept all run long)
+    bc_updates: int = 1500  #: behaviour-cloning steps of the actor on whole demo episodes before RL
+    bc_lr: float = 3e-3  #: Adam learning rate of behaviour cloning
+    demo_windows: int = 8  #: demonstration windows added to every minibatch
+    bc_weight: float = 1.0  #: weight of the Q-filtered behaviour-cloning loss during RL (0 = none)
+    actor_delay: int = 0  #: the first this many updates train only the critic (keeps a cloned actor intact)
     seed: int = 1  #: master seed (networks, environments, noise, replay sampling, evaluation)
     exp_name: str = "gru"  #: experiment name used in the default run directory name
 
@@ -138,6 +153,12 @@ class RecurrentConfig:
         need(self.checkpoint_every >= 0, f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         need(self.max_minutes >= 0, f"max_minutes must be >= 0, got {self.max_minutes}")
         need(0 <= self.seed < 2 ** 63, f"seed must be a non-negative integer, got {self.seed}")
+        need(self.demo_policy in DEMO_POLICIES, f"demo_policy must be one of {', '.join(DEMO_POLICIES)}, got '{self.demo_policy}'")
+        need(self.demo_episodes >= 1 and self.bc_updates >= 0 and self.demo_windows >= 0,
+             "demo_episodes must be >= 1, bc_updates and demo_windows >= 0")
+        need(self.actor_delay >= 0, f"actor_delay must be >= 0, got {self.actor_delay}")
+        need(self.bc_lr > 0 and math.isfinite(self.bc_lr), f"bc_lr must be > 0, got {self.bc_lr}")
+        need(self.bc_weight >= 0 and math.isfinite(self.bc_weight), f"bc_weight must be >= 0, got {self.bc_weight}")
         need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
              f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")
         T = self.world_config().episode_steps
@@ -181,6 +202,7 @@ _HINTS = typing.get_type_hints(RecurrentConfig)
 PRESETS: dict[str, dict[str, Any]] = {
     "fast": {},
     "quick": {"max_minutes": 5.0, "replay_size": 100_000, "eval_every": 12_800, "exp_name": "gru-quick"},
+    "guided": {"demo_policy": "searcher", "bc_weight": 10.0, "actor_delay": 5000, "exp_name": "gru-guided"},
 }
 
 
@@ -234,6 +256,11 @@ class Windows:
     s2: np.ndarray  #: (N, U, S) s_{t+1}
 
 
+def concat_windows(a: Windows, b: Windows) -> Windows:
+    """The windows of ``a`` followed by those of ``b`` (same burn-in and unroll)."""
+    return Windows(**{f.name: np.concatenate([getattr(a, f.name), getattr(b, f.name)]) for f in dataclasses.fields(Windows)})
+
+
 def sample_windows(replay: EpisodeReplay, n: int, burn_in: int, unroll: int, rng: np.random.Generator) -> Windows:
     """N windows with start t_s uniform over every stored (episode, t_s <= filled - unroll)."""
     starts = np.maximum(replay.filled - unroll + 1, 0)  # (C,) admissible t_s per slot
@@ -277,8 +304,14 @@ class MAGRDPG:
         a, h = self.actor.step(torch.as_tensor(x, dtype=torch.float32), h)
         return a.double().numpy(), h
 
-    def update(self, w: Windows) -> UpdateStats:
-        """One critic step on every window transition, one BPTT actor step (eq. 3.2), soft updates."""
+    def update(self, w: Windows, n_demo: int = 0, bc_weight: float = 0.0, train_actor: bool = True) -> UpdateStats:
+        """One critic step on every window transition, one BPTT actor step (eq. 3.2), soft updates.
+
+        The last ``n_demo`` windows are demonstrations: on their steps the actor also descends
+        ``bc_weight`` x the squared error to the demonstrated commands, where the critic rates the
+        demonstrated joint action above the actor's (Q-filter). ``train_actor=False``: the critic
+        step and its soft update only.
+        """
         N, L, M, D = w.x.shape
         U, B = w.s.shape[1], self.burn_in
         assert L == B + U + 1, f"window of {L} inputs does not match burn_in {B} + unroll {U} + 1"
@@ -306,20 +339,34 @@ class MAGRDPG:
         critic_loss.backward()
         self.critic_opt.step()
 
+        if not train_actor:
+            soft_update(self.critic_target, self.critic, self.tau)
+            return UpdateStats(critic_loss=float(critic_loss.detach()), q_mean=float(q.detach().mean()))
+
         # actor: burn-in (positions < off) without gradient, then BPTT over the unroll
         a_raw, _ = self.actor(X[rows, pos], self.burn_in_state(X, off))  # (N*M, U, 2)
         a_pol = per_step(a_raw)
         a_in = a_pol.detach().requires_grad_(True)
-        (dq_da,) = torch.autograd.grad(self.critic(s, a_in).sum(), a_in)
+        q_pol = self.critic(s, a_in)
+        (dq_da,) = torch.autograd.grad(q_pol.sum(), a_in)
         g = invert_gradients(dq_da, a_in.detach())
         self.actor_opt.zero_grad(set_to_none=True)
-        a_pol.backward(-g / (N * U))  # ascend (1 / N U) Σ_j Σ_t Σ_i g · μ
+        objective = torch.sum(a_pol * (-g / (N * U)))  # its gradient ascends (1 / N U) Σ_j Σ_t Σ_i g · μ
+        bc_pass = float("nan")
+        if n_demo and bc_weight > 0:
+            d = slice((N - n_demo) * U, N * U)  # rows of the demonstration steps
+            with torch.no_grad():
+                keep = (self.critic(s[d], a[d]) > q_pol.detach()[d]).to(a_pol.dtype)  # (n_demo U,) Q-filter
+            err = torch.sum((a_pol[d] - a[d]) ** 2, dim=(1, 2))  # (n_demo U,) over robots and motors
+            objective = objective + bc_weight * torch.sum(keep * err) / (n_demo * U * M)
+            bc_pass = float(keep.mean())
+        objective.backward()
         if self.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(self.actor.parameters(), self.grad_clip)
         self.actor_opt.step()
         soft_update(self.critic_target, self.critic, self.tau)
         soft_update(self.actor_target, self.actor, self.tau)
-        return UpdateStats(critic_loss=float(critic_loss.detach()), q_mean=float(q.detach().mean()))
+        return UpdateStats(critic_loss=float(critic_loss.detach()), q_mean=float(q.detach().mean()), bc_pass=bc_pass)
 
     @torch.no_grad()
     def burn_in_state(self, X: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
@@ -380,7 +427,7 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
 
     # same seeding scheme as learn.train: equal seeds give MAGDDPG's evaluation episodes
     torch.set_num_threads(cfg.threads)
-    ss_init, ss_env, ss_noise, ss_replay, ss_eval = np.random.SeedSequence(cfg.seed).spawn(5)
+    ss_init, ss_env, ss_noise, ss_replay, ss_eval, ss_demo = np.random.SeedSequence(cfg.seed).spawn(6)
     torch.manual_seed(int(ss_init.generate_state(1, np.uint64)[0]))
     env_rng = np.random.default_rng(ss_env)
     noise_rng = np.random.default_rng(ss_noise)
@@ -393,6 +440,10 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
     replay = EpisodeReplay(cfg.replay_size, T, M, D, S, 1)
     noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
     evaluator = Evaluator(world, M, 1, cfg.eval_episodes, eval_seed)
+    demos = None
+    if cfg.demo_policy != "none":  # regenerated from the seed on --resume (deterministic), not stored
+        demo_rng = np.random.default_rng(ss_demo)
+        demos = _collect_demos(cfg, world, demo_rng, progress, log)
     c = Counters()
     if resume:
         ck = load_checkpoint(run_dir / "checkpoint.pt")
@@ -413,6 +464,8 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
     else:
         write_text_atomic(run_dir / "config.json", cfg.to_json() + "\n")
         write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+        if demos is not None and cfg.bc_updates:
+            _pretrain(cfg, agent, world, demos, evaluator, demo_rng, run_dir, c, progress, log)
 
     def snapshot() -> dict:
         return {"version": CHECKPOINT_VERSION, "trainer": "magrdpg", "config": cfg.to_dict(),
@@ -457,8 +510,12 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
                     c.update_debt += B * cfg.updates_per_step
                     u0 = time.perf_counter()
                     while c.update_debt >= 1.0:
-                        st = agent.update(sample_windows(replay, cfg.batch_windows, cfg.burn_in, cfg.unroll, sample_rng))
-                        losses.append((st.critic_loss, st.q_mean))
+                        w = sample_windows(replay, cfg.batch_windows, cfg.burn_in, cfg.unroll, sample_rng)
+                        n_demo = cfg.demo_windows if demos is not None else 0
+                        if n_demo:
+                            w = concat_windows(w, sample_windows(demos, n_demo, cfg.burn_in, cfg.unroll, sample_rng))
+                        st = agent.update(w, n_demo, cfg.bc_weight, train_actor=c.updates >= cfg.actor_delay)
+                        losses.append((st.critic_loss, st.q_mean, st.bc_pass))
                         c.update_debt -= 1.0
                         c.updates += 1
                     upd_time += time.perf_counter() - u0
@@ -497,6 +554,49 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
     return RunResult(run_dir, c, stopped)
 
 
+def _collect_demos(cfg: RecurrentConfig, world, rng: np.random.Generator, progress: bool, log) -> EpisodeReplay:
+    """The demonstrator's episodes (learn.demos), with a progress bar."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.demo_episodes, unit="episode", desc="demonstrations", dynamic_ncols=True, leave=False)
+    t0 = time.perf_counter()
+    demos = collect_demos(world, cfg.n_robots, cfg.demo_episodes, cfg.n_envs, rng, bar.update if bar else None)
+    if bar is not None:
+        bar.close()
+    log(f"demonstrations: {int((demos.filled > 0).sum())} episodes of the {cfg.demo_policy} "
+        f"in {time.perf_counter() - t0:.0f} s")
+    return demos
+
+
+def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay, evaluator, rng, run_dir: Path,
+              c: Counters, progress: bool, log) -> None:
+    """Behaviour cloning of the actor (and its target) on the demonstrations; evaluate and keep that actor."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.bc_updates, unit="update", desc="behaviour cloning", dynamic_ncols=True, leave=False)
+    t0 = time.perf_counter()
+    loss = bc_pretrain(agent.actor, demos, cfg.bc_updates, cfg.batch_windows, cfg.bc_lr, rng,
+                       (lambda k, l: bar.update(1)) if bar else None)
+    if bar is not None:
+        bar.close()
+    agent.actor_target.load_state_dict(agent.actor.state_dict())
+    bc_s = time.perf_counter() - t0
+    demo_m = rollout(evaluator.env, demonstrator(world), evaluator.episodes, seed=evaluator.seed).metrics()
+    bc_m = rollout(evaluator.env, torch_swarm_policy(agent, world), evaluator.episodes, seed=evaluator.seed).metrics()
+    info = {"demo_policy": cfg.demo_policy, "demo_episodes": int((demos.filled > 0).sum()),
+            "bc_updates": cfg.bc_updates, "bc_loss": loss, "bc_s": round(bc_s, 1),
+            "eval_demonstrator": finite_or_none(metrics_row(demo_m)), "eval_after_bc": finite_or_none(metrics_row(bc_m))}
+    write_text_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    save_policy(actor_artifact(agent, cfg, world, c, metrics_row(bc_m)), run_dir / "policy_bc.npz")
+    c.best_return = info["eval_after_bc"]["eval_return"]  # RL must beat the cloned actor to replace it as best
+    save_policy(actor_artifact(agent, cfg, world, c, metrics_row(bc_m)), run_dir / "policy_best.npz")
+    log(f"behaviour cloning: loss {loss:.4f} in {bc_s:.0f} s; evaluation return {info['eval_after_bc']['eval_return']:.1f}, "
+        f"final coverage {info['eval_after_bc']['eval_final_coverage']:.3f} "
+        f"(demonstrator {info['eval_demonstrator']['eval_final_coverage']:.3f})")
+
+
 def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, run_dir, export, log, bar) -> None:
     """Evaluate deterministically (MAGDDPG's episodes), append a metrics row, export, redraw the curve."""
     from .plots import plot_learning_curves
@@ -507,6 +607,7 @@ def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, ru
            "train_return": float(np.mean(train_returns)) if train_returns else float("nan"),
            "critic_loss": float(np.mean([x[0] for x in losses])) if losses else float("nan"),
            "q_mean": float(np.mean([x[1] for x in losses])) if losses else float("nan"),
+           "bc_pass": float(np.mean([x[2] for x in losses])) if losses else float("nan"),
            "env_steps_per_s": c.env_steps / c.env_s if c.env_s > 0 else float("nan"),
            "updates_per_s": c.updates / c.update_s if c.update_s > 0 else float("nan")}
     c.rows.append(row)

@@ -266,8 +266,10 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
 
 
 def rows_to_csv(rows: list[dict]) -> str:
+    """CSV of metric rows: METRIC_COLUMNS, then any extra columns a trainer adds (e.g. MAGRDPG's bc_pass)."""
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(METRIC_COLUMNS), lineterminator="\n")
+    extra = [k for k in (rows[0] if rows else {}) if k not in METRIC_COLUMNS]
+    w = csv.DictWriter(buf, fieldnames=list(METRIC_COLUMNS) + extra, lineterminator="\n")
     w.writeheader()
     for r in rows:
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})

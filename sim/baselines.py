@@ -64,6 +64,9 @@ class SearcherParams:
     settle_patience: int = 6  #: ... or after this many non-improving periods inside the target range
     settle_hold: int = 3  #: a stopped robot moves on after missing the target this many periods in a row
     nbr_gradient: bool = True  #: level 1: run and tumble on neighbour proximity (else keep going)
+    #: turn direction: 0 = random left/right per turn; +1 always left, -1 always right (a deterministic
+    #: choice a learner can imitate: used as MAGRDPG's demonstrator, see learn.demos)
+    turn_sign: int = 0
 
     def __post_init__(self) -> None:
         assert 0.0 < self.speed <= 1.0, f"speed must be in (0, 1], got {self.speed}"
@@ -75,6 +78,7 @@ class SearcherParams:
         assert self.wall_cooldown >= 0 and self.uturn_steps >= 0, "wall_cooldown, uturn_steps must be >= 0"
         assert 0.0 <= self.stop_dist <= 1.0, f"stop_dist must be in [0, 1], got {self.stop_dist}"
         assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
+        assert self.turn_sign in (-1, 0, 1), f"turn_sign must be -1, 0 or 1, got {self.turn_sign}"
 
 
 #: tuned parameters per world preset (the dataclass defaults are the thesis values). Kilobot discs
@@ -135,6 +139,8 @@ class HandWrittenSearcher:
 
         # random draws for every robot every period (fixed consumption ⇒ reproducible streams)
         dirs = np.where(rng.random(shape) < 0.5, 1, -1).astype(np.int8)
+        if p.turn_sign:
+            dirs[...] = p.turn_sign  # the draw above still happens: same stream whatever the sign
         tumble = rng.integers(1, p.tumble_max_steps + 1, shape)
         wall_turn = rng.integers(p.wall_turn_min, p.wall_turn_max + 1, shape)
         runs = self._run_lengths(shape)

@@ -345,7 +345,7 @@ class SwarmEnv:
         self._prev_wall = obs[..., OBS_WALL].copy()
         in_range = dt <= self.cfg.comm_radius_mm
         info = StepInfo({"events": period.events}, in_range=in_range, light=light,
-                        coverage=np.count_nonzero(in_range, axis=1) / self.n_robots)
+                        coverage=in_range.sum(axis=1) / self.n_robots)
         return obs, info
 
     def state(self) -> np.ndarray:

@@ -94,7 +94,13 @@ class RadioPeriod:
 
 
 def measure(true_mm: np.ndarray, z: np.ndarray | None, cfg: WorldConfig) -> np.ndarray:
-    """Measured distance: true + σ·z, rounded half up with ``dist_integer``, clipped to the range."""
+    """Measured distance: true + σ·z, rounded half up with ``dist_integer``, clipped to the range.
+
+    ``true_mm`` are distances of heard messages, so within [0, comm radius]: without noise or
+    rounding, a range that holds [0, comm radius] cannot clip anything and ``true_mm`` is returned as is.
+    """
+    if z is None and not cfg.dist_integer and cfg.dist_min_mm <= 0.0 and cfg.dist_max_mm > 1.001 * cfg.comm_radius_mm:
+        return true_mm
     d = true_mm if z is None else true_mm + cfg.dist_noise_mm * z
     if cfg.dist_integer:
         d = np.floor(d + 0.5)
@@ -168,7 +174,7 @@ def thesis_radio(pos: np.ndarray, target: np.ndarray, flags: np.ndarray, cfg: Wo
     return RadioPeriod(
         B, M, cfg.period_ticks,
         s_env, s_rx, s_snd, np.zeros(s_env.shape, np.int64), s_dist,
-        flags[s_env, s_snd].astype(np.uint8),
+        flags.reshape(-1).take(s_env * M + s_snd).astype(np.uint8, copy=False),
         t_env, t_rx, np.zeros(t_env.shape, np.int64), measure(t_true, zt, cfg), single=True,
         s_udist=s_udist, s_uidx=s_uidx)
 
@@ -231,7 +237,8 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
 def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator]) -> np.ndarray:
     """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout)."""
     wall_d = cfg.arena_half_mm - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
-    light = np.where(wall_d <= cfg.wall_sense_mm, cfg.light_wall, cfg.light_floor).astype(np.int16)
+    light = np.full(wall_d.shape, cfg.light_floor, np.int16)
+    light[wall_d <= cfg.wall_sense_mm] = cfg.light_wall
     if cfg.light_dropout > 0:
         M = pos.shape[1]
         u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
@@ -264,23 +271,23 @@ def rbf_fast(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
 
 
 def _segment_sums(rows: np.ndarray, starts: np.ndarray, counts: np.ndarray, index: np.ndarray | None
-                  ) -> np.ndarray:
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Per segment, the sum of its rows added one after another (0 + r0 + r1 + ...), like np.add.at.
 
     ``rows`` (N, K); segment s covers positions ``starts[s] .. starts[s] + counts[s] - 1`` (counts
     >= 1), each position p standing for ``rows[index[p]]`` (or ``rows[p]``). Loops over the rank
     within the segment (at most the neighbour-table size), vectorised over segments.
+    Returns ``(sums, order)``: ``sums[k]`` is the sum of segment ``order[k]`` (longest segments
+    first; the caller scatters once instead of un-permuting here).
     """
     o = np.argsort((-counts).astype(np.int16), kind="stable")  # longest first (radix sort on int16)
-    st, cn = starts[o], counts[o]
+    st, cn = starts.take(o), counts.take(o)
     out = np.zeros((st.size, rows.shape[1]))
     n_active = np.searchsorted(-cn, -np.arange(1, cn[0] + 1), side="right")  # segments with > k rows
     for k, na in enumerate(n_active.tolist()):
         pos = st[:na] + k
         out[:na] += rows.take(pos if index is None else index.take(pos), axis=0)  # take: faster than []
-    res = np.empty_like(out)
-    res[o] = out
-    return res
+    return out, o
 
 
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
@@ -302,7 +309,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         counts = np.minimum(counts, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
     wall = (light >= cfg.light_threshold).astype(np.float64)
-    obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall)
+    obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
     heard = np.zeros(B * M, bool)
     tdist = np.zeros(B * M)
     tg = period.t_env * M + period.t_rx
@@ -314,12 +321,14 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         cnt = counts[rcv]
         starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)
         flat = obs.reshape(B * M, cfg.obs_dim)
-        flat[rcv, OBS_NBR_SENSING] = np.maximum.reduceat(f, starts)  # max of the table's flags
+        # max of the table's 0/1 flags = (their count > 0); one bincount instead of reduceat + scatter
+        n_flags = np.bincount(g if d.size == g.size else np.repeat(rcv, cnt), weights=f, minlength=B * M)
+        flat[:, OBS_NBR_SENSING] = n_flags > 0
         if ui is None:
-            hist = _segment_sums(rbf_fast(cfg, d), starts, cnt, None)
+            hist, o = _segment_sums(rbf_fast(cfg, d), starts, cnt, None)
         else:  # symmetric distances: ψ once per unordered pair
-            hist = _segment_sums(rbf_fast(cfg, period.s_udist), starts, cnt, ui)
-        flat[rcv, OBS_RBF:] = hist
+            hist, o = _segment_sums(rbf_fast(cfg, period.s_udist), starts, cnt, ui)
+        flat[rcv.take(o), OBS_RBF:] = hist
     return obs, heard.reshape(B, M).astype(np.uint8)
 
 

@@ -51,6 +51,18 @@ def test_budget_subcommand_does_not_fit(capsys):
     assert rc == 1 and "DOES NOT FIT" in out and "would fit: t_prev <= " in out
 
 
+def test_budget_subcommand_gru(capsys):
+    """budget --gru 32 fits (exit 0, gate tables listed); --gru 200 does not and names the largest GRU that fits."""
+    rc, out, err = run(["budget", "--gru", "32"], capsys)
+    assert rc == 0 and "FITS" in out and "GRU actor" in out and "gate tables" in out and err == ""
+    rc, out, _ = run(["budget", "--gru", "200"], capsys)
+    assert rc == 1 and "DOES NOT FIT" in out and "would fit: a GRU of <= " in out
+    rc, _, err = run(["budget", "--gru", "8", "--history", "3"], capsys)
+    assert rc == 2 and "--gru" in one_error_line(err)
+    rc, _, err = run(["budget"], capsys)
+    assert rc == 2 and "--history" in one_error_line(err)
+
+
 def test_budget_subcommand_bad_args(capsys):
     """A non-numeric history or unknown preset is one error line and exit 2."""
     rc, _, err = run(["budget", "--history", "x"], capsys)

@@ -2,6 +2,8 @@
 
     python tests/bench/bench_magrdpg.py --train [--minutes 15] [--seed 1]      # both runs at once, then report
     python tests/bench/bench_magrdpg.py --gru RUN --mlp RUN [--episodes 100]   # report on existing runs
+    python tests/bench/bench_magrdpg.py --gru RUN --mlp RUN --guided RUN       # ... plus a guided MAGRDPG run
+    python tests/bench/bench_magrdpg.py --train-guided [--minutes 15] [--seed 1]   # train one guided run first
 
 The comparison is at a matched parameter count and the same wall-clock budget: a GRU of 32 units
 (4,866 parameters) against MAGDDPG's MLP with T_prev 10 and hidden (26, 26) (4,942 parameters),
@@ -16,6 +18,12 @@ torch thread each, on the thesis task with 2 robots. The report gives
    bit-exactness with cycles per control step;
 4. the closed loop: the float GRU vs its int8 firmware (emulator) on the same episodes
    (:mod:`export.closed_loop`), and the same for the MLP for reference.
+
+With ``--guided RUN`` (a ``--preset guided`` MAGRDPG run: behaviour cloning of the left-turning
+searcher, then MAGRDPG with Q-filtered demonstrations) the fresh-episode table also holds that run's
+best policy, its actor right after behaviour cloning (``policy_bc.npz``: what reinforcement learning
+started from) and the demonstrator itself, and sections 3 and 4 export and close the loop on the
+guided policy.
 """
 from __future__ import annotations
 
@@ -54,6 +62,15 @@ def train_both(minutes: float, seed: int, out: Path) -> tuple[Path, Path]:
     return gru, mlp
 
 
+def train_guided(minutes: float, seed: int, out: Path) -> Path:
+    """One guided MAGRDPG run (``--preset guided``, GRU 32, 2 robots), one torch thread."""
+    run = out / f"gru32_guided_2r_s{seed}"
+    subprocess.run([sys.executable, "-m", "learn.magrdpg", "--preset", "guided", "--robots", "2", "--hidden", "32",
+                    "--seed", str(seed), "--max-minutes", str(minutes), "--threads", "1", "--out", str(run),
+                    "--quiet"], cwd=ROOT, check=True)
+    return run
+
+
 def plot_curves(runs: dict[str, list[dict]], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -77,7 +94,8 @@ def plot_curves(runs: dict[str, list[dict]], path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: list[int]) -> dict:
+def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: list[int],
+           guided_run: Path | None = None) -> dict:
     from export import avr, closed_loop
     from export import budget as bud
     from export.artifact import load_policy
@@ -94,12 +112,16 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
     out.mkdir(parents=True, exist_ok=True)
     res: dict = {}
     rows = {"MAGRDPG GRU-32": read_rows(gru_run), "MAGDDPG MLP 26x26": read_rows(mlp_run)}
+    if guided_run is not None:
+        rows["MAGRDPG GRU-32 guided"] = read_rows(guided_run)
     plot_curves(rows, out / "magrdpg_vs_magddpg.png")
     print(f"== 1. learning curves -> {out / 'magrdpg_vs_magddpg.png'}")
     print(f"{'run':<20} {'params':>7} {'evals':>5} {'transitions':>11} {'wall s':>7} {'updates':>8} "
           f"{'best return':>11} {'at step':>8} {'at s':>6} {'best cov':>8} {'first cov>=0.8 (step, s)':>25}")
     pols = {"MAGRDPG GRU-32": load_policy(gru_run / "policy_best.npz"),
             "MAGDDPG MLP 26x26": load_policy(mlp_run / "policy_best.npz")}
+    if guided_run is not None:
+        pols["MAGRDPG GRU-32 guided"] = load_policy(guided_run / "policy_best.npz")
     res["runs"] = {}
     for name, r in rows.items():
         best = max(r, key=lambda x: x["eval_return"])
@@ -116,12 +138,17 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
     env = SwarmEnv(world, min(episodes, 50), 2, seed=FRESH_SEED)
     contenders = {**{k: swarm_policy(p) for k, p in pols.items()},
                   "hand-written": make_policy("baseline", world), "random": make_policy("random", world)}
+    if guided_run is not None:
+        from learn.demos import demonstrator
+        contenders["GRU-32 after behaviour cloning"] = swarm_policy(load_policy(guided_run / "policy_bc.npz"))
+        contenders["demonstrator (searcher, left turns)"] = demonstrator(world)
     metrics = {k: rollout(env, pol, episodes, seed=FRESH_SEED).metrics() for k, pol in contenders.items()}
     print(compare(metrics))
     res["fresh"] = {k: m.to_dict(per_episode=False) for k, m in metrics.items()}
 
     print("\n== 3. recurrent export")
-    gp = pols["MAGRDPG GRU-32"]
+    gp = pols["MAGRDPG GRU-32 guided" if guided_run is not None else "MAGRDPG GRU-32"]
+    print("policy:", "guided run" if guided_run is not None else "MAGRDPG run", "(best)")
     t0 = time.perf_counter()
     cal = calibrate_gru(gp, episodes=2, n_robots=(2, 4, 16), seed=0)
     qp = quantize_gru(gp, cal)
@@ -164,15 +191,19 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--gru", type=Path, help="a MAGRDPG run directory")
     ap.add_argument("--mlp", type=Path, help="a MAGDDPG run directory")
+    ap.add_argument("--guided", type=Path, help="a guided MAGRDPG run directory (--preset guided)")
+    ap.add_argument("--train-guided", action="store_true", help="train a guided MAGRDPG run first")
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--robots-loop", type=int, nargs="+", default=[2])
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_magrdpg")
     a = ap.parse_args()
     if a.train:
         a.gru, a.mlp = train_both(a.minutes, a.seed, a.out)
+    if a.train_guided:
+        a.guided = train_guided(a.minutes, a.seed, a.out)
     if not (a.gru and a.mlp):
         ap.error("give --train, or --gru RUN and --mlp RUN")
-    report(a.gru, a.mlp, a.episodes, a.out, a.robots_loop)
+    report(a.gru, a.mlp, a.episodes, a.out, a.robots_loop, a.guided)
     return 0
 
 

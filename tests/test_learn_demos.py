@@ -1,0 +1,175 @@
+"""Guided MAGRDPG (learn/demos.py): the demonstrator, demo episodes, behaviour cloning, the Q-filter, the CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from export.artifact import load_policy
+from export.gru import GRUPolicy
+from learn.demos import bc_pretrain, collect_demos, demonstrator, episode_sequences
+from learn.magrdpg import MAGRDPG, RecurrentConfig, concat_windows, main_train_recurrent, sample_windows
+from learn.recurrent import GRUActor
+from sim.baselines import HandWrittenSearcher, SearcherParams
+from sim.config import OBS_RBF, preset
+from sim.env import SwarmEnv
+from sim.rollout import rollout
+
+WORLD = preset("thesis", episode_steps=30)
+
+
+def test_turn_sign_fixes_the_turn_direction_and_keeps_the_random_stream():
+    """turn_sign=+1 never commands a right turn; both variants draw the same random numbers."""
+    world = preset("thesis")
+    env = SwarmEnv(world, 8, 3, seed=4)
+    left = rollout(env, HandWrittenSearcher(world, SearcherParams(turn_sign=1)), 8, seed=9, record=True)
+    a = left.trajectories.actions.reshape(-1, 2)
+    assert np.any((a[:, 0] == 1) & (a[:, 1] == 0)), "no left turn at all"
+    assert not np.any((a[:, 0] == 0) & (a[:, 1] == 1)), "a right turn with turn_sign=+1"
+    rng_a, rng_b = np.random.default_rng(1), np.random.default_rng(1)
+    obs = SwarmEnv(world, 2, 3, seed=0).reset()[0]
+    p, q = HandWrittenSearcher(world, SearcherParams(turn_sign=1)), HandWrittenSearcher(world)
+    p.reset(2, 3, rng_a)
+    q.reset(2, 3, rng_b)
+    p.act(obs), q.act(obs)
+    assert rng_a.random() == rng_b.random()
+    with pytest.raises(AssertionError, match="turn_sign"):
+        SearcherParams(turn_sign=2)
+
+
+def test_demo_episodes_are_the_demonstrators_rollouts():
+    """collect_demos stores [a_{t-1}, o_t] tuples, states and rewards exactly as the demonstrator ran them."""
+    rep = collect_demos(WORLD, 2, 5, 4, np.random.default_rng(0))
+    assert rep.n_slots == 8 and int((rep.filled == WORLD.episode_steps).sum()) == 8  # rounded up to 2 batches of 4
+    x = rep.tuples[:8]  # (E, T + 1, M, D)
+    assert np.all(x[:, 0, :, :2] == 0)  # a_0 = 0
+    assert set(np.unique(x[:, 1:, :, :2])) <= {0.0, 1.0}  # the searcher's commands: stop, turn, straight
+    assert np.all(x[:, 1:, :, 2:] == x[:, 1:, :, 2:])  # finite
+    X, A = episode_sequences(rep)
+    assert X.shape == (16, 30, WORLD.tuple_dim) and A.shape == (16, 30, 2)
+    torch.testing.assert_close(X[:, 1:, :2], A[:, :-1])  # the input's previous action is the last target
+    # the stored rewards are what the env paid: replay the first batch's actions in a fresh env
+    env = SwarmEnv(WORLD, 4, 2, seed=0)
+    rng = np.random.default_rng(0)
+    env = SwarmEnv(WORLD, 4, 2, seed=int(rng.integers(2 ** 31)))
+    obs, _ = env.reset(seed=int(rng.integers(2 ** 31)))
+    np.testing.assert_array_equal(obs.astype(np.float32), x[:4, 0, :, 2:])
+    rewards = []
+    for t in range(WORLD.episode_steps):
+        obs, r, *_ = env.step(x[:4, t + 1, :, :2].astype(np.float64))
+        rewards.append(r)
+    np.testing.assert_array_equal(np.stack(rewards, 1), rep.rewards[:4])
+    np.testing.assert_array_equal(obs.astype(np.float32)[..., OBS_RBF:], x[:4, -1, :, 2 + OBS_RBF:])
+
+
+def test_demonstrator_searches_as_well_as_the_hand_written_searcher():
+    """The left-turning demonstrator finds the target in every episode and covers it (thesis world, 2 robots)."""
+    world = preset("thesis")
+    m = rollout(SwarmEnv(world, 20, 2, seed=0), demonstrator(world), 20, seed=3).metrics().summary()
+    assert m["found_rate"].mean == 1.0 and m["final_coverage"].mean > 0.85
+
+
+def test_behaviour_cloning_fits_the_demonstrations():
+    """bc_pretrain lowers the squared error of the actor's commands on the demo episodes."""
+    rep = collect_demos(WORLD, 2, 8, 8, np.random.default_rng(1))
+    torch.manual_seed(0)
+    actor = GRUActor(WORLD.tuple_dim, 16)
+    X, A = episode_sequences(rep)
+
+    def mse() -> float:
+        with torch.no_grad():
+            return float(torch.mean((actor(X, actor.initial_state(X.shape[0]))[0] - A) ** 2))
+
+    before = mse()
+    bc_pretrain(actor, rep, 150, 8, 3e-3, np.random.default_rng(0))
+    assert mse() < 0.5 * before, (before, mse())
+
+
+class StepCritic(torch.nn.Module):
+    """Q(s, a) = 1 when the joint command sum exceeds 0.5, else 0: flat (∇_a Q = 0), so only BC can move the actor."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.b = torch.nn.Parameter(torch.zeros(()))  # lets the critic step run
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return (a.sum(dim=(1, 2)) > 0.5).to(a.dtype) + 0.0 * a.sum(dim=(1, 2)) + 0.0 * self.b
+
+
+def test_q_filtered_bc_pulls_the_actor_towards_demonstrations_where_the_critic_prefers_them():
+    """The Q-filter passes exactly the demo steps the critic rates higher; there BC moves the actor towards the
+    demo commands; critic-only updates (train_actor=False) leave the actor untouched."""
+    import copy
+    rep = collect_demos(WORLD, 2, 8, 8, np.random.default_rng(2))
+    rng = np.random.default_rng(3)
+    torch.manual_seed(3)
+    agent = MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (32,), 0.5, 0.01, 1e-2, 1e-3, burn_in=3)
+    w = concat_windows(sample_windows(rep, 4, 3, 5, rng), sample_windows(rep, 4, 3, 5, rng))
+    assert w.x.shape[0] == 8 and w.s.shape[:2] == (8, 5)
+    actor0 = [p.detach().clone() for p in agent.actor.parameters()]
+    st = agent.update(w, n_demo=4, bc_weight=1.0, train_actor=False)
+    assert np.isnan(st.bc_pass)
+    assert all(torch.equal(a, b) for a, b in zip(agent.actor.parameters(), actor0))
+
+    agent.critic, agent.critic_target = StepCritic(), StepCritic()
+    plain, guided = copy.deepcopy(agent), copy.deepcopy(agent)
+    # the actor's own commands on the demo steps (rows n*U + t of the last 4 windows), before the update
+    from learn.magrdpg import Windows  # noqa: F401 (layout documented there)
+    X = torch.from_numpy(np.ascontiguousarray(w.x[4:].transpose(0, 2, 1, 3)).reshape(8, -1, WORLD.tuple_dim))
+    off = torch.from_numpy(np.repeat(w.off[4:], 2))
+    pos = off[:, None] + torch.arange(5)
+    with torch.no_grad():
+        a_own, _ = agent.actor(X[torch.arange(8)[:, None], pos], agent.burn_in_state(X, off))  # (8, 5, 2)
+    own = a_own.reshape(4, 2, 5, 2).permute(0, 2, 1, 3).reshape(20, 2, 2).sum(dim=(1, 2))
+    demo = torch.from_numpy(w.a[4:].reshape(20, 2, 2)).sum(dim=(1, 2))
+    prefer = (demo > 0.5) & (own <= 0.5)  # Q(demo) = 1 > Q(own) = 0
+    expected_pass = float(prefer.float().mean())
+    assert 0.0 < expected_pass, "the test needs demo steps that the critic prefers"
+    plain.update(w, n_demo=4, bc_weight=0.0)
+    st = guided.update(w, n_demo=4, bc_weight=100.0)
+    assert st.bc_pass == pytest.approx(expected_pass)
+
+    def demo_error(ag: MAGRDPG) -> float:
+        with torch.no_grad():
+            a, _ = ag.actor(X[torch.arange(8)[:, None], pos], ag.burn_in_state(X, off))
+        a = a.reshape(4, 2, 5, 2).permute(0, 2, 1, 3).reshape(20, 2, 2)
+        return float(((a - torch.from_numpy(w.a[4:].reshape(20, 2, 2))) ** 2)[prefer].mean())
+
+    assert all(torch.equal(a, b) for a, b in zip(plain.actor.parameters(), actor0))  # flat critic: no step
+    assert demo_error(guided) < demo_error(plain)
+
+
+def test_guided_config_validation():
+    """Bad guidance values raise one-line ConfigErrors; the guided preset enables the demonstrator."""
+    from learn.config import ConfigError
+    from learn.magrdpg import PRESETS
+    for bad in ({"demo_policy": "oracle"}, {"demo_episodes": 0}, {"bc_weight": -1.0}, {"bc_lr": 0.0},
+                {"actor_delay": -1}):
+        with pytest.raises(ConfigError) as ei:
+            RecurrentConfig.from_dict(bad).validate()
+        assert "\n" not in str(ei.value)
+    g = RecurrentConfig.from_dict(PRESETS["guided"]).validate()
+    assert g.demo_policy == "searcher" and g.bc_updates > 0 and g.actor_delay > 0
+
+
+def test_guided_cli_clones_then_learns_and_keeps_the_cloned_actor(tmp_path, capsys):
+    """A tiny guided run writes demos.json and policy_bc.npz, evaluates the cloned actor, and resumes."""
+    out = tmp_path / "run"
+    argv = ["--preset", "guided", "--robots", "2", "--out", str(out), "--quiet", "--episode-steps", "20",
+            "--n-envs", "2", "--demo-episodes", "4", "--bc-updates", "30", "--actor-delay", "5",
+            "--warmup-episodes", "2", "--episodes", "4", "--eval-every", "40", "--eval-episodes", "2",
+            "--replay-size", "400", "--batch-windows", "4", "--demo-windows", "2", "--unroll", "4", "--burn-in", "3",
+            "--hidden", "6", "--critic-hidden", "16", "--seed", "3"]
+    assert main_train_recurrent(argv) == 0
+    log = capsys.readouterr().out
+    assert "behaviour cloning: loss" in log and "demonstrations: 4 episodes" in log
+    info = json.loads((out / "demos.json").read_text())
+    assert info["demo_episodes"] == 4 and info["bc_updates"] == 30
+    assert 0.0 <= info["eval_after_bc"]["eval_final_coverage"] <= 1.0
+    p = load_policy(out / "policy_bc.npz")
+    assert isinstance(p, GRUPolicy) and p.hidden_size == 6
+    header = (out / "metrics.csv").read_text().splitlines()[0]
+    assert header.endswith(",bc_pass")
+    assert main_train_recurrent(["--out", str(out), "--resume", "--quiet", "--episodes", "6"]) == 0
