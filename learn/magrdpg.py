@@ -202,7 +202,10 @@ _HINTS = typing.get_type_hints(RecurrentConfig)
 PRESETS: dict[str, dict[str, Any]] = {
     "fast": {},
     "quick": {"max_minutes": 5.0, "replay_size": 100_000, "eval_every": 12_800, "exp_name": "gru-quick"},
-    "guided": {"demo_policy": "searcher", "bc_weight": 10.0, "actor_delay": 5000, "exp_name": "gru-guided"},
+    # demonstrations + behaviour cloning, then a long critic-only phase and small, BC-anchored actor steps:
+    # the cloned GRU is fragile (weights perturbed by N(0, 0.03²) lose half its coverage), see README
+    "guided": {"demo_policy": "searcher", "bc_weight": 1000.0, "actor_delay": 20_000, "lr_actor": 3e-5,
+               "noise_sigma": 0.1, "exp_name": "gru-guided"},
 }
 
 

@@ -173,3 +173,18 @@ def test_guided_cli_clones_then_learns_and_keeps_the_cloned_actor(tmp_path, caps
     header = (out / "metrics.csv").read_text().splitlines()[0]
     assert header.endswith(",bc_pass")
     assert main_train_recurrent(["--out", str(out), "--resume", "--quiet", "--episodes", "6"]) == 0
+
+
+@pytest.mark.slow
+def test_guided_run_reaches_the_hand_written_searcher(tmp_path):
+    """A short guided run (2 robots, thesis world): its best GRU matches the hand-written searcher on fresh episodes."""
+    from export.gru import swarm_policy
+    from sim.baselines import make_policy
+    out = tmp_path / "guided"
+    assert main_train_recurrent(["--preset", "guided", "--robots", "2", "--out", str(out), "--quiet",
+                                 "--max-minutes", "3"]) == 0
+    p = load_policy(out / "policy_best.npz")
+    env = SwarmEnv(p.world, 50, 2, seed=777)
+    gru = rollout(env, swarm_policy(p), 100, seed=777).metrics().summary()["final_coverage"]
+    hw = rollout(env, make_policy("baseline", p.world), 100, seed=777).metrics().summary()["final_coverage"]
+    assert gru.mean >= hw.mean - hw.ci95, (gru, hw)
