@@ -155,13 +155,7 @@ def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: 
     np.maximum.at(sensing_nbr, summ.table_env * M + summ.table_rx, summ.table_flag.astype(np.float64))
     obs[..., OBS_NBR_SENSING] = sensing_nbr.reshape(B, M)
     hist = np.zeros((B * M, cfg.n_rbf))
-    g = summ.table_env * M + summ.table_rx  # (K,) receiver of each table entry, grouped by receiver
-    if g.size:
-        assert np.all(g[1:] >= g[:-1]), "table entries must be grouped by receiver"
-        first = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])  # each receiver's first entry
-        # ψ summed over each receiver's table in arrival order by one np.add.reduceat: the fast path
-        # (sim.radio.observe_fast) makes the same call on the same rows, so the two agree bit for bit
-        hist[g[first]] = np.add.reduceat(rbf(cfg, summ.table_dist_mm), first, axis=0)
+    np.add.at(hist, summ.table_env * M + summ.table_rx, rbf(cfg, summ.table_dist_mm))
     obs[..., OBS_RBF:] = hist.reshape(B, M, cfg.n_rbf)
     return obs.astype(np.float32), summ.target_heard.astype(np.uint8)
 

@@ -270,11 +270,31 @@ def rbf_fast(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
     return t
 
 
+def _segment_sums(rows: np.ndarray, starts: np.ndarray, counts: np.ndarray, index: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per segment, the sum of its rows added one after another (0 + r0 + r1 + ...), like np.add.at.
+
+    ``rows`` (N, K); segment s covers positions ``starts[s] .. starts[s] + counts[s] - 1`` (counts
+    >= 1), each position p standing for ``rows[index[p]]`` (or ``rows[p]``). Loops over the rank
+    within the segment (at most the neighbour-table size), vectorised over segments.
+    Returns ``(sums, order)``: ``sums[k]`` is the sum of segment ``order[k]`` (longest segments
+    first; the caller scatters once instead of un-permuting here).
+    """
+    o = np.argsort((-counts).astype(np.int16), kind="stable")  # longest first (radix sort on int16)
+    st, cn = starts.take(o), counts.take(o)
+    out = np.zeros((st.size, rows.shape[1]))
+    n_active = np.searchsorted(-cn, -np.arange(1, cn[0] + 1), side="right")  # segments with > k rows
+    for k, na in enumerate(n_active.tolist()):
+        pos = st[:na] + k
+        out[:na] += rows.take(pos if index is None else index.take(pos), axis=0)  # take: faster than []
+    return out, o
+
+
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
                  ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sim.events.observe` for periods where each (receiver, sender) pair occurs at most once.
 
-    Same float64 operations on the same rows in the same order, so the result is bit-identical.
+    Same float64 operations in the same summation order, so the result is bit-identical.
     """
     assert period.single, "observe_fast needs a period where each sender is heard at most once"
     B, M = light.shape
@@ -304,10 +324,11 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         # max of the table's 0/1 flags = (their count > 0); one bincount instead of reduceat + scatter
         n_flags = np.bincount(g if d.size == g.size else np.repeat(rcv, cnt), weights=f, minlength=B * M)
         flat[:, OBS_NBR_SENSING] = n_flags > 0
-        # ψ per message in arrival order (symmetric distances: once per unordered pair, then gathered),
-        # summed per receiver by the same np.add.reduceat call as sim.events.observe
-        rows = rbf_fast(cfg, d) if ui is None else rbf_fast(cfg, period.s_udist).take(ui, axis=0)  # (Ns, n_rbf)
-        flat[rcv, OBS_RBF:] = np.add.reduceat(rows, starts, axis=0)
+        if ui is None:
+            hist, o = _segment_sums(rbf_fast(cfg, d), starts, cnt, None)
+        else:  # symmetric distances: ψ once per unordered pair
+            hist, o = _segment_sums(rbf_fast(cfg, period.s_udist), starts, cnt, ui)
+        flat[rcv.take(o), OBS_RBF:] = hist
     return obs, heard.reshape(B, M).astype(np.uint8)
 
 
