@@ -120,6 +120,7 @@ class RecurrentConfig:
     demo_windows: int = 8  #: demonstration windows added to every minibatch
     bc_weight: float = 1.0  #: weight of the Q-filtered behaviour-cloning loss during RL (0 = none)
     actor_delay: int = 0  #: the first this many updates train only the critic (keeps a cloned actor intact)
+    critic_pretrain: int = 0  #: critic-only updates on the demonstrations after cloning (evaluates the clone)
     seed: int = 1  #: master seed (networks, environments, noise, replay sampling, evaluation)
     exp_name: str = "gru"  #: experiment name used in the default run directory name
 
@@ -156,7 +157,8 @@ class RecurrentConfig:
         need(self.demo_policy in DEMO_POLICIES, f"demo_policy must be one of {', '.join(DEMO_POLICIES)}, got '{self.demo_policy}'")
         need(self.demo_episodes >= 1 and self.bc_updates >= 0 and self.demo_windows >= 0,
              "demo_episodes must be >= 1, bc_updates and demo_windows >= 0")
-        need(self.actor_delay >= 0, f"actor_delay must be >= 0, got {self.actor_delay}")
+        need(self.actor_delay >= 0 and self.critic_pretrain >= 0,
+             f"actor_delay and critic_pretrain must be >= 0, got {self.actor_delay}, {self.critic_pretrain}")
         need(self.bc_lr > 0 and math.isfinite(self.bc_lr), f"bc_lr must be > 0, got {self.bc_lr}")
         need(self.bc_weight >= 0 and math.isfinite(self.bc_weight), f"bc_weight must be >= 0, got {self.bc_weight}")
         need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
@@ -469,6 +471,8 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
         write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
         if demos is not None and cfg.bc_updates:
             _pretrain(cfg, agent, world, demos, evaluator, demo_rng, run_dir, c, progress, log)
+        if demos is not None and cfg.critic_pretrain:
+            _pretrain_critic(cfg, agent, demos, sample_rng, progress, log)
 
     def snapshot() -> dict:
         return {"version": CHECKPOINT_VERSION, "trainer": "magrdpg", "config": cfg.to_dict(),
@@ -598,6 +602,28 @@ def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay,
     log(f"behaviour cloning: loss {loss:.4f} in {bc_s:.0f} s; evaluation return {info['eval_after_bc']['eval_return']:.1f}, "
         f"final coverage {info['eval_after_bc']['eval_final_coverage']:.3f} "
         f"(demonstrator {info['eval_demonstrator']['eval_final_coverage']:.3f})")
+
+
+def _pretrain_critic(cfg: RecurrentConfig, agent: MAGRDPG, demos: EpisodeReplay, rng: np.random.Generator,
+                     progress: bool, log) -> None:
+    """Critic-only updates on demonstration windows: Q of the (cloned) actor before the actor may move."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=cfg.critic_pretrain, unit="update", desc="critic on demonstrations", dynamic_ncols=True,
+                   leave=False)
+    t0 = time.perf_counter()
+    qs = []
+    for k in range(cfg.critic_pretrain):
+        w = sample_windows(demos, cfg.batch_windows + cfg.demo_windows, cfg.burn_in, cfg.unroll, rng)
+        st = agent.update(w, train_actor=False)
+        qs.append(st.q_mean)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    log(f"critic pre-training: {cfg.critic_pretrain} updates on demonstrations in {time.perf_counter() - t0:.0f} s, "
+        f"mean Q {np.mean(qs[-100:]):.1f}")
 
 
 def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, run_dir, export, log, bar) -> None:

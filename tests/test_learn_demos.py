@@ -146,7 +146,7 @@ def test_guided_config_validation():
     from learn.config import ConfigError
     from learn.magrdpg import PRESETS
     for bad in ({"demo_policy": "oracle"}, {"demo_episodes": 0}, {"bc_weight": -1.0}, {"bc_lr": 0.0},
-                {"actor_delay": -1}):
+                {"actor_delay": -1}, {"critic_pretrain": -5}):
         with pytest.raises(ConfigError) as ei:
             RecurrentConfig.from_dict(bad).validate()
         assert "\n" not in str(ei.value)
@@ -158,13 +158,14 @@ def test_guided_cli_clones_then_learns_and_keeps_the_cloned_actor(tmp_path, caps
     """A tiny guided run writes demos.json and policy_bc.npz, evaluates the cloned actor, and resumes."""
     out = tmp_path / "run"
     argv = ["--preset", "guided", "--robots", "2", "--out", str(out), "--quiet", "--episode-steps", "20",
-            "--n-envs", "2", "--demo-episodes", "4", "--bc-updates", "30", "--actor-delay", "5",
+            "--n-envs", "2", "--demo-episodes", "4", "--bc-updates", "30", "--critic-pretrain", "3", "--actor-delay", "5",
             "--warmup-episodes", "2", "--episodes", "4", "--eval-every", "40", "--eval-episodes", "2",
             "--replay-size", "400", "--batch-windows", "4", "--demo-windows", "2", "--unroll", "4", "--burn-in", "3",
             "--hidden", "6", "--critic-hidden", "16", "--seed", "3"]
     assert main_train_recurrent(argv) == 0
     log = capsys.readouterr().out
     assert "behaviour cloning: loss" in log and "demonstrations: 4 episodes" in log
+    assert "critic pre-training: 3 updates" in log
     info = json.loads((out / "demos.json").read_text())
     assert info["demo_episodes"] == 4 and info["bc_updates"] == 30
     assert 0.0 <= info["eval_after_bc"]["eval_final_coverage"] <= 1.0
