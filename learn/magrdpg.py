@@ -744,7 +744,9 @@ def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m l
     if best:
         print(f"  best evaluation at {best['env_steps']:.0f} transitions: return {best['eval_return']:.1f}, "
               f"final coverage {best['eval_final_coverage']:.3f}, time to find {best['eval_time_to_find']:.1f}")
-    print(f"  policies: {res.run_dir / 'policy_best.npz'}, {res.run_dir / 'policy_last.npz'}")
+    pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
+            if (res.run_dir / n).is_file()]
+    print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
     return 0
 
 
