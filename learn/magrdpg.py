@@ -455,7 +455,9 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
         if ck.get("version") != CHECKPOINT_VERSION or ck.get("trainer") != "magrdpg":
             raise ConfigError(f"'{run_dir}/checkpoint.pt' is not a MAGRDPG checkpoint of version {CHECKPOINT_VERSION}")
         may_change = ("episodes", "max_minutes", "threads", "checkpoint_every")
-        diff = sorted(k for k, v in cfg.to_dict().items() if k not in may_change and ck["config"].get(k) != v)
+        defaults = RecurrentConfig().to_dict()  # fields newer than the checkpoint: their defaults ran then
+        diff = sorted(k for k, v in cfg.to_dict().items()
+                      if k not in may_change and ck["config"].get(k, defaults[k]) != v)
         if diff:
             raise ConfigError(f"cannot resume with a different {', '.join(diff)}")
         agent.load_state_dict(ck["agent"])
@@ -626,6 +628,12 @@ def _pretrain_critic(cfg: RecurrentConfig, agent: MAGRDPG, demos: EpisodeReplay,
         f"mean Q {np.mean(qs[-100:]):.1f}")
 
 
+def _mean_finite(xs: list[float]) -> float:
+    """Mean of the finite values (NaN when there are none)."""
+    v = [x for x in xs if math.isfinite(x)]
+    return float(np.mean(v)) if v else float("nan")
+
+
 def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, run_dir, export, log, bar) -> None:
     """Evaluate deterministically (MAGDDPG's episodes), append a metrics row, export, redraw the curve."""
     from .plots import plot_learning_curves
@@ -636,7 +644,7 @@ def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, ru
            "train_return": float(np.mean(train_returns)) if train_returns else float("nan"),
            "critic_loss": float(np.mean([x[0] for x in losses])) if losses else float("nan"),
            "q_mean": float(np.mean([x[1] for x in losses])) if losses else float("nan"),
-           "bc_pass": float(np.mean([x[2] for x in losses])) if losses else float("nan"),
+           "bc_pass": _mean_finite([x[2] for x in losses]),  # NaN while the actor waits or without demos
            "env_steps_per_s": c.env_steps / c.env_s if c.env_s > 0 else float("nan"),
            "updates_per_s": c.updates / c.update_s if c.update_s > 0 else float("nan")}
     c.rows.append(row)

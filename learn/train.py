@@ -268,7 +268,7 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
 def rows_to_csv(rows: list[dict]) -> str:
     """CSV of metric rows: METRIC_COLUMNS, then any extra columns a trainer adds (e.g. MAGRDPG's bc_pass)."""
     buf = io.StringIO()
-    extra = [k for k in (rows[0] if rows else {}) if k not in METRIC_COLUMNS]
+    extra = list(dict.fromkeys(k for r in rows for k in r if k not in METRIC_COLUMNS))  # first-seen order
     w = csv.DictWriter(buf, fieldnames=list(METRIC_COLUMNS) + extra, lineterminator="\n")
     w.writeheader()
     for r in rows:

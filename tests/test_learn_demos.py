@@ -189,3 +189,12 @@ def test_guided_run_reaches_the_hand_written_searcher(tmp_path):
     gru = rollout(env, swarm_policy(p), 100, seed=777).metrics().summary()["final_coverage"]
     hw = rollout(env, make_policy("baseline", p.world), 100, seed=777).metrics().summary()["final_coverage"]
     assert gru.mean >= hw.mean - hw.ci95, (gru, hw)
+
+
+def test_metrics_csv_keeps_extra_columns_of_later_rows():
+    """rows_to_csv writes MAGRDPG's bc_pass even when only later rows have it (a run resumed from before it)."""
+    from learn.train import METRIC_COLUMNS, rows_to_csv
+    old = {k: 1.0 for k in METRIC_COLUMNS}
+    text = rows_to_csv([old, {**old, "bc_pass": 0.5}])
+    header, first, second = text.splitlines()
+    assert header.endswith(",bc_pass") and first.endswith(",") and second.endswith(",0.5")
