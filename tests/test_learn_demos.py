@@ -46,13 +46,12 @@ def test_demo_episodes_are_the_demonstrators_rollouts():
     x = rep.tuples[:8]  # (E, T + 1, M, D)
     assert np.all(x[:, 0, :, :2] == 0)  # a_0 = 0
     assert set(np.unique(x[:, 1:, :, :2])) <= {0.0, 1.0}  # the searcher's commands: stop, turn, straight
-    assert np.all(x[:, 1:, :, 2:] == x[:, 1:, :, 2:])  # finite
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(rep.states[:8])) and np.all(np.isfinite(rep.rewards[:8]))
     X, A = episode_sequences(rep)
     assert X.shape == (16, 30, WORLD.tuple_dim) and A.shape == (16, 30, 2)
     torch.testing.assert_close(X[:, 1:, :2], A[:, :-1])  # the input's previous action is the last target
     # the stored rewards are what the env paid: replay the first batch's actions in a fresh env
-    env = SwarmEnv(WORLD, 4, 2, seed=0)
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(0)  # collect_demos draws the env seed, then each batch's reset seed
     env = SwarmEnv(WORLD, 4, 2, seed=int(rng.integers(2 ** 31)))
     obs, _ = env.reset(seed=int(rng.integers(2 ** 31)))
     np.testing.assert_array_equal(obs.astype(np.float32), x[:4, 0, :, 2:])
