@@ -70,6 +70,7 @@ from .replay import EpisodeReplay
 from .train import Counters, finite_or_none, git_hash, prepare_run_dir, rows_to_csv, write_summary
 
 TASK = "coop_loc"
+ACTION_GRADIENTS = ("invert", "clip")  #: values of ``--action-gradient``
 CHECKPOINT_VERSION = 1
 
 
@@ -96,6 +97,9 @@ class RecurrentConfig:
     lr_critic: float = 1e-3  #: Adam learning rate of the critic
     lr_actor: float = 3e-4  #: Adam learning rate of the actor (1e-3, MAGDDPG's fast value, was less stable)
     grad_clip: float = 1.0  #: clip the actor's gradient norm to this (0 = no clipping)
+    #: how ∇_a Q reaches a bounded action: invert (inverting gradients, thesis §4.3.1) or clip (the
+    #: gradient of Q(s, clip(a)): zero beyond the bounds, so commands at 0 or 1 are not ratcheted inwards)
+    action_gradient: str = "invert"
     replay_size: int = 200_000  #: replay memory capacity in transitions (whole episodes)
     warmup_episodes: int = 32  #: episodes (summed over envs) with the initial policy before learning
     episodes: int = 100_000  #: learning episodes (summed over envs) after the warm-up
@@ -145,6 +149,8 @@ class RecurrentConfig:
             v = getattr(self, name)
             need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")
         need(self.grad_clip >= 0, f"grad_clip must be >= 0, got {self.grad_clip}")
+        need(self.action_gradient in ACTION_GRADIENTS,
+             f"action_gradient must be one of {', '.join(ACTION_GRADIENTS)}, got '{self.action_gradient}'")
         need(self.warmup_episodes >= 0 and self.episodes >= 0, "warmup_episodes and episodes must be >= 0")
         need(self.updates_per_step >= 0, f"updates_per_step must be >= 0, got {self.updates_per_step}")
         need(self.noise_theta >= 0 and self.noise_sigma >= 0, "noise_theta and noise_sigma must be >= 0")
@@ -291,8 +297,9 @@ class MAGRDPG:
 
     def __init__(self, in_dim: int, state_dim: int, n_robots: int, hidden: int, critic_hidden: tuple[int, ...],
                  gamma: float, tau: float, lr_actor: float, lr_critic: float, reward_scale: float = 1.0,
-                 burn_in: int = 8, grad_clip: float = 0.0) -> None:
-        self.n_robots, self.burn_in = n_robots, int(burn_in)
+                 burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert") -> None:
+        assert action_gradient in ACTION_GRADIENTS, f"unknown action_gradient {action_gradient!r}"
+        self.n_robots, self.burn_in, self.action_gradient = n_robots, int(burn_in), action_gradient
         self.gamma, self.tau, self.reward_scale, self.grad_clip = float(gamma), float(tau), float(reward_scale), float(grad_clip)
         self.actor = GRUActor(in_dim, hidden)
         self.critic = Critic(state_dim, n_robots, critic_hidden)
@@ -352,9 +359,13 @@ class MAGRDPG:
         a_raw, _ = self.actor(X[rows, pos], self.burn_in_state(X, off))  # (N*M, U, 2)
         a_pol = per_step(a_raw)
         a_in = a_pol.detach().requires_grad_(True)
-        q_pol = self.critic(s, a_in)
-        (dq_da,) = torch.autograd.grad(q_pol.sum(), a_in)
-        g = invert_gradients(dq_da, a_in.detach())
+        if self.action_gradient == "clip":  # ∇ of Q(s, clip(a)): zero for components beyond a bound
+            q_pol = self.critic(s, a_in.clamp(A_MIN, A_MAX))
+            (g,) = torch.autograd.grad(q_pol.sum(), a_in)
+        else:
+            q_pol = self.critic(s, a_in)
+            (dq_da,) = torch.autograd.grad(q_pol.sum(), a_in)
+            g = invert_gradients(dq_da, a_in.detach())
         self.actor_opt.zero_grad(set_to_none=True)
         objective = torch.sum(a_pol * (-g / (N * U)))  # its gradient ascends (1 / N U) Σ_j Σ_t Σ_i g · μ
         bc_pass = float("nan")
@@ -441,7 +452,7 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
 
     env = SwarmEnv(world, n_envs=B, n_robots=M, seed=int(env_rng.integers(2 ** 31)))
     agent = MAGRDPG(D, S, M, cfg.hidden, cfg.critic_hidden, cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic,
-                    cfg.reward_scale, cfg.burn_in, cfg.grad_clip)
+                    cfg.reward_scale, cfg.burn_in, cfg.grad_clip, cfg.action_gradient)
     replay = EpisodeReplay(cfg.replay_size, T, M, D, S, 1)
     noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
     evaluator = Evaluator(world, M, 1, cfg.eval_episodes, eval_seed)

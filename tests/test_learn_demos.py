@@ -145,7 +145,7 @@ def test_guided_config_validation():
     from learn.config import ConfigError
     from learn.magrdpg import PRESETS
     for bad in ({"demo_policy": "oracle"}, {"demo_episodes": 0}, {"bc_weight": -1.0}, {"bc_lr": 0.0},
-                {"actor_delay": -1}, {"critic_pretrain": -5}):
+                {"actor_delay": -1}, {"critic_pretrain": -5}, {"action_gradient": "tanh"}):
         with pytest.raises(ConfigError) as ei:
             RecurrentConfig.from_dict(bad).validate()
         assert "\n" not in str(ei.value)
@@ -197,3 +197,35 @@ def test_metrics_csv_keeps_extra_columns_of_later_rows():
     text = rows_to_csv([old, {**old, "bc_pass": 0.5}])
     header, first, second = text.splitlines()
     assert header.endswith(",bc_pass") and first.endswith(",") and second.endswith(",0.5")
+
+
+class LessIsBetterCritic(torch.nn.Module):
+    """Q(s, a) = -Σ a: every command wants to go down."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.b = torch.nn.Parameter(torch.zeros(()))
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return -a.sum(dim=(1, 2)) + 0.0 * self.b
+
+
+def test_clip_action_gradient_leaves_saturated_commands_alone():
+    """action_gradient='clip': commands beyond a bound get no gradient; 'invert' pushes them back inside."""
+    rep = collect_demos(WORLD, 2, 4, 4, np.random.default_rng(4))
+    w = sample_windows(rep, 4, 3, 5, np.random.default_rng(5))
+    out = {}
+    for mode in ("clip", "invert"):
+        torch.manual_seed(6)
+        agent = MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (16,), 0.5, 0.01, 1e-2, 1e-3, burn_in=3,
+                        action_gradient=mode)
+        with torch.no_grad():
+            agent.actor.out.weight.zero_()
+            agent.actor.out.bias.fill_(1.5)  # every raw command at 1.5: beyond the upper bound
+        agent.critic, agent.critic_target = LessIsBetterCritic(), LessIsBetterCritic()
+        before = [p.detach().clone() for p in agent.actor.parameters()]
+        agent.update(w)
+        out[mode] = max(float((p.detach() - b).abs().max()) for p, b in zip(agent.actor.parameters(), before))
+    assert out["clip"] == 0.0 and out["invert"] > 0.0, out
+    with pytest.raises(AssertionError, match="action_gradient"):
+        MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (16,), 0.5, 0.01, 1e-2, 1e-3, action_gradient="tanh")
