@@ -210,10 +210,11 @@ _HINTS = typing.get_type_hints(RecurrentConfig)
 PRESETS: dict[str, dict[str, Any]] = {
     "fast": {},
     "quick": {"max_minutes": 5.0, "replay_size": 100_000, "eval_every": 12_800, "exp_name": "gru-quick"},
-    # demonstrations + behaviour cloning, then a long critic-only phase and small, BC-anchored actor steps:
-    # the cloned GRU is fragile (weights perturbed by N(0, 0.03²) lose half its coverage), see README
+    # demonstrations + behaviour cloning, then a long critic-only phase and small, BC-anchored actor steps
+    # through clip (not inverting) gradients: the clone's commands sit at 0 and 1, where inverting
+    # gradients can only push them inwards (README: guided MAGRDPG)
     "guided": {"demo_policy": "searcher", "bc_weight": 1000.0, "actor_delay": 20_000, "lr_actor": 3e-5,
-               "noise_sigma": 0.1, "exp_name": "gru-guided"},
+               "noise_sigma": 0.1, "action_gradient": "clip", "exp_name": "gru-guided"},
 }
 
 

@@ -150,7 +150,7 @@ def test_guided_config_validation():
             RecurrentConfig.from_dict(bad).validate()
         assert "\n" not in str(ei.value)
     g = RecurrentConfig.from_dict(PRESETS["guided"]).validate()
-    assert g.demo_policy == "searcher" and g.bc_updates > 0 and g.actor_delay > 0
+    assert g.demo_policy == "searcher" and g.bc_updates > 0 and g.actor_delay > 0 and g.action_gradient == "clip"
 
 
 def test_guided_cli_clones_then_learns_and_keeps_the_cloned_actor(tmp_path, capsys):
