@@ -575,16 +575,17 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
     return RunResult(run_dir, c, stopped)
 
 
+def _phase_bar(progress: bool, total: int, unit: str, desc: str):
+    """A transient tqdm bar for one preparation phase (a silent no-op bar without ``progress``)."""
+    from tqdm import tqdm
+    return tqdm(total=total, unit=unit, desc=desc, dynamic_ncols=True, leave=False, disable=not progress)
+
+
 def _collect_demos(cfg: RecurrentConfig, world, rng: np.random.Generator, progress: bool, log) -> EpisodeReplay:
     """The demonstrator's episodes (learn.demos), with a progress bar."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=cfg.demo_episodes, unit="episode", desc="demonstrations", dynamic_ncols=True, leave=False)
     t0 = time.perf_counter()
-    demos = collect_demos(world, cfg.n_robots, cfg.demo_episodes, cfg.n_envs, rng, bar.update if bar else None)
-    if bar is not None:
-        bar.close()
+    with _phase_bar(progress, cfg.demo_episodes, "episode", "demonstrations") as bar:
+        demos = collect_demos(world, cfg.n_robots, cfg.demo_episodes, cfg.n_envs, rng, bar.update)
     log(f"demonstrations: {int((demos.filled > 0).sum())} episodes of the {cfg.demo_policy} "
         f"in {time.perf_counter() - t0:.0f} s")
     return demos
@@ -593,15 +594,10 @@ def _collect_demos(cfg: RecurrentConfig, world, rng: np.random.Generator, progre
 def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay, evaluator, rng, run_dir: Path,
               c: Counters, progress: bool, log) -> None:
     """Behaviour cloning of the actor (and its target) on the demonstrations; evaluate and keep that actor."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=cfg.bc_updates, unit="update", desc="behaviour cloning", dynamic_ncols=True, leave=False)
     t0 = time.perf_counter()
-    loss = bc_pretrain(agent.actor, demos, cfg.bc_updates, cfg.batch_windows, cfg.bc_lr, rng,
-                       (lambda k, l: bar.update(1)) if bar else None)
-    if bar is not None:
-        bar.close()
+    with _phase_bar(progress, cfg.bc_updates, "update", "behaviour cloning") as bar:
+        loss = bc_pretrain(agent.actor, demos, cfg.bc_updates, cfg.batch_windows, cfg.bc_lr, rng,
+                           lambda k, l: bar.update(1))
     agent.actor_target.load_state_dict(agent.actor.state_dict())
     bc_s = time.perf_counter() - t0
     demo_m = rollout(evaluator.env, demonstrator(world), evaluator.episodes, seed=evaluator.seed).metrics()
@@ -610,9 +606,10 @@ def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay,
             "bc_updates": cfg.bc_updates, "bc_loss": loss, "bc_s": round(bc_s, 1),
             "eval_demonstrator": finite_or_none(metrics_row(demo_m)), "eval_after_bc": finite_or_none(metrics_row(bc_m))}
     write_text_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
-    save_policy(actor_artifact(agent, cfg, world, c, metrics_row(bc_m)), run_dir / "policy_bc.npz")
+    clone = actor_artifact(agent, cfg, world, c, metrics_row(bc_m))
+    save_policy(clone, run_dir / "policy_bc.npz")
+    save_policy(clone, run_dir / "policy_best.npz")
     c.best_return = info["eval_after_bc"]["eval_return"]  # RL must beat the cloned actor to replace it as best
-    save_policy(actor_artifact(agent, cfg, world, c, metrics_row(bc_m)), run_dir / "policy_best.npz")
     log(f"behaviour cloning: loss {loss:.4f} in {bc_s:.0f} s; evaluation return {info['eval_after_bc']['eval_return']:.1f}, "
         f"final coverage {info['eval_after_bc']['eval_final_coverage']:.3f} "
         f"(demonstrator {info['eval_demonstrator']['eval_final_coverage']:.3f})")
@@ -621,21 +618,13 @@ def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay,
 def _pretrain_critic(cfg: RecurrentConfig, agent: MAGRDPG, demos: EpisodeReplay, rng: np.random.Generator,
                      progress: bool, log) -> None:
     """Critic-only updates on demonstration windows: Q of the (cloned) actor before the actor may move."""
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=cfg.critic_pretrain, unit="update", desc="critic on demonstrations", dynamic_ncols=True,
-                   leave=False)
     t0 = time.perf_counter()
     qs = []
-    for k in range(cfg.critic_pretrain):
-        w = sample_windows(demos, cfg.batch_windows + cfg.demo_windows, cfg.burn_in, cfg.unroll, rng)
-        st = agent.update(w, train_actor=False)
-        qs.append(st.q_mean)
-        if bar is not None:
+    with _phase_bar(progress, cfg.critic_pretrain, "update", "critic on demonstrations") as bar:
+        for _ in range(cfg.critic_pretrain):
+            w = sample_windows(demos, cfg.batch_windows + cfg.demo_windows, cfg.burn_in, cfg.unroll, rng)
+            qs.append(agent.update(w, train_actor=False).q_mean)
             bar.update(1)
-    if bar is not None:
-        bar.close()
     log(f"critic pre-training: {cfg.critic_pretrain} updates on demonstrations in {time.perf_counter() - t0:.0f} s, "
         f"mean Q {np.mean(qs[-100:]):.1f}")
 
