@@ -71,7 +71,7 @@ def test_resume_continues_exactly(tmp_path):
     for k in a["agent"]["actor_opt"]["state"]:
         torch.testing.assert_close(a["agent"]["actor_opt"]["state"][k]["exp_avg"],
                                    b["agent"]["actor_opt"]["state"][k]["exp_avg"], rtol=0, atol=0)
-    np.testing.assert_array_equal(a["replay"]["tuples"], b["replay"]["tuples"])
+    np.testing.assert_array_equal(a["replay"][0]["tuples"], b["replay"][0]["tuples"])
     assert a["rng"]["replay"] == b["rng"]["replay"]
 
 
