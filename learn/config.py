@@ -100,7 +100,7 @@ class ExperimentConfig:
     warmup_episodes: int = 500  #: episodes (summed over envs) run with the initial policy before learning
     episodes: int = 10_000  #: learning episodes (summed over envs and sizes) after the warm-up
     updates_per_step: float = 1.0  #: gradient updates per collected transition (thesis: 1)
-    update_every: int = 8  #: owed updates run in blocks every this many env steps (and at episode ends)
+    update_every: int = 1  #: owed updates run in blocks every this many env steps (and at episode ends)
     size_mix: str = "equal"  #: share of a minibatch per swarm size: equal, or robots (proportional to robot count)
     reward_scale: float = 1.0  #: multiplies the learning reward (metrics stay raw)
     extra_action_penalty: float = 0.0  #: learning only: added to the world's action penalty (thesis 0.01)

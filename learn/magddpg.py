@@ -102,6 +102,7 @@ class MAGDDPG(CentralisedDDPG):
             return self.actor(h)
         with torch.no_grad():
             a = self.actor(h)
+        a = a.clone()  # a plain tensor, so the chosen robots' rows can be written with their graph
         idx = torch.arange(h.shape[0], device=h.device)[:, None]
         a[idx, sel] = self.actor(h[idx, sel])  # gradient only through the chosen robots
         return a

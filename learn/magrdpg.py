@@ -83,7 +83,7 @@ class MAGRDPG(CentralisedDDPG):
         assert full.size, "no complete demonstration episode stored"
         e = full[rng.integers(0, full.size, n)]
         i = rng.integers(0, demos.M, n)
-        seq = demos.tuples.view(-1, demos.T + 1, demos.D)[torch.from_numpy(e * demos.M + i).to(demos.device)]
+        seq = demos.tuples.reshape(-1, demos.T + 1, demos.D)[torch.from_numpy(e * demos.M + i).to(demos.device)]
         y, _ = self.actor(seq[:, :-1], self.actor.initial_state(n))  # inputs x_0 .. x_{T-1}
         return torch.mean((y - seq[:, 1:, :ACTION_DIM]) ** 2)  # a_t is stored in x_{t+1}
 

@@ -5,15 +5,16 @@ per transition (5 GB for the thesis's 500 000 transitions of 4 robots). Consecut
 but one tuple, so the memory keeps each episode's tuples once and cuts what it samples out of them:
 
 * ``tuples[e, i, k]`` (tuple_dim,): the tuple ``(a_{k-1}, o_k)`` robot i pushed at step k of episode
-  slot e (k = 0 is ``(0, o_0)``, Algorithm 4's initial tuple); stored robot-major, so one robot's
-  consecutive tuples are contiguous and a history is one slice;
+  slot e (k = 0 is ``(0, o_0)``, Algorithm 4's initial tuple); stored robot-major behind t_prev − 1
+  copies of tuple 0, so every history of a robot is one contiguous run of memory;
 * ``states[e, k]``: the critic state s_k; ``rewards[e, k]``: r_k for the move from k to k+1.
 
 Transition (e, t) is ``s = states[e, t]``, ``a = tuples[e, :, t+1, :2]``, ``r = rewards[e, t]``,
 ``s' = states[e, t+1]``, and ``h`` / ``h'`` are the t_prev tuples ending at k = t / t + 1, with indices
 before the episode start clamped to 0 — exactly Algorithm 4's "first tuple repeated" initialisation,
 and what :class:`sim.history.History` holds at that step. :meth:`EpisodeReplay.sample` gathers the
-t_prev + 1 tuples ending at t + 1 once, and h and h' are overlapping views of that one window.
+t_prev + 1 tuples ending at t + 1 once per robot (one contiguous run each, thanks to the leading
+copies of tuple 0), and h and h' are overlapping views of that one window.
 
 The arrays are torch tensors on the training device; sampled minibatches are views into buffers
 the memory allocates once per minibatch size (valid until the next sample of that size). Slots form a
@@ -100,7 +101,9 @@ class EpisodeReplay:
         self.n_slots = capacity // episode_steps
         C, T, M, D = self.n_slots, episode_steps, n_robots, tuple_dim
         z = dict(dtype=torch.float32, device=self.device)
-        self.tuples = torch.zeros((C, M, T + 1, D), **z)
+        self.pad = t_prev - 1  # leading copies of tuple 0: a history never needs clamping
+        self._store = torch.zeros((C, M, self.pad + T + 1, D), **z)
+        self.tuples = self._store[:, :, self.pad:]  # (C, M, T + 1, D) view
         self.states = torch.zeros((C, T + 1, state_dim), **z)
         self.rewards = torch.zeros((C, T), **z)
         self.filled = np.zeros(C, np.int64)  # transitions stored per slot, 0..T
@@ -108,7 +111,7 @@ class EpisodeReplay:
         self.wrapped = False  # every slot has been used at least once
         self.active = np.zeros(0, np.int64)  # slots of the episodes being collected
         self.step = 0  # transitions stored so far in each active slot
-        slot_bytes = 4 * (M * (T + 1) * D + (T + 1) * state_dim + T)
+        slot_bytes = 4 * (M * (self.pad + T + 1) * D + (T + 1) * state_dim + T)
         self.block_slots = max(1, BLOCK_BYTES // slot_bytes)
         self.dirty = np.zeros(self.n_blocks, bool)  # blocks written since the last checkpoint
         self._buffers: dict[tuple, torch.Tensor] = {}
@@ -148,7 +151,7 @@ class EpisodeReplay:
         self.filled[self.active] = 0  # overwrite the oldest episodes
         self.dirty[self.active // self.block_slots] = True
         self._active_t = self._to_device(self.active, np.int64)
-        self.tuples[self._active_t, :, 0] = self._to_device(first_tuples)
+        self._store[self._active_t, :, :self.pad + 1] = self._to_device(first_tuples)[:, :, None]
         self.states[self._active_t, 0] = self._to_device(states)
         self.step = 0
 
@@ -182,9 +185,9 @@ class EpisodeReplay:
         return out
 
     def _tuple_rows(self, e: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """Flat row numbers (N, M, L) of tuples[e, i, idx] for every robot i."""
-        M, L1 = self.M, self.T + 1
-        return ((e[:, None] * M + np.arange(M))[:, :, None] * L1 + idx[:, None, :])
+        """Flat row numbers (N, M, L) of the stored tuples[e, i, idx] for every robot i."""
+        M, L1 = self.M, self.pad + self.T + 1
+        return ((e[:, None] * M + np.arange(M))[:, :, None] * L1 + self.pad + idx[:, None, :])
 
     def _locate(self, per_slot: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """N (slot, step) pairs uniform over ``per_slot[e]`` admissible steps of every slot."""
@@ -204,8 +207,10 @@ class EpisodeReplay:
         """The transitions (e, t) (integer arrays of equal shape (N,)) by one gather of t_prev + 1 tuples."""
         e, t = np.asarray(e, np.int64), np.asarray(t, np.int64)
         N, M, P, D = e.shape[0], self.M, self.t_prev, self.D
-        idx = np.maximum(t[:, None] + np.arange(1 - P, 2), 0)  # (N, P + 1): tuples t-P+1 .. t+1, clamped
-        x = self._gather(self.tuples, self._tuple_rows(e, idx), "x")  # (N, M, P + 1, D)
+        # robot i's tuples t-P+1 .. t+1 (clamped at 0) are the run of P + 1 stored rows starting at padded index t
+        starts = ((e[:, None] * M + np.arange(M)) * (self.pad + self.T + 1) + t[:, None])  # (N, M)
+        runs = self._store.view(-1).as_strided((self._store.numel() // D - P, (P + 1) * D), (D, 1))
+        x = self._gather(runs, starts, "x").view(N, M, P + 1, D)
         srow = e * (self.T + 1) + t
         st = self._gather(self.states, np.stack([srow, srow + 1], 1), "s")  # (N, 2, S)
         r = self._gather(self.rewards.view(-1, 1), (e * self.T + t)[:, None], "r")  # (N, 1, 1)
@@ -220,7 +225,7 @@ class EpisodeReplay:
         k0 = np.maximum(ts - burn_in, 0)
         L = burn_in + unroll + 1
         idx = np.minimum(k0[:, None] + np.arange(L), self.filled[e][:, None])  # (N, L)
-        x = self._gather(self.tuples, self._tuple_rows(e, idx), "wx")  # (N, M, L, D)
+        x = self._gather(self._store, self._tuple_rows(e, idx), "wx")  # (N, M, L, D)
         off = ts - k0
         srow = (e * (self.T + 1) + ts)[:, None] + np.arange(unroll + 1)
         st = self._gather(self.states, srow, "ws")  # (N, U + 1, S)
@@ -247,9 +252,9 @@ class EpisodeReplay:
         return list(range(-(-used // self.block_slots)))
 
     def block(self, b: int) -> dict[str, torch.Tensor]:
-        """The arrays of block b (CPU tensors)."""
+        """The arrays of block b (CPU copies: saving a view would save the whole memory)."""
         sl = slice(b * self.block_slots, min((b + 1) * self.block_slots, self.n_slots))
-        return {"tuples": self.tuples[sl].cpu(), "states": self.states[sl].cpu(), "rewards": self.rewards[sl].cpu()}
+        return {name: getattr(self, name)[sl].to("cpu", copy=True) for name in ("tuples", "states", "rewards")}
 
     def load_meta(self, d: dict) -> None:
         if list(d["shape"]) != [self.n_slots, self.M, self.T, self.D, self.S] or d["block_slots"] != self.block_slots:
@@ -270,15 +275,17 @@ class EpisodeReplay:
             if tuple(src.shape) != tuple(dst.shape):
                 raise ValueError(f"replay block {b} has {name} of shape {tuple(src.shape)}, expected {tuple(dst.shape)}")
             dst.copy_(src)
+        self._store[sl, :, :self.pad] = self._store[sl, :, self.pad:self.pad + 1]
 
     def state_dict(self) -> dict:
         """Everything, in one dict (meta and the used slots' arrays)."""
         used = self.n_slots if self.wrapped else self.next_slot
-        return {**self.meta(), "tuples": self.tuples[:used].cpu(), "states": self.states[:used].cpu(),
-                "rewards": self.rewards[:used].cpu()}
+        return {**self.meta(), **{name: getattr(self, name)[:used].to("cpu", copy=True)
+                                  for name in ("tuples", "states", "rewards")}}
 
     def load_state_dict(self, d: dict) -> None:
         self.load_meta(d)
         used = d["tuples"].shape[0]
         for name in ("tuples", "states", "rewards"):
             getattr(self, name)[:used].copy_(torch.as_tensor(d[name]))
+        self._store[:used, :, :self.pad] = self._store[:used, :, self.pad:self.pad + 1]
