@@ -28,6 +28,8 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 import torch
 
+from export.atomic import new_file_mode, write_bytes_atomic
+
 from .config import ConfigError
 
 _NP_TAG = "__ndarray__"
@@ -66,6 +68,7 @@ def _write_atomic(path: Path, write) -> None:
             write(f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -227,7 +230,5 @@ def published_dir(out: str | os.PathLike) -> Iterator[Path]:
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write a small text file atomically."""
-    path = Path(path)
-    _write_atomic(path, lambda f: f.write(text.encode("utf-8")))
-    return path
+    """Write a small text file atomically (UTF-8)."""
+    return write_bytes_atomic(path, text)
