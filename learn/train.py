@@ -44,7 +44,7 @@ from .magrdpg import MAGRDPG
 from .replay import EpisodeReplay
 from .rundir import (METRIC_COLUMNS, Counters, RunResult, check_resumable, finite_or_none, git_hash,  # noqa: F401
                      prepare_run_dir, read_metrics, rows_to_csv, run_name, write_summary)
-from .speed import resolve_device, set_threads
+from .speed import resolve_device, set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 2
 PLOT_EVERY_S = 60.0  #: redraw learning_curve.png at most this often (and at the end): plotting is slow
@@ -59,12 +59,13 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
     """Train with ``cfg`` (any algorithm), writing to ``run_dir``; ``resume`` continues from its checkpoint
     (or restarts a run directory that has none). Returns the counters and why the run stopped."""
     cfg.validate()
+    device = resolve_device(cfg.device)
     run_dir = Path(run_dir)
     resume = prepare_run_dir(run_dir, resume, log)
     ckpt = Checkpointer(run_dir)
     world = cfg.world_config()
-    device = resolve_device(cfg.device)
     set_threads(cfg.threads)
+    tune_allocator()
     T = world.episode_steps
 
     # --- seeding: one SeedSequence, one stream per consumer; no global NumPy RNG ----------------
