@@ -115,7 +115,9 @@ class EpisodeReplay:
         self.block_slots = max(1, BLOCK_BYTES // slot_bytes)
         self.dirty = np.zeros(self.n_blocks, bool)  # blocks written since the last checkpoint
         self._buffers: dict[tuple, torch.Tensor] = {}
-        self._active_t = torch.zeros(0, dtype=torch.int64, device=self.device)
+        self._active_t: slice | torch.Tensor = slice(0, 0)  # active slots for torch writes
+        self._active_np: slice | np.ndarray = slice(0, 0)  # ... and for NumPy writes
+        self._views: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.filled.sum())
@@ -150,18 +152,37 @@ class EpisodeReplay:
         self.next_slot = int((self.next_slot + B) % self.n_slots)
         self.filled[self.active] = 0  # overwrite the oldest episodes
         self.dirty[self.active // self.block_slots] = True
-        self._active_t = self._to_device(self.active, np.int64)
-        self._store[self._active_t, :, :self.pad + 1] = self._to_device(first_tuples)[:, :, None]
-        self.states[self._active_t, 0] = self._to_device(states)
+        self._set_active(self.active)
+        self._write("store", (slice(None), slice(0, self.pad + 1)), first_tuples[:, :, None])
+        self._write("states", (0,), states)
         self.step = 0
+
+    def _write(self, name: str, index: tuple, x: np.ndarray) -> None:
+        """array[active slots, *index] = x: through NumPy views on the CPU (a few µs), torch otherwise."""
+        if self.device.type == "cpu":
+            if self._views is None:
+                self._views = {n: getattr(self, a).numpy() for n, a in
+                               (("store", "_store"), ("tuples", "tuples"), ("states", "states"), ("rewards", "rewards"))}
+            self._views[name][(self._active_np,) + index] = x
+        else:
+            dst = {"store": self._store, "tuples": self.tuples, "states": self.states, "rewards": self.rewards}[name]
+            dst[(self._active_t,) + index] = self._to_device(np.asarray(x, np.float32))
+
+    def _set_active(self, active: np.ndarray) -> None:
+        """Index of the active slots for writing: a slice when they are consecutive (fast copies)."""
+        a = np.asarray(active, np.int64)
+        if a.size and np.array_equal(a, np.arange(a[0], a[0] + a.size)):
+            self._active_np = self._active_t = slice(int(a[0]), int(a[0]) + a.size)
+        else:
+            self._active_np, self._active_t = a, self._to_device(a, np.int64).clone()
 
     def add(self, tuples: np.ndarray, states: np.ndarray, rewards: np.ndarray) -> None:
         """One step of the B active episodes: tuples (a_t, o_{t+1}), s_{t+1}, r_t."""
         assert self.step < self.T, f"episode longer than episode_steps={self.T}"
         k = self.step + 1
-        self.tuples[self._active_t, :, k] = self._to_device(tuples)
-        self.states[self._active_t, k] = self._to_device(states)
-        self.rewards[self._active_t, self.step] = self._to_device(rewards)
+        self._write("tuples", (slice(None), k), tuples)
+        self._write("states", (k,), states)
+        self._write("rewards", (self.step,), rewards)
         self.step = k
         self.filled[self.active] = k
 
@@ -263,7 +284,7 @@ class EpisodeReplay:
         self.next_slot = int(d["next_slot"])
         self.wrapped = bool(d["wrapped"])
         self.active = np.asarray(d["active"], np.int64)
-        self._active_t = self._to_device(self.active, np.int64).clone()
+        self._set_active(self.active)
         self.step = int(d["step"])
         self.dirty[:] = False
 

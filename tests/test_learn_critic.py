@@ -102,3 +102,31 @@ def test_learning_rewards():
     np.testing.assert_allclose(linear(env, r, info, a), r + world.reward_scale * (c - c * c), rtol=1e-6)
     extra = LearningReward("team", world, 0.9, extra_action_penalty=0.1)
     np.testing.assert_allclose(extra(env, r, info, a), r - world.reward_scale * 0.1 * 0.5, rtol=1e-6)
+
+
+def test_randomise_reaches_training_envs_only(tmp_path, monkeypatch):
+    """randomise=NAME passes sim.variants.RANDOMISATIONS[NAME] to the training envs, not to the evaluation envs
+    (unless randomise_eval); an unknown name is a one-line ConfigError."""
+    import sys
+    import types
+
+    import learn.groups as groups
+    marker = object()
+    monkeypatch.setitem(sys.modules, "sim.variants", types.SimpleNamespace(RANDOMISATIONS={"test": marker}))
+    seen = []
+
+    class Recording(SwarmEnv):
+        def __init__(self, *args, randomise=None, **kw):
+            seen.append(randomise)
+            super().__init__(*args, **kw)
+
+    monkeypatch.setattr(groups, "SwarmEnv", Recording)
+    with pytest.raises(ConfigError, match="unknown randomise 'wide'"):
+        TrainConfig(randomise="wide").validate()
+    base = dict(n_robots=2, t_prev=2, episode_steps=10, actor_hidden=(4,), critic_hidden=(8,), n_envs=2,
+                warmup_episodes=2, episodes=0, batch_size=4, replay_size=200, eval_episodes=2, randomise="test")
+    train(TrainConfig(**base), tmp_path / "a", progress=False, log=lambda m: None)
+    assert seen == [marker, None]  # the training group, then the evaluator
+    seen.clear()
+    train(TrainConfig(**base, randomise_eval=True), tmp_path / "b", progress=False, log=lambda m: None)
+    assert seen == [marker, marker]

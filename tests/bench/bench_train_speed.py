@@ -51,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", nargs="+", type=int, default=[4, 32])
     p.add_argument("--minutes", type=float, default=2.0, help="--max-minutes of each run")
     p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--tree", type=Path, default=ROOT, help="the tree to measure (default: this one)")
     p.add_argument("--new-args", nargs=argparse.REMAINDER, default=[], help="extra flags for this tree's runs")
     args = p.parse_args(argv)
     metrics = ("updates_per_s", "env_steps_per_s")
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp)
         old_tree = checkout(args.against, tmp / "old")
         try:
-            trees = {"old": (old_tree, []), "new": (ROOT, args.new_args)}
+            trees = {"old": (old_tree, []), "new": (args.tree, args.new_args)}
             results: dict = {(M, k): [] for M in args.robots for k in trees}
             for r in range(args.rounds):
                 for M in args.robots:
