@@ -55,22 +55,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robots", type=int, default=2)
     p.add_argument("--episodes", type=int, default=352, help="learning episodes (after the 32 warm-up ones)")
     p.add_argument("--eval-episodes", type=int, default=100)
+    p.add_argument("--tree", type=Path, default=ROOT, help="the tree to measure (default: this one)")
     p.add_argument("--new-args", nargs=argparse.REMAINDER, default=[])
     args = p.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_equal_updates.") as tmp:
         tmp = Path(tmp)
-        old_tree = checkout(args.against, tmp / "old")
-        try:
+        with checkout(args.against, tmp / "old") as old_tree:
             for s in args.seeds:
                 old = run(old_tree, args, s, tmp / f"old_{s}", [])
-                new = run(ROOT, args, s, tmp / f"new_{s}", args.new_args)
+                new = run(args.tree, args, s, tmp / f"new_{s}", args.new_args)
                 rows.append((s, old, new))
                 print(f"seed {s}: {args.against} coverage {old['coverage']:.3f} return {old['return']:.1f} "
                       f"({old['updates']} updates, {old['wall_s']:.0f} s) | this tree coverage {new['coverage']:.3f} "
                       f"return {new['return']:.1f} ({new['updates']} updates, {new['wall_s']:.0f} s)", flush=True)
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old_tree)], capture_output=True)
     print(f"\n{args.world} world, {args.robots} robots, --preset fast --episodes {args.episodes} "
           f"{' '.join(args.new_args)}; last actor on {args.eval_episodes} fresh episodes (seed 777)")
     print(f"| seed | updates | {args.against} final coverage | this tree | {args.against} return | this tree |")

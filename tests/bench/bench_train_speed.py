@@ -15,6 +15,7 @@ move with the load, and both trees see the same load within a round.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -22,16 +23,21 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
 ROOT = Path(__file__).resolve().parents[2]
 COMMAND = ["--preset", "fast", "--world", "kilobot", "--history", "20", "--n-envs", "16", "--quiet"]
 
 
-def checkout(rev: str, into: Path) -> Path:
-    """``rev`` in a detached temporary worktree of this repository."""
+@contextlib.contextmanager
+def checkout(rev: str, into: Path) -> Iterator[Path]:
+    """``rev`` in a detached temporary worktree of this repository (removed afterwards)."""
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(into), rev], check=True,
                    capture_output=True, text=True)
-    return into
+    try:
+        yield into
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(into)], capture_output=True)
 
 
 def run(tree: Path, robots: int, minutes: float, out: Path, extra: list[str]) -> dict:
@@ -57,8 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     metrics = ("updates_per_s", "env_steps_per_s")
     with tempfile.TemporaryDirectory(prefix="bench_train_speed.") as tmp:
         tmp = Path(tmp)
-        old_tree = checkout(args.against, tmp / "old")
-        try:
+        with checkout(args.against, tmp / "old") as old_tree:
             trees = {"old": (old_tree, []), "new": (args.tree, args.new_args)}
             results: dict = {(M, k): [] for M in args.robots for k in trees}
             for r in range(args.rounds):
@@ -71,8 +76,6 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"round {r + 1} {M:>2} robots {k}: {s['updates_per_s']:.1f} updates/s, "
                               f"{s['env_steps_per_s']:.0f} env steps/s, {s['updates']} updates, "
                               f"eval share {s.get('eval_share', float('nan'))}", flush=True)
-        finally:
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old_tree)], capture_output=True)
     print(f"\nthis tree vs {args.against}: `python -m learn train {' '.join(COMMAND)} --robots M --max-minutes "
           f"{args.minutes}` {' '.join(args.new_args)}; {args.rounds} rounds, medians")
     print(f"| robots | metric | {args.against} | this tree | ratio | per-round ratios |")
