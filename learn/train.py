@@ -42,8 +42,8 @@ from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
 from .magrdpg import MAGRDPG
 from .replay import EpisodeReplay
-from .rundir import (METRIC_COLUMNS, Counters, RunResult, check_resumable, finite_or_none, git_hash,  # noqa: F401
-                     prepare_run_dir, read_metrics, rows_to_csv, run_name, write_summary)
+from .rundir import (METRIC_COLUMNS, RESUME_MAY_CHANGE, Counters, RunResult, check_resumable,  # noqa: F401
+                     finite_or_none, git_hash, prepare_run_dir, read_metrics, rows_to_csv, run_name, write_summary)
 from .speed import resolve_device, set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 2
@@ -51,7 +51,7 @@ PLOT_EVERY_S = 60.0  #: redraw learning_curve.png at most this often (and at the
 ALGORITHMS = {"magddpg": MAGDDPG, "magrdpg": MAGRDPG}  #: algorithm class of each config's ``algorithm``
 
 __all__ = ["train", "RunResult", "Counters", "TrainConfig", "RecurrentConfig", "read_metrics", "rows_to_csv",
-           "run_name", "METRIC_COLUMNS"]
+           "run_name", "METRIC_COLUMNS", "RESUME_MAY_CHANGE"]
 
 
 def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = False, progress: bool = True,
