@@ -256,8 +256,6 @@ class SwarmEnv:
         self._tick0 = 0
         if self.tick_level_radio:
             self.phase = draw_phases(self._rng_radio, M, self.cfg)
-        if self._collider is not None:
-            self._collider.invalidate()
         P = self.cfg.period_ticks
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
         dt = target_distance(self.pos, self.target)
