@@ -5,7 +5,8 @@ One control period per :meth:`SwarmEnv.step`:
 1. **Act.** Thesis worlds: the thesis kinematics on the float command (:func:`sim.kinematics.thesis_move`).
    Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
    motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
-   collision worlds are pushed apart (the target is a fixed disc).
+   collision worlds are pushed apart, the target beacon's disc too (``cfg.beacon_mobility``: 0 =
+   fixed, 1 = pushed like a robot). Everything that follows uses the beacon's current position.
 2. **Hear.** The radio stage of :mod:`sim.radio` (thesis or tick-level mode) gives the period's
    messages; messages carry each sender's ``sensing`` flag of its last control step.
 3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
@@ -140,7 +141,8 @@ class StepInfo(dict):
 class SwarmEnv:
     """B synchronised envs of M searchers and a target (see the module doc for one step).
 
-    Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm,
+    Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
+    beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
     ``fast_observe=False`` forces the general events path (for tests); ``neighbour_method``
     ('auto', 'dense', 'grid') picks the neighbour search.
@@ -161,6 +163,7 @@ class SwarmEnv:
         self.neighbour_method = neighbour_method
         self._check_spawn_room()
         self._collider = Collider(cfg) if cfg.collisions and cfg.robot_radius_mm > 0 else None
+        self._mobility: float | np.ndarray = cfg.beacon_mobility  # scalar, or (B,) per env
         self._seed(seed)
         self.pos: np.ndarray | None = None
         self.heading: np.ndarray | None = None
@@ -178,6 +181,11 @@ class SwarmEnv:
     @property
     def state_dim(self) -> int:
         return self.cfg.state_dim(self.n_robots)
+
+    @property
+    def _pushable(self) -> bool:
+        """True when collisions can move the beacon (so the radio needs its position per tick)."""
+        return self._collider is not None and bool(np.any(np.asarray(self._mobility) > 0))
 
     @property
     def tick_level_radio(self) -> bool:
@@ -307,19 +315,23 @@ class SwarmEnv:
             raise RuntimeError(f"the episode ended after {self.cfg.episode_steps} steps; call reset()")
         cfg = self.cfg
         B, M = self.n_envs, self.n_robots
-        record = None
+        record = beacon = None
+        P = cfg.period_ticks
         if cfg.tick_level:
             assert q is not None
-            record = np.empty((cfg.period_ticks, B, M, 2)) if self.tick_level_radio else None
-            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record)
+            if self.tick_level_radio:
+                record = np.empty((P, B, M, 2))
+                beacon = np.empty((P, B, 2)) if self._pushable else None
+            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record,
+                      target_record=beacon, beacon_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
-                self._collider.resolve(self.pos, self.target)
+                self._collider.resolve(self.pos, self.target, beacon_mobility=self._mobility)
             if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
-                record = np.broadcast_to(self.pos, (cfg.period_ticks, B, M, 2))
+                record = np.broadcast_to(self.pos, (P, B, M, 2))
         dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
-        obs, info = self._sense(self._hear(record, dt), dt)
+        obs, info = self._sense(self._hear(record, dt, beacon), dt)
         cover = info["coverage"]  # (B,) Σ δ_i / M
         effort = np.sum(u * u, axis=(1, 2)) / M  # (B,) (1/M) Σ_i ||a_i||²
         reward = (cfg.reward_scale * (cover * cover - cfg.action_penalty * effort)).astype(np.float32)
@@ -329,10 +341,10 @@ class SwarmEnv:
         terminated = np.zeros(B, bool)
         return obs, reward, terminated, truncated, info
 
-    def _hear(self, record: np.ndarray | None, dt: np.ndarray) -> RadioPeriod:
+    def _hear(self, record: np.ndarray | None, dt: np.ndarray, beacon: np.ndarray | None = None) -> RadioPeriod:
         if self.tick_level_radio:
             return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
-                              self._rng_radio, self.neighbour_method)
+                              self._rng_radio, self.neighbour_method, target_ticks=beacon)
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 

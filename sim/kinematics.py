@@ -393,42 +393,43 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndar
     zs[:, :M] = z0[sel] if kmin == 0 else zk[kmin - 1, sel]
     if zb is not None:
         zs[:, M] = zb[sel]
-        if target_record is not None:
-            target_record[...] = np.stack([zb.real, zb.imag], -1)
     inc_s = inc[:, sel]  # (P, Bs, M)
     moving_env = go[:, sel].any(axis=2)  # (P, Bs)
-    moving = moving_env.any(axis=1)  # (P,)
     ticks = np.arange(P)[:, None]
     last = np.where(moving_env.any(axis=0), P - np.argmax(moving_env[::-1], axis=0), 0)  # (Bs,) last moving tick + 1
     last = np.maximum(last, ks + 1)  # an env with contacts resolves strictly at least once
     k_end = int(last.max())
-    contacts = None
+    moving = moving_env.any(axis=1).tolist()
+    starts = {k: (ks == k).nonzero()[0] for k in np.unique(ks).tolist() if k > kmin}  # later envs join here
     if collider is not None:
         contacts = _Contacts(zs.reshape(-1), Bs, N, cfg, collider.skin, None if zb is None else mobility[sel])
         diam = collider.diam
-        active = (moving_env | (ticks == last - 1)) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
-        limit = np.where(active, np.where(ticks == last - 1, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
-        loose = ticks != last - 1
+        strict = ticks == last - 1
+        active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
+        limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
+        resolving = active.any(axis=1).tolist()
     flat = zs.reshape(-1)
     zsf = flat.view(np.float64)
     body = zs[:, :M]
-    rec = np.empty((k_end - kmin, Bs, M), np.complex128)
+    rec = np.empty((k_end - kmin, Bs, N), np.complex128)
     for k in range(kmin, k_end):  # loop over ticks; everything inside is vectorised over (envs, robots)
+        if k in starts:  # envs joining now start from their closed-form positions
+            j = starts[k]
+            body[j] = zk[k - 1, sel.take(j)]
         if moving[k]:
             body += inc_s[k]
             np.minimum(zsf, lim, out=zsf)
             np.maximum(zsf, -lim, out=zsf)
-        late = (ks > k).nonzero()[0]
-        if late.size:  # envs still on their closed form
-            body[late] = zk[k, sel.take(late)]
-        if contacts is not None and active[k].any():
-            contacts.relax(flat, limit[k], loose[k], TICK_SWEEPS)
-        rec[k - kmin] = body
-        if zb is not None and target_record is not None:
-            target_record[k, sel, 0], target_record[k, sel, 1] = zs[:, M].real, zs[:, M].imag
-    zk[kmin:k_end, sel] = rec
+        if collider is not None and resolving[k]:
+            contacts.relax(flat, limit[k], ~strict[k], TICK_SWEEPS)
+        rec[k - kmin] = zs
+    mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1): an env's own ticks
+    zk[kmin:k_end, sel] = np.where(mine, rec[..., :M], zk[kmin:k_end, sel])
     zk[k_end:, sel] = body
     if zb is not None:
-        if target_record is not None:
-            target_record[k_end:, sel, 0], target_record[k_end:, sel, 1] = zs[:, M].real, zs[:, M].imag
+        if target_record is not None:  # the beacon rests until the first contact
+            bz = np.concatenate([np.broadcast_to(zb[sel], (kmin, Bs)), rec[..., M],
+                                 np.broadcast_to(zs[:, M], (P - k_end, Bs))])
+            target_record[...] = np.stack([zb.real, zb.imag], -1)[None]
+            target_record[:, sel, 0], target_record[:, sel, 1] = bz.real, bz.imag
         zb[sel] = zs[:, M]
