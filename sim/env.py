@@ -15,6 +15,10 @@ One control period per :meth:`SwarmEnv.step`:
    true robot–target distance <= comm radius after the move and a_i the command actually applied
    (the float action in thesis worlds, q / 255 in tick-level worlds and in :meth:`step_u8`).
 
+Domain randomisation (``randomise=``, :mod:`sim.variants`): each env draws its own speed, turn
+rates, per-robot calibration, motor model, message period and success, distance noise, light
+zones and beacon mobility at every reset, from its init stream after the spawn.
+
 Random numbers: every env owns three generators (init, radio, light) from its own
 ``SeedSequence``; env e of ``SwarmEnv(..., seed=s)`` uses ``SeedSequence(s, spawn_key=(e,))``
 (= ``SeedSequence(s).spawn(B)[e]``), see :func:`env_seed_sequences`. So an env of a batch behaves
@@ -31,6 +35,7 @@ import numpy as np
 from .config import OBS_WALL, WorldConfig
 from .kinematics import Collider, thesis_move, tick_move, wrap_angle
 from .motion import action_to_u8
+from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
 
@@ -144,12 +149,15 @@ class SwarmEnv:
     Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
     beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
+    ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
+    own world parameters at every reset from its init stream (``world_draw`` holds them).
     ``fast_observe=False`` forces the general events path (for tests); ``neighbour_method``
     ('auto', 'dense', 'grid') picks the neighbour search.
     """
 
     def __init__(self, cfg: WorldConfig, n_envs: int, n_robots: int, seed: Any = None, *,
-                 fast_observe: bool = True, neighbour_method: str = "auto") -> None:
+                 randomise: Randomisation | None = None, fast_observe: bool = True,
+                 neighbour_method: str = "auto") -> None:
         if not isinstance(cfg, WorldConfig):
             raise ValueError(f"cfg must be a WorldConfig (e.g. sim.config.preset('thesis')), got {type(cfg).__name__}")
         for name, v in (("n_envs", n_envs), ("n_robots", n_robots)):
@@ -157,7 +165,13 @@ class SwarmEnv:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if neighbour_method not in ("auto", "dense", "grid"):
             raise ValueError(f"neighbour_method must be auto, dense or grid, got {neighbour_method!r}")
+        if randomise is not None:
+            if not isinstance(randomise, Randomisation):
+                raise ValueError(f"randomise must be a sim.variants.Randomisation, got {type(randomise).__name__}")
+            randomise.check(cfg)
         self.cfg = cfg
+        self.randomise = randomise
+        self.world_draw = WorldDraw()  #: this episode's drawn parameters (all None without randomise)
         self.n_envs, self.n_robots = int(n_envs), int(n_robots)
         self.fast_observe = fast_observe
         self.neighbour_method = neighbour_method
@@ -258,12 +272,16 @@ class SwarmEnv:
             self._seed(seed)
         B, M = self.n_envs, self.n_robots
         self.target, self.pos, self.heading = self._spawn()
+        if self.randomise is not None:  # after the spawn: spawns equal the nominal world's
+            self.world_draw = self.randomise.draw(self.cfg, M, self._rng_init)
+        w = self.world_draw
+        self._mobility = self.cfg.beacon_mobility if w.beacon_mobility is None else w.beacon_mobility
         self.sensing = np.zeros((B, M), np.uint8)
         self._prev_wall = np.zeros((B, M), np.float32)
         self.t = 0
         self._tick0 = 0
         if self.tick_level_radio:
-            self.phase = draw_phases(self._rng_radio, M, self.cfg)
+            self.phase = draw_phases(self._rng_radio, M, self.cfg, w.msg_period)
         P = self.cfg.period_ticks
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
         dt = target_distance(self.pos, self.target)
@@ -323,7 +341,7 @@ class SwarmEnv:
                 record = np.empty((P, B, M, 2))
                 beacon = np.empty((P, B, 2)) if self._pushable else None
             tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record,
-                      target_record=beacon, beacon_mobility=self._mobility)
+                      target_record=beacon, motion=self.world_draw.motion, beacon_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
@@ -343,13 +361,15 @@ class SwarmEnv:
 
     def _hear(self, record: np.ndarray | None, dt: np.ndarray, beacon: np.ndarray | None = None) -> RadioPeriod:
         if self.tick_level_radio:
+            w = self.world_draw
             return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
-                              self._rng_radio, self.neighbour_method, target_ticks=beacon)
+                              self._rng_radio, self.neighbour_method, target_ticks=beacon,
+                              msg_period=w.msg_period, msg_loss=w.msg_loss, dist_noise_mm=w.dist_noise_mm)
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 
     def _sense(self, period: RadioPeriod, dt: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        light = light_readings(self.pos, self.cfg, self._rng_light)
+        light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
         self.sensing = flags
         self._prev_wall = obs[..., OBS_WALL].copy()

@@ -27,7 +27,11 @@ messages]; tick-level mode draws them over the period's in-range messages in (re
 tick) order, the target counting as sender M.
 
 Light (:func:`light_readings`): ``light_wall`` when the robot centre is at most ``wall_sense_mm``
-from the nearest wall, else ``light_floor``; with probability ``light_dropout`` the reading is -1.
+from the nearest wall (or per-wall zones: uneven light), else ``light_floor``; with probability
+``light_dropout`` the reading is -1.
+
+Per-env and per-transmitter variations (:mod:`sim.variants`: message period, loss, noise) are
+optional arguments of :func:`tick_radio`; without them everything comes from ``cfg``.
 
 Observations: :func:`observe_period` uses :func:`sim.events.observe` on the period's events, or
 :func:`observe_fast`, which computes the same numbers straight from the message arrays, without
@@ -183,9 +187,13 @@ def thesis_radio(pos: np.ndarray, target: np.ndarray, flags: np.ndarray, cfg: Wo
         s_udist=s_udist, s_uidx=s_uidx)
 
 
-def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldConfig) -> np.ndarray:
-    """Transmit phases (B, M + 1) in [0, msg_period_ticks); column M is the target."""
-    return np.stack([rng.integers(0, cfg.msg_period_ticks, n_robots + 1) for rng in rngs]).astype(np.int64)
+def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldConfig,
+                periods: np.ndarray | None = None) -> np.ndarray:
+    """Transmit phases (B, M + 1) in [0, period); column M is the target. ``periods`` (B, M + 1):
+    each transmitter's own ticks between sends (default ``cfg.msg_period_ticks``)."""
+    if periods is None:
+        return np.stack([rng.integers(0, cfg.msg_period_ticks, n_robots + 1) for rng in rngs]).astype(np.int64)
+    return np.stack([rng.integers(0, T) for rng, T in zip(rngs, periods)]).astype(np.int64)
 
 
 def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, tick0: int,
@@ -245,11 +253,22 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
                        e.take(t), rx.take(t), k.take(t), dm.take(t), single=bool(nsend.max(initial=0) <= 1))
 
 
-def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator]) -> np.ndarray:
-    """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout)."""
-    wall_d = cfg.arena_half_mm - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
-    light = np.full(wall_d.shape, cfg.light_floor, np.int16)
-    light[wall_d <= cfg.wall_sense_mm] = cfg.light_wall
+def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
+                   wall_zone_mm: np.ndarray | None = None) -> np.ndarray:
+    """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout).
+
+    ``wall_zone_mm`` (B, 4): per env, how far from the +x, +y, -x, -y walls the reading is high
+    (uneven light); default ``cfg.wall_sense_mm`` for every wall.
+    """
+    a = cfg.arena_half_mm
+    if wall_zone_mm is None:
+        wall_d = a - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
+        lit = wall_d <= cfg.wall_sense_mm
+    else:
+        x, y, z = pos[..., 0], pos[..., 1], wall_zone_mm[:, None, :]
+        lit = (a - x <= z[..., 0]) | (a - y <= z[..., 1]) | (a + x <= z[..., 2]) | (a + y <= z[..., 3])
+    light = np.full(lit.shape, cfg.light_floor, np.int16)
+    light[lit] = cfg.light_wall
     if cfg.light_dropout > 0:
         M = pos.shape[1]
         u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env

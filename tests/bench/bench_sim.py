@@ -20,7 +20,8 @@ most robots crowd the beacon: the expensive case). Only ``SwarmEnv.step`` is tim
 the policy's), in blocks of 5 steps; a run reports its best block. Each row runs in a fresh
 subprocess; ``--against REV`` also runs it on the ``sim/``
 of git revision REV (``git archive``), alternating the two trees every round, and prints both and
-the speed-up (best and median over rounds).
+the speed-up (best and median over rounds). ``--fixed-beacon`` tapes the beacon down in trees that
+have ``beacon_mobility`` (the physics of older trees).
 
 Timing: random actions, after one warm-up step; each row reports the best of several timed
 blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
@@ -102,12 +103,15 @@ def bench(cfg, B: int, M: int, min_time: float, max_steps: int) -> dict:
 #: one kilobot row, run in a subprocess whose PYTHONPATH is the tree under test (public APIs only)
 _KILOBOT_ROW = r"""
 import json, sys, time
+import dataclasses
 import numpy as np
-from sim.config import preset
+from sim.config import WorldConfig, preset
 from sim.env import SwarmEnv
 from sim.baselines import make_policy
 M, B, policy, warm, steps = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
-cfg = preset("kilobot", episode_steps=warm + steps + 5)
+over = {"beacon_mobility": 0.0} if sys.argv[6] == "fixed" and "beacon_mobility" in {
+    f.name for f in dataclasses.fields(WorldConfig)} else {}
+cfg = preset("kilobot", episode_steps=warm + steps + 5, **over)
 env = SwarmEnv(cfg, B, M, seed=0)
 pol = make_policy(policy, cfg)
 obs, _ = env.reset()
@@ -124,15 +128,18 @@ for _ in range(max(1, steps // 5)):
         wall += time.perf_counter() - w0
         cpu += time.process_time() - c0
     blocks.append((wall / 5, cpu / 5))
-print(json.dumps({"wall": min(b[0] for b in blocks), "cpu": min(b[1] for b in blocks)}))
+import sim
+print(json.dumps({"wall": min(b[0] for b in blocks), "cpu": min(b[1] for b in blocks), "sim": sim.__file__}))
 """
 
 
-def _kilobot_row(tree: str, M: int, B: int, policy: str, warm: int, steps: int) -> dict:
+def _kilobot_row(tree: str, M: int, B: int, policy: str, warm: int, steps: int, beacon: str) -> dict:
     env = dict(os.environ, PYTHONPATH=tree)
-    out = subprocess.run([sys.executable, "-c", _KILOBOT_ROW, str(M), str(B), policy, str(warm), str(steps)],
-                         env=env, capture_output=True, text=True, check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    out = subprocess.run([sys.executable, "-P", "-c", _KILOBOT_ROW, str(M), str(B), policy, str(warm), str(steps),
+                          beacon], env=env, cwd=tree, capture_output=True, text=True, check=True)
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert os.path.realpath(res["sim"]).startswith(os.path.realpath(tree)), f"imported {res['sim']}, not {tree}"
+    return res
 
 
 def _archive(rev: str, dest: str) -> None:
@@ -153,8 +160,8 @@ def kilobot_main(args) -> None:
     rows = [(M, B, pol) for pol in ("random", "baseline") for M in (4, 16, 32) for B in (16, 50)]
     if args.quick:
         rows = [(M, 16, pol) for pol in ("random", "baseline") for M in (4, 32)]
-    print(f"# kilobot world, 500 mm arena; ms per SwarmEnv.step (wall; cpu), best / median of {args.repeat} rounds; "
-          f"searcher rows after {args.warm} warm-up steps")
+    print(f"# kilobot world, 500 mm arena, {'fixed beacon in both trees' if args.fixed_beacon else 'each tree its own preset'}; "
+          f"ms per SwarmEnv.step (wall), best / median of {args.repeat} rounds; searcher rows after {args.warm} warm-up steps")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}\n")
     head = "| policy | M | B | " + " | ".join(f"{t} ms/step best (median)" for t in trees)
     print(head + (" | speed-up best (median) |" if len(trees) == 2 else " |"))
@@ -164,7 +171,8 @@ def kilobot_main(args) -> None:
             res: dict[str, list[dict]] = {t: [] for t in trees}
             for _ in range(args.repeat):  # alternate the trees every round
                 for t, path in trees.items():
-                    res[t].append(_kilobot_row(path, M, B, pol, args.warm if pol == "baseline" else 5, args.steps))
+                    res[t].append(_kilobot_row(path, M, B, pol, args.warm if pol == "baseline" else 5, args.steps,
+                                               "fixed" if args.fixed_beacon else "preset"))
             best = {t: min(r["wall"] for r in v) for t, v in res.items()}
             med = {t: float(np.median([r["wall"] for r in v])) for t, v in res.items()}
             cells = " | ".join(f"{best[t] * 1e3:.2f} ({med[t] * 1e3:.2f})" for t in trees)
@@ -189,6 +197,8 @@ def main() -> None:
                          "moments show in the best, its typical load in the median)")
     ap.add_argument("--kilobot", action="store_true", help="kilobot-world rows (500 mm arena, random and searcher)")
     ap.add_argument("--against", default=None, help="with --kilobot: also time git revision REV's sim/, alternating")
+    ap.add_argument("--fixed-beacon", action="store_true",
+                    help="with --kilobot: beacon_mobility 0 where the tree has it (same physics as older trees)")
     ap.add_argument("--warm", type=int, default=300, help="with --kilobot: searcher warm-up steps (crowding)")
     ap.add_argument("--steps", type=int, default=30, help="with --kilobot: timed steps per row and round")
     args = ap.parse_args()
