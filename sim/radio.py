@@ -215,12 +215,14 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
     tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
     Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
     final = Z[-1]
-    reach = float(np.abs(Z - final).max()) if Z.size else 0.0  # farthest any transmitter was from its end
-    # every pair within R at some tick is within R + 2 * reach at the end
-    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * reach + 1e-3,
+    reach = np.abs(Z - final).max(axis=0)  # (B, M + 1) farthest each transmitter was from its end
+    # a pair within R at some tick is within R + reach_i + reach_j at the end
+    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * float(reach.max()) + 1e-3,
                              cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)
-    m = cand.i < M  # the target only sends
-    e, rx, snd = cand.env[m], cand.i[m], cand.j[m]  # (K,) sorted by (env, rx, snd)
+    ri, rj = reach[cand.env, cand.i], reach[cand.env, cand.j]
+    m = np.flatnonzero((cand.i < M) & (cand.dist <= R + ri + rj + 1e-3))  # the target only sends
+    e, rx, snd = cand.env.take(m), cand.i.take(m), cand.j.take(m)  # (K,) sorted by (env, rx, snd)
+    moved = (ri.take(m) > 0) | (rj.take(m) > 0)  # (K,) else the distance is the same at every tick
     if msg_period is None:
         T = cfg.msg_period_ticks
         k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
@@ -230,11 +232,14 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
     nsend = np.where(k0 < P, (P - 1 - k0) // T + 1, 0)
     tot = int(nsend.sum())
     first = np.cumsum(nsend) - nsend
+    d = np.repeat(cand.dist.take(m), nsend)
+    moved = np.repeat(moved, nsend)
     e, rx, snd, k0 = (np.repeat(v, nsend) for v in (e, rx, snd, k0))
     rounds = np.arange(tot, dtype=np.int64) - np.repeat(first, nsend)
     k = k0 + (T if msg_period is None else msg_period[e, snd]) * rounds  # (tot,) send tick
-    base = (k * B + e) * (M + 1)
-    d = np.abs(Z.reshape(-1).take(base + rx) - Z.reshape(-1).take(base + snd))
+    mv = moved.nonzero()[0]  # messages between transmitters that moved: distance at the send tick
+    base = (k.take(mv) * B + e.take(mv)) * (M + 1)
+    d[mv] = np.abs(Z.reshape(-1).take(base + rx.take(mv)) - Z.reshape(-1).take(base + snd.take(mv)))
     h = np.flatnonzero(d <= R)  # in range at the send tick; (receiver, sender, tick) order
     e, rx, snd, k, d = e.take(h), rx.take(h), snd.take(h), k.take(h), d.take(h)
     loss = cfg.msg_loss > 0 if msg_loss is None else bool(np.any(msg_loss > 0))
