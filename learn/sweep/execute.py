@@ -38,9 +38,9 @@ from .grid import Grid, Trial, digest  # noqa: E402
 TUNE_DIR = "ray_tune"  #: Ray Tune's experiment directories inside the sweep directory
 
 
-def _trainable(config: dict, sweep_dir: str = "", options: dict | None = None) -> None:
-    """Tune's function trainable: one trial (``config["trial"]``) through :func:`learn.sweep.trial.run_trial`."""
-    t = config["trial"]
+def _trainable(config: dict, sweep_dir: str = "", specs: dict | None = None, options: dict | None = None) -> None:
+    """Tune's function trainable: the trial named ``config["trial"]`` through :func:`learn.sweep.trial.run_trial`."""
+    t = specs[config["trial"]]
     options = dict(options or {})
     ev = options.pop("evaluation", None)
     tr.run_trial(t["trainer"], t["config"], Path(sweep_dir) / t["name"],
@@ -48,7 +48,7 @@ def _trainable(config: dict, sweep_dir: str = "", options: dict | None = None) -
 
 
 def _trial_name(trial) -> str:
-    return trial.config["trial"]["name"]
+    return trial.config["trial"]
 
 
 @dataclass
@@ -179,13 +179,14 @@ def run_trials(sweep_dir: Path, grid: Grid, trials: list[Trial], pending: list[T
         options = {"budget_minutes": grid.max_minutes, "threads": max(1, int(grid.cpus_per_trial)),
                    "evaluation": None if grid.evaluation is None else grid.to_dict()["evaluation"]}
         trainable = tune.with_resources(
-            tune.with_parameters(_trainable, sweep_dir=str(sweep_dir.resolve()), options=options),
+            tune.with_parameters(_trainable, sweep_dir=str(sweep_dir.resolve()),
+                                 specs={t.name: t.to_dict() for t in trials}, options=options),
             {"cpu": grid.cpus_per_trial})
         tuner = _restorable(storage / name, trainable, {t.name for t in pending}, log)
         if tuner is None:
             tuner = tune.Tuner(
                 trainable,
-                param_space={"trial": tune.grid_search([t.to_dict() for t in pending])},
+                param_space={"trial": tune.grid_search([t.name for t in pending])},
                 tune_config=tune.TuneConfig(trial_name_creator=_trial_name, trial_dirname_creator=_trial_name),
                 run_config=tune.RunConfig(name=name, storage_path=str(storage), verbose=0,
                                           failure_config=tune.FailureConfig(max_failures=0),
@@ -199,7 +200,7 @@ def run_trials(sweep_dir: Path, grid: Grid, trials: list[Trial], pending: list[T
         errors = {}
         for r in results:
             if r.error is not None and "TrialInterrupted" not in str(r.error):  # interrupted: resumable
-                n = r.config["trial"]["name"]
+                n = Path(r.path).name
                 errors[n] = (str(r.error).strip().splitlines() or [type(r.error).__name__])[-1]
         return Outcome(len(pending), errors)
     finally:
@@ -211,9 +212,14 @@ def _restorable(path: Path, trainable, pending: set[str], log: Callable[[str], N
     """The Tune experiment at ``path`` restored, if it exists and would run every pending trial."""
     if not tune.Tuner.can_restore(str(path)):
         return None
-    tuner = tune.Tuner.restore(str(path), trainable, resume_unfinished=True, restart_errored=True)
-    known = {r.config["trial"]["name"]: r.error is None and bool(r.metrics.get("finished"))
-             for r in tuner.get_results()}
+    try:
+        tuner = tune.Tuner.restore(str(path), trainable, resume_unfinished=True, restart_errored=True)
+        known = {Path(r.path).name: r.error is None and bool(r.metrics.get("finished"))  # dir name = trial name
+                 for r in tuner.get_results()}
+    except Exception as e:  # noqa: BLE001 - the run directories, not Tune's state, say what is left to do
+        log(f"note: cannot restore the Tune experiment {path} ({type(e).__name__}: {e}); starting it afresh")
+        shutil.rmtree(path)
+        return None
     missed = sorted(n for n in pending if known.get(n, True))
     if missed:  # e.g. a finished run directory was removed: Tune would not run it again
         log(f"note: {len(missed)} trial(s) to run are finished or unknown in {path}; starting it afresh")
