@@ -26,8 +26,6 @@ from typing import Any, Callable
 from ..config import ConfigError
 
 TRAINERS = ("magddpg", "magrdpg")  #: values of ``--trainer``
-#: fields a run may change when it resumes (budgets and speed knobs): not part of a trial's identity
-RESUME_MAY_CHANGE = ("episodes", "max_minutes", "threads", "checkpoint_every")
 BUDGET_SLACK_S = 1.0  #: a run stopped on time within this of its budget has used it (wall_s is rounded)
 MIN_SESSION_MINUTES = 1e-3  #: a resumed run whose budget is spent still runs to its next episode end
 EVAL_DIR = "evaluation"  #: the final evaluation against the baselines, inside the run directory
@@ -109,6 +107,8 @@ def read_json(path: Path) -> dict | None:
 
 def check_compatible(trainer: str, cfg, run_dir: Path) -> None:
     """Refuse a run directory that holds a run of another configuration (budget fields may differ)."""
+    from ..train import RESUME_MAY_CHANGE
+
     saved = read_json(run_dir / "config.json")
     if saved is None:
         return
