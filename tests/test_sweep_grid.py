@@ -136,3 +136,11 @@ def test_cli_dry_run_lists_trials(tmp_path, capsys):
     assert out[0].startswith("4 trials in") and "4 to start" in out[0]
     assert sum(line.strip().startswith("new ") for line in out[1:]) == 4
     assert not (tmp_path / "s").exists()
+
+
+def test_cli_cpus_per_trial_beyond_local_cpus(tmp_path, capsys):
+    """More CPUs per trial than the local Ray has is refused before anything starts (exit 2)."""
+    assert main_sweep(["--cpus-per-trial", "3", "--num-cpus", "2", "--out", str(tmp_path / "s"), "--dry-run"]) == 2
+    assert "--cpus-per-trial 3 is more than the 2 CPUs of the local Ray" in capsys.readouterr().err
+    assert main_sweep(["--num-cpus", "2", "--address", "auto", "--out", str(tmp_path / "s")]) == 2
+    assert not (tmp_path / "s").exists()

@@ -10,6 +10,7 @@ their checkpoints. Exit status: 0 every trial finished, 1 some failed, 2 bad inp
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import typing
 from pathlib import Path
@@ -73,6 +74,9 @@ def plan(args: argparse.Namespace) -> tuple[Grid, list[Trial], Path]:
                       max_minutes=args.max_minutes, cpus_per_trial=args.cpus_per_trial,
                       eval_robots=args.eval_robots, eval_episodes=args.eval_episodes, eval_steps=args.eval_steps)
     trials = expand(grid)
+    local_cpus = args.num_cpus or os.cpu_count() or 1
+    if not args.address and grid.cpus_per_trial > local_cpus:
+        raise ConfigError(f"--cpus-per-trial {grid.cpus_per_trial:g} is more than the {local_cpus} CPUs of the local Ray")
     sweep_dir = Path(args.out)
     if sweep_dir.exists() and not sweep_dir.is_dir():
         raise ConfigError(f"--out '{sweep_dir}' is not a directory")

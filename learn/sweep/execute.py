@@ -169,11 +169,9 @@ def run_trials(sweep_dir: Path, grid: Grid, trials: list[Trial], pending: list[T
     own = init_ray(address, num_cpus)
     try:
         cpus = ray.cluster_resources().get("CPU", 0)
-        if grid.cpus_per_trial > cpus:
-            msg = f"--cpus-per-trial {grid.cpus_per_trial:g} is more than the {cpus:g} CPUs of the Ray cluster"
-            if not address:
-                raise ConfigError(msg)
-            log(f"warning: {msg}; trials wait until the cluster grows")
+        if grid.cpus_per_trial > cpus:  # an autoscaling cluster may still grow
+            log(f"warning: --cpus-per-trial {grid.cpus_per_trial:g} is more than the {cpus:g} CPUs of the Ray "
+                f"cluster; its trials wait until the cluster grows")
         storage = (sweep_dir / TUNE_DIR).resolve()
         name = f"sweep-{digest(sorted(t.name for t in trials))}"
         options = {"budget_minutes": grid.max_minutes, "threads": max(1, int(grid.cpus_per_trial)),
