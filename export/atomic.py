@@ -32,6 +32,13 @@ def check_writable(paths: list[Path]) -> None:
         _check_dir(Path(p))
 
 
+def new_file_mode() -> int:
+    """The mode ``open()`` would give a new file: 0o666 less the process umask (temp files get 0o600)."""
+    mask = os.umask(0o077)  # the umask can only be read by setting it; restored at once
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def _write_temp(path: Path, data: bytes) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
     try:
@@ -39,7 +46,7 @@ def _write_temp(path: Path, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, new_file_mode())
     except BaseException:
         try:
             os.unlink(tmp)

@@ -7,7 +7,9 @@ state, :mod:`export.gru_quantize`), the motor schedule applied tick by tick (wit
 ``spinup_motors``), the LED and the outgoing message bytes with their CRC. The host build
 (:mod:`export.hostbuild`) and the AVR build run the same event streams and must give the same bytes.
 
-Tick model (what ``firmware_templates/host/harness.c`` does): for global tick T = 0, 1, 2, ...
+Tick model (what ``firmware_templates/host/harness.c`` does): setup() sets the whole state whatever
+memory held before (:meth:`FirmwareEmulator.reset` is that state) and until it has run the program
+hears and sends nothing; then for global tick T = 0, 1, 2, ...
 
 1. ``kilo_ticks = T`` and ``loop()`` runs once: it drains the rx queue into the period's table; if
    T is a control tick (``T = k * period_ticks`` with k >= 1) it runs the control step (observe from

@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from export.atomic import new_file_mode, write_bytes_atomic
+
 _NP_TAG = "__ndarray__"
 
 
@@ -50,6 +52,7 @@ def save_checkpoint(state: dict, path: str | os.PathLike) -> Path:
             torch.save(_to_torch(state), f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -63,14 +66,5 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write a small text file atomically."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write a small text file atomically (UTF-8)."""
+    return write_bytes_atomic(path, text)
