@@ -50,15 +50,17 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from export.artifact import save_policy
-from export.gru import GRUPolicy, GRUSwarmPolicy
+from kiloforge.actors.base import StatefulActor
+from kiloforge.actors.gru import GRUPolicy
+from kiloforge.io import write_atomic
+from kiloforge.policies import save_policy
 from sim.config import ACTION_DIM
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import preset as world_preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 
-from .checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
+from .checkpoint import load_checkpoint, save_checkpoint
 from .config import ConfigError
 from .demos import DEMO_POLICIES, bc_pretrain, collect_demos, demonstrator
 from .evaluate import Evaluator, metrics_row
@@ -407,15 +409,15 @@ class MAGRDPG:
             getattr(self, name).load_state_dict(d[name])
 
 
-def torch_swarm_policy(agent: MAGRDPG, world) -> GRUSwarmPolicy:
+def torch_swarm_policy(agent: MAGRDPG, world) -> StatefulActor:
     """The learning actor as a deterministic SwarmPolicy (evaluation)."""
     def step(x: np.ndarray, h: torch.Tensor):
         return agent.act(x, h)
-    return GRUSwarmPolicy(step, agent.actor.initial_state, world)
+    return StatefulActor(step, agent.actor.initial_state, world)
 
 
 def actor_artifact(agent: MAGRDPG, cfg: RecurrentConfig, world, c: Counters, metrics: dict) -> GRUPolicy:
-    """The current actor as an ``export.gru.GRUPolicy`` with provenance."""
+    """The current actor as a :class:`kiloforge.actors.gru.GRUPolicy` with provenance."""
     prov = {"trainer": "kiloforge.learn MAGRDPG", "config": cfg.to_dict(), "seed": cfg.seed, "git": git_hash(),
             "torch": torch.__version__, "trained_robots": cfg.n_robots, "env_steps": c.env_steps,
             "updates": c.updates, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(metrics))}
@@ -481,8 +483,8 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
         c = Counters(**ck["counters"])
         log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
     else:
-        write_text_atomic(run_dir / "config.json", cfg.to_json() + "\n")
-        write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+        write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+        write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
         if demos is not None and cfg.bc_updates:
             _pretrain(cfg, agent, world, demos, evaluator, demo_rng, run_dir, c, progress, log)
         if demos is not None and cfg.critic_pretrain:
@@ -605,7 +607,7 @@ def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay,
     info = {"demo_policy": cfg.demo_policy, "demo_episodes": int((demos.filled > 0).sum()),
             "bc_updates": cfg.bc_updates, "bc_loss": loss, "bc_s": round(bc_s, 1),
             "eval_demonstrator": finite_or_none(metrics_row(demo_m)), "eval_after_bc": finite_or_none(metrics_row(bc_m))}
-    write_text_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    write_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
     clone = actor_artifact(agent, cfg, world, c, metrics_row(bc_m))
     save_policy(clone, run_dir / "policy_bc.npz")
     save_policy(clone, run_dir / "policy_best.npz")
@@ -654,7 +656,7 @@ def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, ru
     if row["eval_return"] > c.best_return:
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
-    write_text_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
     plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
                          title=f"MAGRDPG, {cfg.n_robots} robots, GRU {cfg.hidden} ({cfg.world} world)")
     msg = (f"return {row['eval_return']:.1f}  final cov {row['eval_final_coverage']:.2f}  "
@@ -732,18 +734,20 @@ def _read_json(path: Path) -> dict:
 
 def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:
     """CLI entry point; returns the exit status (2 with a one-line message for user errors)."""
-    from export.budget import estimate_gru
-    from export.errors import ExportError
+    from export.codegen.budget import estimate
+    from kiloforge.actors.base import HiddenArch
+    from kiloforge.actors.gru import GRU
+    from kiloforge.errors import KiloforgeError
 
     args = build_parser(prog).parse_args(sys.argv[1:] if argv is None else list(argv))
     try:
         cfg, out = resolve_config(args)
-        budget = estimate_gru(cfg.world_config(), cfg.hidden)
+        budget = estimate(GRU, cfg.world_config(), HiddenArch(cfg.hidden))
         if not budget.ok:
             print(f"note: a GRU of {cfg.hidden} units does not fit the Kilobot budget ({budget.summary()}); "
                   "it trains, but the exporter will refuse it", file=sys.stderr)
         res = train_recurrent(cfg, out, resume=args.resume, progress=not args.quiet)
-    except (ConfigError, ExportError, ValueError) as e:
+    except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     c = res.counters

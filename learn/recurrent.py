@@ -1,6 +1,6 @@
 """The recurrent actor of MAGRDPG: a GRU cell over ``[a_prev, obs]`` and a linear output layer.
 
-The cell is PyTorch's GRU (``torch.nn.GRU``, gate order r, z, n: the artifact of :mod:`export.gru`
+The cell is PyTorch's GRU (``torch.nn.GRU``, gate order r, z, n: the artifact of :mod:`kiloforge.actors.gru`
 holds the same numbers)::
 
     r = σ(W_ir x + b_ir + W_hr h + b_hr),  z = σ(W_iz x + b_iz + W_hz h + b_hz)
@@ -56,7 +56,7 @@ class GRUActor(nn.Module):
         return a[:, 0], h
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """float32 NumPy copies named as in :mod:`export.gru` (w_ih, w_hh, b_ih, b_hh, w_out, b_out)."""
+        """float32 NumPy copies named as in :mod:`kiloforge.actors.gru` (w_ih, w_hh, b_ih, b_hh, w_out, b_out)."""
         def a(t: torch.Tensor) -> np.ndarray:
             return t.detach().cpu().numpy().astype(np.float32).copy()
         g = self.gru

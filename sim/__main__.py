@@ -13,11 +13,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import shutil
 import sys
 import tempfile
 from pathlib import Path
+
+from kiloforge.errors import PolicyError
+from kiloforge.io import write_files_atomic
+from kiloforge.policies import load_policy, swarm_policy
 
 from .config import PRESETS, preset
 
@@ -83,15 +86,9 @@ def _load_policy(a: argparse.Namespace):
     if not path.is_file():
         raise UserError(f"--policy must be 'random', 'baseline' or a policy file; '{a.policy}' is neither")
     try:
-        from export.artifact import PolicyError, load_policy
-    except ImportError as e:  # pragma: no cover - export ships with kiloforge
-        raise UserError(f"cannot load policy artifacts: {e}") from None
-    try:
         art = load_policy(path)
     except PolicyError as e:
         raise UserError(str(e)) from None
-    from .rollout import HistoryActor
-
     art_world = art.world
     if a.steps is not None:
         art_world = dataclasses.replace(art_world, episode_steps=a.steps)
@@ -99,9 +96,9 @@ def _load_policy(a: argparse.Namespace):
     if a.preset is not None and art_world != world:
         note = (f"note: {path.name} was trained in world '{art.world.name}', which differs from preset "
                 f"'{a.preset}'; using the policy's world")
-    desc = {"kind": "artifact", "path": str(path), "t_prev": int(art.t_prev), "hash": art.hash,
-            "layer_sizes": art.layer_sizes}
-    return art_world, HistoryActor(art.act, art.t_prev, art_world), desc, note
+    desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
+            "hash": art.hash, "layer_sizes": art.layer_sizes}
+    return art_world, swarm_policy(art, art_world), desc, note
 
 
 def _prepare_out(out: str) -> tuple[Path, bool]:
@@ -158,8 +155,7 @@ def run(a: argparse.Namespace) -> dict:
         render.plot_coverage({name: res.coverage}, staging / "coverage.png",
                              title=f"{world.name}: {a.robots} robots, {a.episodes} episodes")
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-        for f in OUTPUT_FILES:
-            os.replace(staging / f, out / f)
+        write_files_atomic({out / f: (staging / f).read_bytes() for f in OUTPUT_FILES})
     except BaseException:
         if created:
             shutil.rmtree(out, ignore_errors=True)

@@ -14,10 +14,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from export import numfmt  # noqa: E402
-from export.numfmt import QuantLayer  # noqa: E402
-from export.quantize import QuantizedPolicy  # noqa: E402
-from export.render import render_firmware  # noqa: E402
+from export.codegen.render import render_firmware  # noqa: E402
+from kiloforge import numfmt  # noqa: E402
+from kiloforge.actors.base import sensing_tables  # noqa: E402
+from kiloforge.actors.mlp import QuantizedMLP  # noqa: E402
+from kiloforge.numfmt import QuantLayer  # noqa: E402
 from sim.config import preset  # noqa: E402
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
@@ -31,7 +32,7 @@ def _int_pattern(n_out: int, n_in: int, a: int, b: int) -> np.ndarray:
     return (((j * a + i * b) * 37) % 255 - 127).astype(np.int8)
 
 
-def golden_policy() -> QuantizedPolicy:
+def golden_policy() -> QuantizedMLP:
     """A tiny fixed policy: thesis world with 3 RBF bins, t_prev 2, one ELU hidden layer of 4."""
     world = preset("thesis", n_rbf=3, neighbour_table_size=4, period_ticks=8)
     e_in = 6
@@ -43,15 +44,8 @@ def golden_policy() -> QuantizedPolicy:
                     shift=np.array([6, 6], np.uint8), lo=0, hi=255, activation="identity",
                     e_in=6, e_out=0, e_act=0, table=None)
     layers = [l0, l1]
-    return QuantizedPolicy(
-        layers=layers, e_in=e_in, world=world, t_prev=2,
-        rbf_table=numfmt.rbf_table(world.rbf_centres_mm, world.rbf_sigma_mm, world.rbf_norm,
-                                   world.comm_radius_mm, e_in),
-        target_table=numfmt.target_table(world.comm_radius_mm, e_in),
-        action_table=numfmt.action_table(e_in),
-        policy_hash="0123456789abcdef" * 4,
-        acc24_safe=tuple(numfmt.fits_acc24(l.w, l.b) for l in layers),
-        acc_max=tuple(int(numfmt.acc_bound(l.w, l.b).max()) for l in layers))
+    return QuantizedMLP(layers=layers, e_in=e_in, world=world, t_prev=2, policy_hash="0123456789abcdef" * 4,
+                        **sensing_tables(world, e_in))
 
 
 def golden_files() -> dict[str, str]:

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export import fwspec, numfmt
-from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
-from export.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
+from export.contract import firmware as fwspec
+from kiloforge import numfmt
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.verify.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
                               random_inputs, rendered_params, run_host, verify_host)
-from export.render import POLICY_FILE, TARGET_FILE, render_firmware
-from export.synthetic import synthetic_qpolicy
+from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from fixtures import synthetic_qpolicy
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")

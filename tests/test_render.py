@@ -7,11 +7,14 @@ import re
 import numpy as np
 import pytest
 
-from export import fwspec, numfmt
-from export.cformat import c_comment, clamp_index_table, nonzero_windows
+from export.codegen.cformat import c_comment, clamp_index_table, nonzero_windows
+from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.codegen.templates import TEMPLATE_DIR, templates_loaded
+from export.contract import firmware as fwspec
 from export.errors import ExportError
-from export.render import POLICY_FILE, TARGET_FILE, TEMPLATE_DIR, render_firmware, templates_loaded
-from export.synthetic import synthetic_qpolicy
+from fixtures import synthetic_qpolicy
+from kiloforge import numfmt
+from kiloforge.actors.gru import calibration_from_sequences, quantize_gru, random_gru_policy
 from regen_golden import GOLDEN_DIR, GOLDEN_VERSION, golden_files, golden_policy
 from sim.config import preset
 from sim.motion import schedule_constants
@@ -44,8 +47,6 @@ def test_every_template_is_rendered():
     """Every *.j2 in firmware_templates/ is loaded by some render (here: the golden and a wide policy)."""
     golden_files()
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
-    from export.gru import random_gru_policy  # the recurrent program (kilobot_policy_gru.c.j2)
-    from export.gru_quantize import calibration_from_sequences, quantize_gru
     gru = random_gru_policy(preset("kilobot"), 4)
     render_firmware(quantize_gru(gru, calibration_from_sequences(gru, np.zeros((1, 2, gru.in_dim)))),
                     generator_version="t")
@@ -170,7 +171,10 @@ def test_doctests_of_the_firmware_helpers():
     """The doctests of the C formatting, CRC, firmware-constant and emulator modules pass."""
     import doctest
 
-    from export import cformat, crc, emulator, fwspec as fw
+    from export.codegen import cformat
+    from export.contract import crc
+    from export.contract import firmware as fw
+    from export.verify import emulator
 
     for mod in (cformat, crc, fw, emulator):
         res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS)

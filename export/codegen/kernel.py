@@ -1,7 +1,7 @@
 """The dense-layer kernel's view of a layer: the arrays ``firmware_templates/kf_dense.c`` consumes.
 
 One set of arrays serves the portable C (host, Kilombo) and the AVR assembly kernel, so the host and
-the robot compute the same integers. The kernel computes :func:`export.numfmt.dense_int` exactly,
+the robot compute the same integers. The kernel computes :func:`kiloforge.numfmt.dense_int` exactly,
 through this algebra (``n = n_in``, ``x' = x + 128``, ``w' = W + 128``, both ``0..255``)::
 
     sum_i W[j,i] x[i] = sum_i w'[j,i] x'[i] - 128 sum_i x'[i] - 128 sum_i w'[j,i] + 16384 n
@@ -42,18 +42,20 @@ from an interrupt).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from . import numfmt
-from .numfmt import QuantLayer
+from kiloforge import numfmt
+from kiloforge.numfmt import QuantLayer
+
+from .cformat import c_array, c_ident
+from .templates import TEMPLATE_DIR
 
 GROUP_SIZES = (8, 2, 1)  #: rows per group, largest first (the AVR kernel has one loop per size)
 FAST_MAX_IN = 510  #: widest layer the AVR kernel takes (it counts passes of 4 inputs in 8 bits)
 FAST_MAX_OUT = 2047  #: the AVR kernel counts groups of 8 rows in 8 bits
-FAST_CLAMPS = ((numfmt.INT8_MIN, numfmt.INT8_MAX), (0, 255))  #: clamps the AVR kernel implements
-ACC24_LIMIT = 2 ** (numfmt.ACC_BITS_NARROW - 1)
-ACC32_LIMIT = 2 ** 31
+FAST_CLAMPS = ((numfmt.INT8_MIN, numfmt.INT8_MAX), (0, numfmt.UINT8_MAX))  #: clamps the AVR kernel implements
 
 
 def row_groups(n_out: int) -> list[tuple[int, int]]:
@@ -85,28 +87,17 @@ def kernel_weights(w: np.ndarray) -> np.ndarray:
     return np.concatenate(parts).view(np.int8)
 
 
-def rounding(shift: np.ndarray) -> np.ndarray:
-    """2^(s-1) for s > 0, 0 for s = 0 (int64): the half-up constant folded into the bias.
-
-    >>> rounding(np.array([0, 1, 8])).tolist()
-    [0, 1, 128]
-    """
-    s = np.asarray(shift, np.int64)
-    return np.where(s > 0, np.left_shift(np.int64(1), np.maximum(s - 1, 0)), 0)
-
-
 def proof(layer: QuantLayer) -> np.ndarray:
-    """Largest ``|acc + 2^(s-1)|`` per row over every int8 input (int64, shape (n_out,))."""
-    return numfmt.acc_bound(layer.w, layer.b.astype(np.int64) + rounding(layer.shift))
+    """Largest ``|acc + 2^(s-1)|`` per row over every int8 input (int64, shape (n_out,)): numfmt.acc_bound."""
+    return numfmt.acc_bound(layer.w, layer.b, layer.shift)
 
 
 def is_fast(layer: QuantLayer) -> bool:
-    """True when the AVR assembly kernel computes this layer exactly (24-bit proof, clamp, width).
-
-    The proof includes the rounding constant 2^(s-1), so a fast row always has s <= 23.
-    """
+    """True when the AVR assembly kernel computes this layer exactly: the 24-bit proof
+    (:attr:`QuantLayer.acc24_safe`, rounding included, so a fast row always has s <= 23), a clamp it
+    implements and a width it counts."""
     n_out, n_in = layer.w.shape
-    return bool(np.all(proof(layer) < ACC24_LIMIT) and (layer.lo, layer.hi) in FAST_CLAMPS
+    return bool(layer.acc24_safe and (layer.lo, layer.hi) in FAST_CLAMPS
                 and 1 <= n_in <= FAST_MAX_IN and n_out <= FAST_MAX_OUT)
 
 
@@ -123,12 +114,12 @@ def kernel_bias(layer: QuantLayer) -> np.ndarray:
     """
     n_out, n_in = layer.w.shape
     bound = proof(layer)
-    if np.any(bound >= ACC32_LIMIT):
+    if np.any(bound >= numfmt.ACC32_LIMIT):
         j = int(np.argmax(bound))
         raise ValueError(f"row {j}: accumulator plus rounding may reach {int(bound[j])} >= 2^31; "
                          f"requantise with a smaller weight scale")
     wsum = (layer.w.astype(np.int64) + 128).sum(axis=1)  # (n_out,) sum of w'
-    b = layer.b.astype(np.int64) + rounding(layer.shift) - 128 * wsum + 16384 * n_in
+    b = layer.b.astype(np.int64) + numfmt.half_up_constant(layer.shift) - 128 * wsum + 16384 * n_in
     if is_fast(layer):
         code = np.array([avr_shift_code(int(s), layer.lo == 0) for s in layer.shift], np.int64)
         b = (b & 0xFFFFFF) | (code << 24)
@@ -189,7 +180,6 @@ class KernelLayer:
 
     def c_source(self, prefix: str) -> str:
         """PROGMEM arrays ``<prefix>_w/_b/_shift`` and the descriptor ``static const kf_dense_t <prefix>``."""
-        from .cformat import c_array, c_ident
         p = c_ident(prefix)
         path = "AVR assembly (24-bit exact)" if self.fast else "portable int32"
         return "\n".join([
@@ -219,7 +209,7 @@ def run(kl: KernelLayer, x: np.ndarray) -> np.ndarray:
         wo[g0:g0 + k] = flat[g0 * kl.n_in:(g0 + k) * kl.n_in].reshape(kl.n_in, k).T
     b = kl.b.astype(np.int64) & 0xFFFFFFFF
     s = kl.shift.astype(np.int64)
-    b, mod = (b & 0xFFFFFF, 2 ** 24) if kl.fast else (b, 2 ** 32)
+    b, mod = (b & 0xFFFFFF, 1 << numfmt.ACC_BITS_NARROW) if kl.fast else (b, 1 << numfmt.ACC_BITS_REFERENCE)
     acc = (b - 128 * xo.sum(axis=-1, keepdims=True) + xo @ wo.T) % mod  # (..., n_out)
     acc = np.where(acc >= mod // 2, acc - mod, acc)  # two's complement
     return np.clip(np.right_shift(acc, s), kl.lo, kl.hi)
@@ -472,10 +462,9 @@ def avr_asm_block() -> str:
             f"    \".pushsection .text\\n\"\n{body}\n    \".popsection\\n\"\n);\n#endif\n{ASM_END}")
 
 
-def kf_dense_c_path():
+def kf_dense_c_path() -> Path:
     """Path of ``firmware_templates/kf_dense.c``."""
-    from pathlib import Path
-    return Path(__file__).resolve().parent.parent / "firmware_templates" / "kf_dense.c"
+    return TEMPLATE_DIR / "kf_dense.c"
 
 
 def write_avr_asm() -> None:

@@ -18,19 +18,20 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import fwspec
+from kiloforge.actors.base import QuantizedActor
+from kiloforge.io import atomic_path
+
+from ..codegen.render import POLICY_FILE, TARGET_FILE
+from ..codegen.templates import TEMPLATE_DIR
+from ..contract import firmware as fw
+from ..contract.firmware import EVENT_DTYPE, TICK_RECORD_BYTES
+from ..errors import ExportError
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs, n_control_steps
-from .errors import ExportError
-from .fwspec import EVENT_DTYPE, TICK_RECORD_BYTES
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .quantize import QuantizedPolicy
-
-HOST_DIR = Path(__file__).resolve().parent.parent / "firmware_templates" / "host"
+HOST_DIR = TEMPLATE_DIR / "host"
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2")
 STREAM_MAGIC = b"KFS1"
 MSG_RECORD_BYTES = 8  #: one message in the input stream
@@ -65,12 +66,11 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy")
         return exe
     src = workdir / f"{name}.c"
     src.write_text(c_source, encoding="utf-8")
-    tmp = exe.with_suffix(".tmp")
-    cmd = [cc, *HOST_CFLAGS, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise HostBuildError(f"host build of {src.name} failed:\n{res.stderr.strip()}")
-    os.replace(tmp, exe)
+    with atomic_path(exe, mode=0o755) as tmp:
+        cmd = [cc, *HOST_CFLAGS, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise HostBuildError(f"host build of {src.name} failed:\n{res.stderr.strip()}")
     return exe
 
 
@@ -164,7 +164,7 @@ class StreamSpec:
 
 
 def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tuple[int, ...],
-                  spec: StreamSpec = StreamSpec(), msg_type: int = fwspec.DEFAULT_MSG_TYPE,
+                  spec: StreamSpec = StreamSpec(), msg_type: int = fw.DEFAULT_MSG_TYPE,
                   comm_radius_mm: float = 85.0, light_threshold: int = 500) -> FirmwareInputs:
     """A random stream that exercises every rule of the firmware (see :class:`StreamSpec`).
 
@@ -206,7 +206,7 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     ev["type"] = msg_type
     foreign = rng.random(N) < spec.foreign_p
     ev["type"][foreign] = rng.choice(np.array([0, 1, 0x29, 0x2B, 0x7F, 0x80, 0xFF], np.uint8), size=int(foreign.sum()))
-    ev["version"] = fwspec.MSG_VERSION
+    ev["version"] = fw.MSG_VERSION
     bad = rng.random(N) < spec.bad_version_p
     ev["version"][bad] = rng.choice(np.array([0, 2, 0xFF], np.uint8), size=int(bad.sum()))
     return FirmwareInputs(uids=uids, calib=calib, light=light.astype(np.int16), events=ev, n_ticks=T)
@@ -251,20 +251,20 @@ def rendered_params(c_text: str) -> tuple[tuple[int, ...], int]:
     return uids, int(m_type.group(1))
 
 
-def verify_host(qp: "QuantizedPolicy", files: dict[str, str], *, seed: int = 0,
+def verify_host(qp: QuantizedActor, files: dict[str, str], *, seed: int = 0,
                 spec: StreamSpec = StreamSpec(n_robots=64, n_steps=40)) -> HostCheck:
     """Build both rendered programs on the host, replay random streams, compare with the emulator.
 
     The target uids and message type are read back from ``kilobot_policy.c``; the beacon program
     is replayed with every robot a beacon.
     """
-    targets, msg_type = rendered_params(files["kilobot_policy.c"])
+    targets, msg_type = rendered_params(files[POLICY_FILE])
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     w = qp.world
     inputs = random_inputs(rng, w.period_ticks, targets, spec, msg_type, w.comm_radius_mm, w.light_threshold)
     with tempfile.TemporaryDirectory(prefix="kiloforge-host-") as tmp:
-        host = run_host(build_host(files["kilobot_policy.c"], tmp), inputs, w.period_ticks, w.obs_dim)
-        host_t = run_host(build_host(files["kilobot_target.c"], tmp, name="kilobot_target"), inputs,
+        host = run_host(build_host(files[POLICY_FILE], tmp), inputs, w.period_ticks, w.obs_dim)
+        host_t = run_host(build_host(files[TARGET_FILE], tmp, name="kilobot_target"), inputs,
                           w.period_ticks, w.obs_dim)
     emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets, msg_type=msg_type).run(inputs)
     emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids),

@@ -1,27 +1,28 @@
 """Firmware in the loop: the simulator driven by the int8 firmware emulator vs by the float actor.
 
-Rung 4 of the verification ladder (DESIGN.md). Two runs over exactly the same episodes:
+Rung 4 of the verification ladder (docs/verification.md). Two runs over exactly the same episodes:
 
-* **int8**: every searcher's command comes from :class:`export.emulator.FirmwareEmulator` (the
+* **int8**: every searcher's command comes from :class:`export.verify.emulator.FirmwareEmulator` (the
   bit-exact model of the generated C) fed with the radio events and light readings the simulator
   produced; the command goes back into the simulator with :meth:`sim.env.SwarmEnv.step_u8`
   (``kilobot`` preset: the real motor schedule tick by tick; ``thesis`` preset: ``u = q / 255``).
   One emulator holds all ``R = B * M`` robots of a batch of B envs; the target beacon is simulated
   (it is not a robot of the env), so the emulator runs only the searchers.
-* **float**: the float policy through :class:`sim.rollout.HistoryActor` and ``SwarmEnv.step``.
+* **float**: the float policy through its kind's swarm policy (an MLP: :class:`sim.rollout.HistoryActor`)
+  and ``SwarmEnv.step``.
 
 Both runs derive the env seed of batch k exactly as :func:`sim.rollout.rollout` does, so episode i
 starts from the same positions with the same radio and light random streams in both runs, and the
-float run equals ``rollout(SwarmEnv(cfg, B, M), HistoryActor(policy.act, ...), episodes, seed)``.
+float run equals ``rollout(SwarmEnv(cfg, B, M), swarm_policy(policy), episodes, seed)``.
 Differences between the two runs are the quantisation (weights, activations, observations from
 uint8 distances and tables) and nothing else.
 
-Timing (DESIGN.md control-step contract; see :mod:`export.emulator`): ``SwarmEnv.reset`` listens
+Timing (the control-step contract, docs/design.md; see :mod:`export.verify.emulator`): ``SwarmEnv.reset`` listens
 one still period; its events go to the emulator as period 0; the emulator's control step k (tick
 k·P) decides the commands of simulator step k; the events of that step are period k.
 
 The ``thesis`` radio has no timing: every message of a period arrives at tick 0. Delivered that way,
-the firmware's rx queue (``fwspec.RXQ_CAPACITY`` messages per tick) would drop what a real robot
+the firmware's rx queue (``firmware.RXQ_CAPACITY`` messages per tick) would drop what a real robot
 hears spread over the period, so for radios without a tick model the messages a receiver gets are
 spread over the period's ticks in arrival order (``tick = rank * P // count``), which keeps the
 order the receive rules use. Tick-level radios (``kilobot``) are delivered as simulated.
@@ -32,19 +33,18 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from kiloforge.actors.base import FloatPolicy, QuantizedActor
+from kiloforge.policies import swarm_policy
 from sim.config import WorldConfig
+from sim.env import SwarmEnv
 from sim.events import HeardEvents
 from sim.metrics import EpisodeMetrics, Summary, episode_metrics, summarise
 
 from .emulator import FirmwareEmulator, events_from_sim
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .artifact import Policy
-    from .quantize import QuantizedPolicy
 
 GOAL_RATIO = 0.97  #: int8 final coverage must reach this fraction of the float actor's
 ROBOT_BUDGET = 2048  #: default cap on B * M robots at once (throughput peaks near 1-2k robots, bench_closed_loop)
@@ -108,19 +108,12 @@ def spread_ticks(events: HeardEvents, n_robots: int, period_ticks: int) -> Heard
 # Controllers: who decides the commands of a batch
 # --------------------------------------------------------------------------------------------
 class _FloatController:
-    """The float actor (HistoryActor around policy.act; a GRU's own stateful actor); commands go through SwarmEnv.step."""
+    """The float actor (its kind's swarm policy); commands go through SwarmEnv.step."""
 
     label = "float"
 
-    def __init__(self, policy: "Policy", cfg: WorldConfig) -> None:
-        if getattr(policy, "kind", "mlp") == "gru":  # recurrent actor: one tuple per step plus its hidden state
-            from .gru import GRUSwarmPolicy
-
-            self.actor = GRUSwarmPolicy.float_policy(policy)
-        else:
-            from sim.rollout import HistoryActor
-
-            self.actor = HistoryActor(policy.act, policy.t_prev, cfg)
+    def __init__(self, policy: FloatPolicy, cfg: WorldConfig) -> None:
+        self.actor = swarm_policy(policy, cfg)
 
     def start(self, env, obs: np.ndarray, info) -> None:
         self.actor.reset(env.n_envs, env.n_robots)
@@ -138,7 +131,7 @@ class _FirmwareController:
 
     label = "int8"
 
-    def __init__(self, qp: "QuantizedPolicy", cfg: WorldConfig, spread: bool | None = None) -> None:
+    def __init__(self, qp: QuantizedActor, cfg: WorldConfig, spread: bool | None = None) -> None:
         self.qp = qp
         self.cfg = cfg
         self.emu: FirmwareEmulator | None = None
@@ -205,8 +198,6 @@ class LoopResult:
 
 def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, n_envs: int | None,
          record: bool, bar) -> LoopResult:
-    from sim.env import SwarmEnv
-
     assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
     M = int(n_robots)
     assert not 1 <= cfg.target_uid <= M, (
@@ -257,14 +248,14 @@ def _world(world: WorldConfig, steps: int | None) -> WorldConfig:
     return dataclasses.replace(world, episode_steps=int(steps))
 
 
-def run_float(policy: "Policy", n_robots: int, episodes: int, seed: int = 0, *, steps: int | None = None,
+def run_float(policy: FloatPolicy, n_robots: int, episodes: int, seed: int = 0, *, steps: int | None = None,
               n_envs: int | None = None, record: bool = False, bar=None) -> LoopResult:
     """The float actor in its own world: ``episodes`` episodes of ``steps`` (default: the world's)."""
     cfg = _world(policy.world, steps)
     return _run(_FloatController(policy, cfg), cfg, n_robots, episodes, seed, n_envs, record, bar)
 
 
-def run_firmware(qp: "QuantizedPolicy", n_robots: int, episodes: int, seed: int = 0, *,
+def run_firmware(qp: QuantizedActor, n_robots: int, episodes: int, seed: int = 0, *,
                  steps: int | None = None, n_envs: int | None = None, record: bool = False,
                  bar=None, spread: bool | None = None) -> LoopResult:
     """The int8 firmware (emulator) in the quantised policy's world, same episodes as :func:`run_float`.
@@ -392,7 +383,7 @@ def _pm(s: Summary, signed: bool = False) -> str:
     return f"{s.mean:{sign}.3f} ± {s.ci95:.3f}"
 
 
-def compare(policy: "Policy", qp: "QuantizedPolicy", n_robots: int, episodes: int, seed: int = 0, *,
+def compare(policy: FloatPolicy, qp: QuantizedActor, n_robots: int, episodes: int, seed: int = 0, *,
             steps: int | None = None, n_envs: int | None = None, goal: float = GOAL_RATIO, bar=None) -> Comparison:
     """Float actor vs int8 firmware, same ``episodes`` (same env seeds), one robot count."""
     if policy.world.to_dict() != qp.world.to_dict():
@@ -403,7 +394,7 @@ def compare(policy: "Policy", qp: "QuantizedPolicy", n_robots: int, episodes: in
     return Comparison(int(n_robots), f, q, goal=goal)
 
 
-def compare_many(policy: "Policy", qp: "QuantizedPolicy", robots: Sequence[int], episodes: int, seed: int = 0,
+def compare_many(policy: FloatPolicy, qp: QuantizedActor, robots: Sequence[int], episodes: int, seed: int = 0,
                  *, steps: int | None = None, goal: float = GOAL_RATIO, progress: bool = False) -> list[Comparison]:
     """:func:`compare` for each robot count, with one tqdm bar (episode-steps) over all of them."""
     T = steps if steps is not None else policy.world.episode_steps

@@ -6,7 +6,7 @@
 
 Quantises the policy exactly as ``python -m export`` does with the same calibration options, then
 for each robot count runs the same episodes (same env seeds) twice: with the float actor and with
-the firmware emulator in the loop (:mod:`export.closed_loop`). Prints mean return, final coverage
+the firmware emulator in the loop (:mod:`export.verify.closed_loop`). Prints mean return, final coverage
 and time to find with 95 % confidence intervals, the paired int8 - float difference, the ratio of
 the int8 to the float final coverage (with a paired-bootstrap interval) and PASS / FAIL against
 the goal (ratio >= 0.97 by default). With ``--out DIR``: ``coverage.png`` (coverage over time,
@@ -21,57 +21,50 @@ import argparse
 import io
 import json
 import sys
-from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, Sequence
 
-from .errors import ExportError, OutputError
+from kiloforge.errors import OutputError
+from kiloforge.io import check_writable, write_files_atomic
+from sim.env import SwarmEnv
 
-EXIT_OK = 0
-EXIT_FAIL = 1
+from ..errors import ExportError
+from ..quantize import calibrate, error_report, quantize_policy
+from ..verify.closed_loop import GOAL_RATIO, compare_many
+from .common import EXIT_FAIL, EXIT_OK, Parser, describe, load, positive
+
 COVERAGE_PNG = "coverage.png"
 RETURNS_PNG = "returns_box.png"
 RESULT_JSON = "closed_loop.json"
 
 
 def verify_parser() -> argparse.ArgumentParser:
-    from .cli import _Parser, _positive
-    from .closed_loop import GOAL_RATIO
-
-    ap = _Parser(prog="python -m export verify",
+    ap = Parser(prog="python -m export verify",
                  description="Closed-loop verification: the simulator driven by the int8 firmware emulator "
                              "vs by the float actor, same episodes. Exit 0 pass, 1 fail, 2 bad input.")
     ap.add_argument("--closed-loop", action="store_true", required=True,
                     help="run the closed-loop comparison (the verification this command does)")
     ap.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped default policy)")
-    ap.add_argument("--robots", type=_positive, nargs="+", default=[16, 32], metavar="M",
+    ap.add_argument("--robots", type=positive, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")
-    ap.add_argument("--episodes", type=_positive, default=200, help="episodes per robot count (default 200)")
-    ap.add_argument("--steps", type=_positive, default=None,
+    ap.add_argument("--episodes", type=positive, default=200, help="episodes per robot count (default 200)")
+    ap.add_argument("--steps", type=positive, default=None,
                     help="control periods per episode (default: the world's episode length)")
     ap.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     ap.add_argument("--out", type=Path, default=None,
                     help="directory for coverage.png, returns_box.png and closed_loop.json (created if missing)")
     ap.add_argument("--goal", type=float, default=GOAL_RATIO,
                     help=f"pass when int8 final coverage >= GOAL x float final coverage (default {GOAL_RATIO})")
-    ap.add_argument("--robots-calib", type=_positive, nargs="+", default=[4, 16], metavar="N",
+    ap.add_argument("--robots-calib", type=positive, nargs="+", default=[4, 16], metavar="N",
                     help="robot counts of the calibration rollouts, as for export (default 4 16)")
-    ap.add_argument("--calib-episodes", type=_positive, default=1, help="calibration episodes per robot count (default 1)")
-    ap.add_argument("--calib-steps", type=_positive, default=None,
+    ap.add_argument("--calib-episodes", type=positive, default=1, help="calibration episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=positive, default=None,
                     help="control periods per calibration episode, as for export (default: the world's)")
     ap.add_argument("--calib-seed", type=int, default=0, help="calibration seed, as export's --seed (default 0)")
     ap.add_argument("--percentile", type=float, default=100.0,
                     help="range percentile for exponent choice, as for export (default 100)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
     return ap
-
-
-def _load(path: Path | None):
-    from .cli import _load as load_for_export
-
-    ns = argparse.Namespace(onnx=None, world_json=None, policy=path)
-    with ExitStack() as stack:
-        return load_for_export(ns, stack)
 
 
 def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
@@ -137,10 +130,6 @@ def run_verify(argv: Sequence[str]) -> int:
         raise ExportError(f"--goal must be in (0, 1.5], got {args.goal}")
     if not 0.0 < args.percentile <= 100.0:
         raise ExportError(f"--percentile must be in (0, 100], got {args.percentile}")
-    from .atomic import check_writable, write_files_atomic
-    from .closed_loop import compare_many
-    from .quantize import calibrate, error_report, quantize_policy
-
     out: Path | None = args.out
     if out is not None:  # fail before the slow part
         if out.exists() and not out.is_dir():
@@ -151,24 +140,15 @@ def run_verify(argv: Sequence[str]) -> int:
         if not base.is_dir():
             raise OutputError(f"cannot create '{out}': '{base}' is not a directory")
         check_writable([base / RESULT_JSON])
-    policy = _load(args.policy)
-    print(f"policy {policy.hash[:16]}: world '{policy.world.name}', t_prev {policy.t_prev}, "
-          f"layers {' -> '.join(map(str, policy.layer_sizes))} ({', '.join(policy.activations)})")
-    notes = policy.provenance.get("notes")
-    if notes:
-        print(f"  provenance: {notes}")
+    policy = load(args.policy)
+    print(describe(policy))
     M_max = max(args.robots)
     try:
-        from sim.env import SwarmEnv
-
         SwarmEnv(policy.world, 1, M_max, seed=0)  # checks that this many robots fit the arena
     except ValueError as e:
         raise ExportError(f"--robots {M_max}: {e}") from None
 
     progress = not args.no_progress and sys.stderr.isatty()
-    if getattr(policy, "kind", "mlp") == "gru":  # the recurrent actor has its own quantiser
-        from .gru_quantize import calibrate_gru as calibrate, gru_error_report as error_report, \
-            quantize_gru as quantize_policy
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
                       steps=args.calib_steps, progress=progress)
     qp = quantize_policy(policy, calib, percentile=args.percentile)

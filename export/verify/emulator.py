@@ -2,21 +2,22 @@
 
 :class:`FirmwareEmulator` reproduces ``kilobot_policy.c`` (and, for beacon uids, ``kilobot_target.c``)
 integer for integer: the rx filter and bounded rx queue, the receive rules, the int8 observation,
-the Algorithm-4 history, the int8 MLP (or, for a recurrent policy, the int8 GRU cell and its hidden
-state, :mod:`export.gru_quantize`), the motor schedule applied tick by tick (with
-``spinup_motors``), the LED and the outgoing message bytes with their CRC. The host build
-(:mod:`export.hostbuild`) and the AVR build run the same event streams and must give the same bytes.
+the actor input tuple ``[ACT[q_prev], obs]``, the actor kind's int8 control step with its state
+(:meth:`kiloforge.actors.base.QuantizedActor.step_int`: an MLP's history ring, a recurrent cell's
+state), the motor schedule applied tick by tick (with ``spinup_motors``), the LED and the outgoing
+message bytes with their CRC. The host build (:mod:`export.verify.hostbuild`) and the AVR build
+(:mod:`export.verify.avr`) run the same event streams and must give the same bytes.
 
 Tick model (what ``firmware_templates/host/harness.c`` does): for global tick T = 0, 1, 2, ...
 
 1. ``kilo_ticks = T`` and ``loop()`` runs once: it drains the rx queue into the period's table; if
    T is a control tick (``T = k * period_ticks`` with k >= 1) it runs the control step (observe from
-   the table, clear it, push the history, MLP, motor schedule for ticks T .. T+P-1, LED, message);
+   the table, clear it, the actor's step, motor schedule for ticks T .. T+P-1, LED, message);
    then it applies this tick's motor mode. During the first period (T < P) the robot stands still
    and listens: Algorithm 4 observes o_1 before the first action, as ``SwarmEnv.reset`` does;
 2. the messages arriving during tick T are delivered to the rx callback in order (the callback
    drops foreign types, other version bytes, and everything once the queue holds
-   ``fwspec.RXQ_CAPACITY`` messages; the queue is empty at the start of each delivery because the
+   ``firmware.RXQ_CAPACITY`` messages; the queue is empty at the start of each delivery because the
    previous ``loop()`` drained it).
 
 So the events of sim period k (tick t within it; period 0 is the one ``SwarmEnv.reset`` listens
@@ -30,21 +31,19 @@ messages the queue accepted, so the host test proves the C follows the simulator
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable
+from typing import Iterable
 
 import numpy as np
 
+from kiloforge import numfmt
+from kiloforge.actors.base import QuantizedActor
 from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_TARGET, WorldConfig
 from sim.events import HeardEvents, summarise
-from sim.history import History
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
 
-from . import fwspec, numfmt
-from .crc import crc16_rows
-from .fwspec import EVENT_DTYPE, MSG_BYTES, TICK_RECORD_BYTES
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .quantize import QuantizedPolicy
+from ..contract import firmware as fw
+from ..contract.crc import crc16_rows
+from ..contract.firmware import EVENT_DTYPE, MSG_BYTES, TICK_RECORD_BYTES
 
 
 def n_control_steps(n_ticks: int, period_ticks: int) -> int:
@@ -63,7 +62,7 @@ class FirmwareInputs:
     uids: np.ndarray  #: (R,) uint16 kilo_uid of each robot
     calib: np.ndarray  #: (R, 4) uint8 kilo_straight_left, kilo_straight_right, kilo_turn_left, kilo_turn_right
     light: np.ndarray  #: (R, n_steps) int16 get_ambientlight() at control ticks P, 2P, ... (-1 = busy)
-    events: np.ndarray  #: (N,) fwspec.EVENT_DTYPE; per (robot, tick) in delivery order
+    events: np.ndarray  #: (N,) firmware.EVENT_DTYPE; per (robot, tick) in delivery order
     n_ticks: int
 
     def __post_init__(self) -> None:
@@ -74,7 +73,7 @@ class FirmwareInputs:
         assert self.uids.ndim == 1 and R >= 1, "uids must be a non-empty 1-D array"
         assert self.calib.shape == (R, 4), f"calib must be (R, 4) = ({R}, 4), got {self.calib.shape}"
         assert self.light.ndim == 2 and self.light.shape[0] == R, f"light must be (R, n_steps), got {self.light.shape}"
-        assert self.events.dtype == EVENT_DTYPE, f"events must have dtype fwspec.EVENT_DTYPE, got {self.events.dtype}"
+        assert self.events.dtype == EVENT_DTYPE, f"events must have dtype firmware.EVENT_DTYPE, got {self.events.dtype}"
         assert self.n_ticks >= 1, f"n_ticks must be >= 1, got {self.n_ticks}"
         if self.events.size:
             assert int(self.events["robot"].max()) < R, "an event names a robot >= R"
@@ -91,7 +90,7 @@ class FirmwareInputs:
 
 @dataclass
 class FirmwareOutputs:
-    """What the firmware did, byte for byte (the layouts of :mod:`export.fwspec`)."""
+    """What the firmware did, byte for byte (the layouts of :mod:`export.contract.firmware`)."""
 
     ticks: np.ndarray  #: (R, n_ticks, 16) uint8: left, right, spinup, LED, message_t bytes
     steps: np.ndarray  #: (R, n_steps, 2 + obs_dim) uint8: q_left, q_right, obs (int8 bytes); beacons 0
@@ -135,12 +134,12 @@ def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarr
     """
     uids = np.asarray(uids, np.uint16)
     m = np.zeros((uids.shape[0], MSG_BYTES), np.uint8)
-    m[:, 0] = fwspec.MSG_VERSION
+    m[:, 0] = fw.MSG_VERSION
     m[:, 1] = uids & 0xFF
     m[:, 2] = uids >> 8
     m[:, 3] = np.asarray(info, np.uint8)
     m[:, 9] = msg_type
-    crc = crc16_rows(m[:, :fwspec.MSG_CRC_BYTES])  # (R,)
+    crc = crc16_rows(m[:, :fw.MSG_CRC_BYTES])  # (R,)
     m[:, 10] = crc & 0xFF
     m[:, 11] = crc >> 8
     return m
@@ -155,9 +154,9 @@ class FirmwareEmulator:
     ``deliver(events)`` with the messages that arrive during it.
     """
 
-    def __init__(self, qp: "QuantizedPolicy", uids: Iterable[int], calib: np.ndarray | None = None, *,
-                 target_uids: Iterable[int] | None = None, msg_type: int = fwspec.DEFAULT_MSG_TYPE,
-                 rxq_capacity: int = fwspec.RXQ_CAPACITY) -> None:
+    def __init__(self, qp: QuantizedActor, uids: Iterable[int], calib: np.ndarray | None = None, *,
+                 target_uids: Iterable[int] | None = None, msg_type: int = fw.DEFAULT_MSG_TYPE,
+                 rxq_capacity: int = fw.RXQ_CAPACITY) -> None:
         self.qp = qp
         self.world: WorldConfig = qp.world
         self.P = int(self.world.period_ticks)
@@ -165,12 +164,12 @@ class FirmwareEmulator:
         R = self.uids.shape[0]
         assert self.uids.ndim == 1 and R >= 1, "need at least one robot uid"
         self.R = R
-        calib = np.tile(np.asarray(fwspec.DEFAULT_CALIB, np.uint8), (R, 1)) if calib is None else calib
+        calib = np.tile(np.asarray(fw.DEFAULT_CALIB, np.uint8), (R, 1)) if calib is None else calib
         self.calib = np.asarray(calib, np.uint8)
         assert self.calib.shape == (R, 4), f"calib must be (R, 4), got {self.calib.shape}"
         targets = (self.world.target_uid,) if target_uids is None else tuple(int(u) for u in target_uids)
         self.is_beacon = np.isin(self.uids.astype(np.int64), np.asarray(targets, np.int64))  # (R,)
-        self.msg_type = fwspec.check_msg_type(msg_type)
+        self.msg_type = fw.check_msg_type(msg_type)
         assert rxq_capacity >= 1, "the rx queue holds at least one message"
         self.rxq_capacity = int(rxq_capacity)
         # duties of each motor mode: (R, 4 modes, 2)
@@ -181,12 +180,12 @@ class FirmwareEmulator:
         self.mode_duty[:, MODE_STOP] = 0
         # the messages a searcher can send (sensing 0 / 1) and the beacon's
         self.msg_searcher = np.stack([message_bytes(self.uids, np.zeros(R, np.uint8), self.msg_type),
-                                      message_bytes(self.uids, np.full(R, fwspec.SENSING_BIT, np.uint8),
+                                      message_bytes(self.uids, np.full(R, fw.SENSING_BIT, np.uint8),
                                                     self.msg_type)], 1)  # (R, 2, 12)
-        self.msg_beacon = message_bytes(self.uids, np.full(R, fwspec.ROLE_BIT, np.uint8), self.msg_type)
-        self.led_codes = {name: fwspec.rgb(*c) for name, c in (
-            ("off", fwspec.LED_OFF), ("beacon", fwspec.LED_BEACON), ("sensing", fwspec.LED_SENSING),
-            ("nbr", fwspec.LED_NBR_SENSING))}
+        self.msg_beacon = message_bytes(self.uids, np.full(R, fw.ROLE_BIT, np.uint8), self.msg_type)
+        self.led_codes = {name: fw.rgb(*c) for name, c in (
+            ("off", fw.LED_OFF), ("beacon", fw.LED_BEACON), ("sensing", fw.LED_SENSING),
+            ("nbr", fw.LED_NBR_SENSING))}
         self.reset()
 
     # --- state ------------------------------------------------------------------------------
@@ -196,11 +195,7 @@ class FirmwareEmulator:
         self.steps_done = 0
         self.wall = np.zeros(R, bool)
         self.q = np.zeros((R, 2), np.uint8)
-        self.history = History(self.qp.t_prev, self.world.obs_dim)
-        # a recurrent policy (export/gru_quantize.py) keeps a hidden state per robot instead of a
-        # history: setup() zeroes it, and its input is the one-tuple history [ACT[q_prev], obs]
-        self.recurrent = getattr(self.qp, "kind", "mlp") == "gru"
-        self.hidden = self.qp.initial_state(R) if self.recurrent else None
+        self.state = self.qp.initial_state(R)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
         self.turn = np.zeros(R, np.uint8)
         self.turn_mode = np.full(R, MODE_STOP, np.uint8)
@@ -213,11 +208,11 @@ class FirmwareEmulator:
     def accepted(self, events: np.ndarray) -> np.ndarray:
         """The events the rx callback queues, in arrival order (filter, then the queue capacity)."""
         ev = np.asarray(events)
-        assert ev.dtype == EVENT_DTYPE, f"events must have dtype fwspec.EVENT_DTYPE, got {ev.dtype}"
+        assert ev.dtype == EVENT_DTYPE, f"events must have dtype firmware.EVENT_DTYPE, got {ev.dtype}"
         if ev.size == 0:
             return ev
         ev = ev[np.lexsort((ev["tick"], ev["robot"]))]  # by (robot, tick), ties in given order
-        ours = (ev["type"] == self.msg_type) & (ev["version"] == fwspec.MSG_VERSION) & ~self.is_beacon[ev["robot"]]
+        ours = (ev["type"] == self.msg_type) & (ev["version"] == fw.MSG_VERSION) & ~self.is_beacon[ev["robot"]]
         ev = ev[ours]
         key = ev["robot"].astype(np.int64) << 32 | ev["tick"].astype(np.int64)  # (N,) non-decreasing
         start = np.r_[0, np.flatnonzero(np.diff(key)) + 1] if key.size else np.zeros(0, np.int64)
@@ -271,15 +266,8 @@ class FirmwareEmulator:
         np.add.at(rbf, t_rx, np.asarray(qp.rbf_table, np.int64)[:, t_d].T)  # (K, n_rbf) per table entry
         obs[:, OBS_RBF:] = np.minimum(rbf, numfmt.INT8_MAX)
 
-        act = np.asarray(qp.action_table, np.int64)[self.q.astype(np.int64)]  # (R, 2) ACT[previous q]
-        if self.steps_done == 0:
-            flat = self.history.reset(obs[None].astype(np.float32))  # (1, R, in_dim), a_0 = ACT[0] = 0
-        else:
-            flat = self.history.push(act[None].astype(np.float32), obs[None].astype(np.float32))
-        if self.recurrent:
-            q, self.hidden = qp.step_int(flat[0].astype(np.int64), self.hidden)  # (R, 2) uint8, (R, H)
-        else:
-            q = qp.forward_int(flat[0].astype(np.int64))  # (R, 2) uint8
+        act = np.asarray(qp.action_table, np.int64)[self.q.astype(np.int64)]  # (R, 2) ACT[previous q], a_0 = ACT[0] = 0
+        q, self.state = qp.step_int(np.concatenate([act, obs], 1), self.state)  # (R, 2) uint8
         self.steps_done += 1
 
         searcher = ~self.is_beacon
@@ -342,7 +330,7 @@ class FirmwareEmulator:
 
 
 def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots: int,
-                    msg_type: int = fwspec.DEFAULT_MSG_TYPE) -> np.ndarray:
+                    msg_type: int = fw.DEFAULT_MSG_TYPE) -> np.ndarray:
     """Simulator events of control period ``period`` -> the firmware's event stream (EVENT_DTYPE).
 
     Receiver ``robot = env * n_robots + rx``; searcher i sends kilo_uid i + 1, the target
@@ -357,7 +345,7 @@ def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots
     out["uid"] = np.where(events.sender < 0, cfg.target_uid, events.sender.astype(np.int64) + 1)
     out["role"] = events.role
     out["flag"] = events.flag
-    out["type"] = fwspec.check_msg_type(msg_type)
-    out["version"] = fwspec.MSG_VERSION
+    out["type"] = fw.check_msg_type(msg_type)
+    out["version"] = fw.MSG_VERSION
     out["dist"] = numfmt.distance_u8(events.dist_mm)
     return out[np.lexsort((out["tick"], out["robot"]))]

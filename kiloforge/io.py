@@ -1,15 +1,21 @@
-"""Atomic file output: temp file in the target directory, fsync, then ``os.replace``.
+"""Atomic file output for the whole project: temp file in the target directory, fsync, ``os.replace``.
 
-:func:`write_files_atomic` writes several files all-or-nothing: every temp file is written first;
-only when all succeeded are they renamed into place, and if a rename fails the files already
-renamed are put back as they were (restored from a backup, or removed when they did not exist).
+* :func:`write_atomic` writes one file (bytes, or str encoded as UTF-8);
+* :func:`write_files_atomic` writes several files all-or-nothing: every temp file is written first;
+  only when all succeeded are they renamed into place, and if a rename fails the files already
+  renamed are put back as they were (restored from a backup, or removed when they did not exist);
+* :func:`atomic_path` is for writers that want a file name (matplotlib, Pillow, ``torch.save``, a
+  compiler's ``-o``): it yields a temp sibling and moves it onto the target only on success.
+
+Failures raise :class:`kiloforge.errors.OutputError` with a one-line message.
 """
 from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Mapping
+from typing import Iterator, Mapping
 
 from .errors import OutputError
 
@@ -32,21 +38,31 @@ def check_writable(paths: list[Path]) -> None:
         _check_dir(Path(p))
 
 
+def _temp_sibling(path: Path) -> Path:
+    """A new empty file beside ``path`` (same directory, so that ``os.replace`` is atomic)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
+                               dir=path.parent if str(path.parent) else ".")
+    os.close(fd)
+    return Path(tmp)
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
 def _write_temp(path: Path, data: bytes) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
+    tmp = _temp_sibling(path)
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o644)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        tmp.unlink(missing_ok=True)
         raise
-    return Path(tmp)
+    return tmp
 
 
 def write_files_atomic(files: Mapping[str | os.PathLike, bytes | str]) -> list[Path]:
@@ -88,6 +104,22 @@ def write_files_atomic(files: Mapping[str | os.PathLike, bytes | str]) -> list[P
     return [p for p, _ in items]
 
 
-def write_bytes_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
-    """Write one file atomically."""
+def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+    """Write one file atomically (str is UTF-8 encoded); returns its path."""
     return write_files_atomic({path: data})[0]
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, mode: int = 0o644) -> Iterator[Path]:
+    """Yield a temp sibling of ``path`` (same suffix) to write by name; on success it is fsynced, given
+    ``mode`` and moved onto ``path``, on an exception removed (``path`` is left as it was)."""
+    path = Path(path)
+    _check_dir(path)
+    tmp = _temp_sibling(path)
+    try:
+        yield tmp
+        _fsync_file(tmp)
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

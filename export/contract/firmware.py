@@ -9,7 +9,7 @@ The message a robot sends (``message_t``, 12 bytes, packed)::
     data[4..8]  0
     type        KF_MSG_TYPE (default DEFAULT_MSG_TYPE) a user type: < 0x80 and != 1 (1 is the overhead
                                                       controller's GPS message)
-    crc         CRC-16/MCRF4XX over the first 10 bytes, little-endian (export.crc)
+    crc         CRC-16/MCRF4XX over the first 10 bytes, little-endian (export.contract.crc)
 
 The LED (``set_color`` byte, kilolib's 2 bits per channel: red bits 0-1, green 2-3, blue 4-5):
 beacon blue; a searcher that heard the target this period green; else one whose neighbour table

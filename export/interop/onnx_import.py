@@ -1,4 +1,4 @@
-"""ONNX in: any framework's MLP actor → a kiloforge :class:`~export.artifact.Policy`.
+"""ONNX in: any framework's MLP actor → a kiloforge :class:`~kiloforge.actors.mlp.MLPPolicy`.
 
 Reads an ``.onnx`` file with the ``onnx`` package only (no onnxruntime, no torch) and walks its graph
 as a single chain of dense layers. What is accepted (see ``docs/onnx.md``):
@@ -25,7 +25,7 @@ fields...}, "t_prev": 20}`` (missing fields take the ``thesis`` defaults), or th
 the top level next to ``t_prev``, given as ``world_json`` (CLI: ``--world-json``) or found beside the model as
 ``<model>.world.json``.
 
-Every user mistake raises :class:`OnnxImportError` (a :class:`~export.errors.PolicyError`) with a
+Every user mistake raises :class:`OnnxImportError` (a :class:`~kiloforge.errors.PolicyError`) with a
 one-line message that names the file, and the node and op where relevant.
 """
 from __future__ import annotations
@@ -39,7 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from export.errors import PolicyError
+from kiloforge.actors.mlp import MLPPolicy
+from kiloforge.errors import PolicyError
+from kiloforge.policies import save_policy
 from sim.config import ACTION_DIM, WorldConfig, preset
 
 # metadata_props keys (the same names are written by learn.onnx_export)
@@ -239,7 +241,7 @@ def _fold_constant(node: Any, a: dict[str, Any], vals: list[np.ndarray], label: 
 
 
 def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
-    """Read an ONNX MLP actor and return a :class:`export.artifact.Policy` (float weights, its world).
+    """Read an ONNX MLP actor and return a :class:`kiloforge.actors.mlp.MLPPolicy` (float weights, its world).
 
     ``world_json``: a path to a JSON file (or a dict) with ``world`` and ``t_prev``, for models
     without kiloforge metadata. Raises :class:`OnnxImportError` with a one-line message.
@@ -507,11 +509,9 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
     if META_VERSION in meta:
         provenance["kiloforge_version_onnx"] = meta[META_VERSION]
 
-    from export.artifact import Policy  # torch-free; imported late so this module loads alone
-
     try:
-        return Policy(weights=weights, biases=biases, activations=acts, t_prev=t_prev, world=world,
-                      provenance=provenance, kind="mlp")
+        return MLPPolicy(weights=weights, biases=biases, activations=acts, t_prev=t_prev, world=world,
+                         provenance=provenance)
     except (AssertionError, ValueError, TypeError, PolicyError) as e:
         if isinstance(e, OnnxImportError):
             raise
@@ -519,11 +519,11 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    """``python -m export.onnx_import MODEL.onnx [--world-json W.json] --out policy.npz``."""
+    """``python -m export.interop.onnx_import MODEL.onnx [--world-json W.json] --out policy.npz``."""
     import argparse
     import sys
 
-    ap = argparse.ArgumentParser(prog="python -m export.onnx_import",
+    ap = argparse.ArgumentParser(prog="python -m export.interop.onnx_import",
                                  description="Convert an ONNX MLP actor into a kiloforge policy artifact (.npz).")
     ap.add_argument("model", help="the .onnx file (one input [N, history_dim], one output [N, 2])")
     ap.add_argument("--world-json", default=None, help="JSON with 'world' (dict or preset name) and 't_prev', "
@@ -531,8 +531,6 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="policy artifact to write (.npz)")
     args = ap.parse_args(argv)
     try:
-        from export.artifact import save_policy
-
         pol = load_onnx_policy(args.model, args.world_json)
         save_policy(pol, args.out)
     except PolicyError as e:

@@ -1,4 +1,5 @@
-"""Deterministic synthetic quantised policies for tests and benchmarks of the firmware path.
+"""Deterministic policies for tests and benchmarks (no training): float MLPs with the thesis's
+initialisation and synthetic int8 MLPs that exercise every integer path of the firmware.
 
 A trained policy is not needed to check that the generated C, its emulator and the AVR build agree
 bit for bit: what matters is that every integer path is exercised. :func:`synthetic_qpolicy` draws
@@ -12,19 +13,35 @@ from typing import Sequence
 
 import numpy as np
 
+from kiloforge import numfmt
+from kiloforge.actors.base import sensing_tables
+from kiloforge.actors.mlp import MLPPolicy, QuantizedMLP
+from kiloforge.numfmt import QuantLayer
 from sim.config import ACTION_DIM, WorldConfig
 
-from . import numfmt
-from .numfmt import QuantLayer
-from .quantize import QuantizedPolicy
-
 TABLE_EXPONENTS = (5, 6)  #: (e_z, e_a) of synthetic table activations
+FLASH_HEADROOM_B = 1_500  #: flash the shipped default policy leaves free for error in the code estimate
+
+
+def init_policy(world: WorldConfig, t_prev: int, hidden: Sequence[int], activation: str = "elu",
+                seed: int = 0, out_scale: float = 3e-3, provenance: dict | None = None) -> MLPPolicy:
+    """A randomly initialised MLP actor (thesis §4.3.1): U[±1/sqrt(f)] hidden, U[±out_scale] output."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    sizes = [world.history_dim(t_prev), *hidden, 2]
+    ws, bs = [], []
+    for k in range(len(sizes) - 1):
+        f = sizes[k]
+        lim = out_scale if k == len(sizes) - 2 else 1.0 / np.sqrt(f)
+        ws.append(rng.uniform(-lim, lim, size=(sizes[k + 1], f)).astype(np.float32))
+        bs.append(rng.uniform(-lim, lim, size=(sizes[k + 1],)).astype(np.float32))
+    acts = [activation] * len(hidden) + ["identity"]
+    return MLPPolicy(weights=ws, biases=bs, activations=acts, t_prev=t_prev, world=world,
+                     provenance=dict(provenance or {}))
 
 
 def synthetic_qpolicy(world: WorldConfig, t_prev: int, hidden: Sequence[int] = (8,),
-                      activations: Sequence[str] | None = None, seed: int = 0, e_in: int = 6
-                      ) -> QuantizedPolicy:
-    """A QuantizedPolicy with random int8 weights; same arguments, same policy (and same hash).
+                      activations: Sequence[str] | None = None, seed: int = 0, e_in: int = 6) -> QuantizedMLP:
+    """A QuantizedMLP with random int8 weights; same arguments, same policy (and same hash).
 
     ``activations``: one per hidden layer (default ReLU), any of numfmt.ACTIVATIONS.
     """
@@ -34,8 +51,7 @@ def synthetic_qpolicy(world: WorldConfig, t_prev: int, hidden: Sequence[int] = (
     sizes = [world.history_dim(t_prev), *map(int, hidden), ACTION_DIM]
     x_probe = rng.integers(-64, 65, size=(256, sizes[0]))  # typical input magnitudes
     layers: list[QuantLayer] = []
-    acc24, acc_max = [], []
-    e_prev, x_lo, x_hi = e_in, numfmt.INT8_MIN, numfmt.INT8_MAX
+    e_prev = e_in
     for k in range(len(sizes) - 1):
         n_in, n_out = sizes[k], sizes[k + 1]
         last = k == len(sizes) - 2
@@ -53,31 +69,21 @@ def synthetic_qpolicy(world: WorldConfig, t_prev: int, hidden: Sequence[int] = (
             lo, hi, act, e_out, e_act, table = 0, 255, "identity", 0, 0, None
         else:
             lo, hi, act = numfmt.INT8_MIN, numfmt.INT8_MAX, acts[k]
-            if act in ("elu", "tanh", "sigmoid"):
+            if act in numfmt.TABLE_ACTIVATIONS:
                 e_out, e_act = TABLE_EXPONENTS
                 table = numfmt.act_table(act, e_out, e_act)
             else:
                 e_out = e_act = 4
                 table = None
-        b = b.astype(np.int32)
-        layer = QuantLayer(w=w, b=b, shift=shift, lo=lo, hi=hi, activation=act, e_in=e_prev, e_out=e_out,
-                           e_act=e_act, table=table)
+        layer = QuantLayer(w=w, b=b.astype(np.int32), shift=shift, lo=lo, hi=hi, activation=act, e_in=e_prev,
+                           e_out=e_out, e_act=e_act, table=table)
         layers.append(layer)
-        acc24.append(numfmt.fits_acc24(w, b))
-        acc_max.append(int(numfmt.acc_bound(w, b, x_lo, x_hi).max()))
         x_probe = np.clip(layer.forward(x_probe), -128, 127)
         e_prev = e_act
-        x_lo, x_hi = (int(table.min()), int(table.max())) if table is not None else (
-            (0, 127) if act == "relu" else (-128, 127))
     digest = hashlib.sha256()
     for layer in layers:
         for arr in (layer.w, layer.b, layer.shift):
             digest.update(np.ascontiguousarray(arr).tobytes())
     digest.update(world.to_json().encode())
-    return QuantizedPolicy(
-        layers=layers, e_in=e_in, world=world, t_prev=t_prev,
-        rbf_table=numfmt.rbf_table(world.rbf_centres_mm, world.rbf_sigma_mm, world.rbf_norm,
-                                   world.comm_radius_mm, e_in),
-        target_table=numfmt.target_table(world.comm_radius_mm, e_in),
-        action_table=numfmt.action_table(e_in),
-        policy_hash=digest.hexdigest(), acc24_safe=tuple(acc24), acc_max=tuple(acc_max))
+    return QuantizedMLP(layers=layers, e_in=e_in, world=world, t_prev=t_prev, policy_hash=digest.hexdigest(),
+                        **sensing_tables(world, e_in))

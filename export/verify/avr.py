@@ -1,20 +1,20 @@
 """Real AVR builds and simavr runs: exact flash / SRAM budgets, cycle counts, bit-exact checks.
 
 Everything here shells out to Debian's AVR toolchain (``gcc-avr``, ``binutils-avr``, ``avr-libc``)
-and, for runs, to a small simavr runner (``export/simavr_run.c`` linked with ``libsimavr-dev``)
+and, for runs, to a small simavr runner (``export/verify/simavr_run.c`` linked with ``libsimavr-dev``)
 that this module compiles once into a cache directory.
 
 * :func:`build` compiles C sources with kilolib's flags (:data:`KILOLIB_CFLAGS`) into an ELF and
   reports its exact sizes (:class:`Sizes`).
 * :func:`exact_budget` builds the rendered firmware against our kilolib stand-in
-  (``firmware_templates/avr/``) and returns the figures :class:`export.budget.Budget` merges in
+  (``firmware_templates/avr/``) and returns the figures :class:`export.codegen.budget.Budget` merges in
   (``Budget.with_exact``): the stand-in's own size is replaced by kilolib's (see below).
 * :func:`run_elf` runs an ELF in simavr (ATmega328P, 8 MHz) with a byte stream in and out, cycle
   marks and the painted-stack high-water mark.
 * :func:`verify_simavr` is rung 3 of the verification ladder (``python -m export --verify avr``):
   the AVR build of the generated program, driven by the replay harness of
   ``firmware_templates/host/`` with simavr I/O (``firmware_templates/avr/kf_avr_io.c``), must equal
-  :class:`export.emulator.FirmwareEmulator` byte for byte; it also reports cycles per control
+  :class:`export.verify.emulator.FirmwareEmulator` byte for byte; it also reports cycles per control
   step, cycles per MAC of the dense layers and the peak stack of ``loop()``.
 * :func:`robot_images` builds ``.elf`` / ``.hex`` (for KiloGUI) against a real kilolib checkout.
 * :func:`kernel_program` / :func:`run_kernel` run ``kf_dense`` layers in simavr (tests, benchmark).
@@ -22,7 +22,7 @@ that this module compiles once into a cache directory.
 The kilolib correction. kilolib has no licence, so we never build against it by default: the
 stand-in implements its documented API (our own code) and the figures of a program built with it
 are corrected by ``kilolib size - stand-in size``, both measured as a program with empty
-``setup``/``loop``. kilolib's figures, :data:`KILOLIB_FLASH` / :data:`KILOLIB_SRAM`, are the
+``setup``/``loop``. kilolib's figures, :data:`~export.codegen.budget.KILOLIB_FLASH_B` / :data:`~export.codegen.budget.KILOLIB_SRAM_STATIC_B`, are the
 platform notes' (``shared/reference/kilobot-platform.md``: kilolib alone with empty setup/loop,
 7,028 B flash and 110 B static SRAM, measured with Debian's avr-gcc 5.4 / avr-libc 2.0 and the
 flags below). With a real kilolib checkout (``kilolib_dir``) no correction is applied.
@@ -41,8 +41,17 @@ from typing import Sequence
 
 import numpy as np
 
-from .budget import FLASH_LIMIT_B, KILOLIB_FLASH_B, KILOLIB_SRAM_STATIC_B, SRAM_LIMIT_B
-from .errors import ExportError
+from kiloforge.actors.base import QuantizedActor
+from kiloforge.io import atomic_path
+
+from ..codegen.budget import CONTROL_STACK_B, KILOLIB_FLASH_B
+from ..codegen.kernel import KernelLayer
+from ..codegen.render import POLICY_FILE
+from ..codegen.templates import TEMPLATE_DIR
+from ..contract import firmware as fw
+from ..errors import ExportError
+from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs
+from .hostbuild import HOST_DIR, StreamSpec, compare, decode_output, encode_stream, random_inputs
 
 #: kilolib's build regime (platform notes): it changes the ABI (char signedness, enum and struct sizes)
 KILOLIB_CFLAGS = ("-mmcu=atmega328p", "-O3", "-funsigned-char", "-funsigned-bitfields", "-fpack-struct",
@@ -51,13 +60,9 @@ OBJCOPY_HEX = ("-O", "ihex", "-R", ".eeprom", "-R", ".fuse", "-R", ".lock", "-R"
 MCU = "atmega328p"
 F_CPU = 8_000_000
 RAMEND = 0x08FF
-KILOLIB_FLASH = KILOLIB_FLASH_B  #: 7,028 B: kilolib with empty setup/loop (platform notes)
-KILOLIB_SRAM = KILOLIB_SRAM_STATIC_B  #: 110 B .data + .bss of kilolib (platform notes)
 TOOLS = ("avr-gcc", "avr-size", "avr-nm", "avr-objcopy")
 
-ROOT = Path(__file__).resolve().parent.parent
-TEMPLATES = ROOT / "firmware_templates"
-STANDIN_DIR = TEMPLATES / "avr"
+STANDIN_DIR = TEMPLATE_DIR / "avr"
 RUNNER_SRC = Path(__file__).resolve().parent / "simavr_run.c"
 SIMAVR_INCLUDE = Path("/usr/include/simavr")
 
@@ -107,9 +112,9 @@ def runner() -> Path:
     src = RUNNER_SRC.read_bytes()
     exe = cache_dir() / f"kf_simavr-{hashlib.sha256(src).hexdigest()[:12]}"
     if not exe.exists():
-        tmp = exe.with_name(exe.name + f".tmp{os.getpid()}")
-        _run(["gcc", "-O2", "-std=c99", "-I", SIMAVR_INCLUDE, "-o", tmp, RUNNER_SRC, "-lsimavr"], "building the simavr runner")
-        os.replace(tmp, exe)
+        with atomic_path(exe, mode=0o755) as tmp:
+            _run(["gcc", "-O2", "-std=c99", "-I", SIMAVR_INCLUDE, "-o", tmp, RUNNER_SRC, "-lsimavr"],
+                 "building the simavr runner")
     return exe
 
 
@@ -260,8 +265,8 @@ def mark_overhead(res: SimResult) -> int:
 def kernel_sources() -> dict[str, str]:
     """kf_dense.h / kf_dense.c / kf_sim_io.h texts, to be written beside a test program (kf_dense.c
     under another name: :func:`build` compiles every ``.c`` it is given, the program includes it)."""
-    return {"kf_dense.h": (TEMPLATES / "kf_dense.h").read_text(),
-            "kf_dense_impl.h": (TEMPLATES / "kf_dense.c").read_text(),
+    return {"kf_dense.h": (TEMPLATE_DIR / "kf_dense.h").read_text(),
+            "kf_dense_impl.h": (TEMPLATE_DIR / "kf_dense.c").read_text(),
             "kf_sim_io.h": (STANDIN_DIR / "kf_sim_io.h").read_text()}
 
 
@@ -278,7 +283,7 @@ static void kf_sim_exit(void) { fflush(stdout); exit(0); }
 #endif"""
 
 
-def kernel_program(layers: Sequence["KernelLayer"]) -> str:  # noqa: F821 (export.kernel.KernelLayer)
+def kernel_program(layers: Sequence[KernelLayer]) -> str:
     """C source of a simavr program that runs ``kf_dense2`` on requests from the input stream.
 
     Input records: ``op`` (1 byte; 0xFF ends), then for ``op = l`` (a layer index) the split
@@ -386,7 +391,7 @@ def run_kernel_host(layers, requests, *, cc: str = "gcc") -> list[np.ndarray]:
     return _split_outputs(layers, requests, p.stdout)
 
 
-def run_kernel(layers: Sequence["KernelLayer"], requests: Sequence[tuple[int, int | None, np.ndarray | None]],  # noqa: F821
+def run_kernel(layers: Sequence[KernelLayer], requests: Sequence[tuple[int, int | None, np.ndarray | None]],
                *, portable: bool = False, work_dir: Path | None = None) -> KernelRun:
     """Run requests ``(layer, n1, x)`` (``x`` None: chained on the previous outputs) in simavr.
 
@@ -408,8 +413,6 @@ def run_kernel(layers: Sequence["KernelLayer"], requests: Sequence[tuple[int, in
 # --------------------------------------------------------------------------------------------
 # Generated firmware: exact budgets, robot builds, simavr verification (rung 3)
 # --------------------------------------------------------------------------------------------
-POLICY_FILE = "kilobot_policy.c"
-HOST_DIR = TEMPLATES / "host"
 EMPTY_PROGRAM = """#include <kilolib.h>
 static void setup(void) {}
 static void loop(void) {}
@@ -450,24 +453,23 @@ def program_budget(name: str, c_source: str, work: Path) -> ProgramBudget:
     b = build({name: c_source}, work / Path(name).stem, name=Path(name).stem, include_dirs=(STANDIN_DIR,),
               extra_objects=(STANDIN_DIR / "kilolib_avr.c",))
     e = _standin_sizes(work)
-    return ProgramBudget(name=name, flash=b.sizes.flash - e.flash + KILOLIB_FLASH,
+    return ProgramBudget(name=name, flash=b.sizes.flash - e.flash + KILOLIB_FLASH_B,
                          sram_static=b.sizes.sram_static - e.sram_static, sizes=b.sizes, standin=e)
 
 
-def exact_budget(rendered_files: dict[str, str], qpolicy: "QuantizedPolicy | None" = None, *,  # noqa: F821
+def exact_budget(rendered_files: dict[str, str], qpolicy: QuantizedActor | None = None, *,
                  stack_steps: int = 40, seed: int = 0) -> dict:
     """Exact flash / SRAM of the rendered programs from real avr-gcc builds (kilolib's flags).
 
-    Returns the dict :meth:`export.budget.Budget.with_exact` takes: ``flash`` and ``sram_user`` of
+    Returns the dict :meth:`export.codegen.budget.Budget.with_exact` takes: ``flash`` and ``sram_user`` of
     ``kilobot_policy.c`` (the program that must fit), ``sram_static`` and ``stack`` (its parts),
     ``stack_source`` and ``<other program>_flash`` (the beacon program). ``sram_user`` is user
     .data + .bss + the peak stack of ``loop()`` at control steps, measured in simavr when
     ``qpolicy`` is given and simavr is installed (``stack_steps`` control steps of a random event
     stream, which is also checked against the emulator); otherwise the analytic stack estimate of
-    :mod:`export.budget` is added and ``stack_source`` says ``"estimate"``. Raises
+    :mod:`export.codegen.budget` is added and ``stack_source`` says ``"estimate"``. Raises
     :class:`AvrError` when avr-gcc is missing or fails, or the AVR build disagrees with the emulator.
     """
-    from .budget import CONTROL_STACK_B
     with tempfile.TemporaryDirectory(prefix="kf_budget_") as td:
         progs = {name: program_budget(name, text, Path(td)) for name, text in sorted(rendered_files.items())
                  if name.endswith(".c")}
@@ -561,31 +563,27 @@ def build_simavr_firmware(c_source: str, out_dir: Path, *, portable: bool = Fals
                                                  STANDIN_DIR / "kf_avr_io.c"))
 
 
-def run_firmware(elf: Path, inputs, period_ticks: int, obs_dim: int):  # -> (FirmwareOutputs, SimResult, stack)
-    """Replay ``inputs`` (export.emulator.FirmwareInputs) through a simavr firmware build."""
-    from .hostbuild import decode_output, encode_stream
+def run_firmware(elf: Path, inputs: FirmwareInputs, period_ticks: int, obs_dim: int) -> tuple[FirmwareOutputs, SimResult]:
+    """Replay ``inputs`` through a simavr firmware build."""
     res = run_elf(elf, encode_stream(inputs, period_ticks, obs_dim))
     outs = decode_output(res.output, inputs.n_robots, inputs.n_ticks, period_ticks, obs_dim)
     return outs, res
 
 
-def verify_simavr(qpolicy, files: dict[str, str], *, target_uids: tuple[int, ...] | None = None,
+def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, target_uids: tuple[int, ...] | None = None,
                   msg_type: int | None = None, seed: int = 0, n_robots: int = 64, n_steps: int = 40,
-                  portable: bool = False, inputs=None) -> SimavrCheck:
+                  portable: bool = False, inputs: FirmwareInputs | None = None) -> SimavrCheck:
     """Rung 3: the AVR build of ``files["kilobot_policy.c"]`` in simavr vs the emulator, byte for byte.
 
-    A random event stream (``export.hostbuild.random_inputs``: bursts, duplicate senders, full
+    A random event stream (``export.verify.hostbuild.random_inputs``: bursts, duplicate senders, full
     tables, distances 0..255, foreign / malformed messages, light -1) of ``n_robots`` robots and
     ``n_steps`` control periods (or ``inputs``) is replayed through the firmware on the simulated
-    ATmega328P and through :class:`export.emulator.FirmwareEmulator`; every output byte must agree.
+    ATmega328P and through :class:`export.verify.emulator.FirmwareEmulator`; every output byte must agree.
     Also measures cycles of ``loop()`` at each control step, cycles of the dense layers and the
     peak stack of ``loop()``.
     """
-    from . import fwspec
-    from .emulator import FirmwareEmulator
-    from .hostbuild import StreamSpec, compare, random_inputs
     qp = qpolicy
-    msg_type = fwspec.DEFAULT_MSG_TYPE if msg_type is None else msg_type
+    msg_type = fw.DEFAULT_MSG_TYPE if msg_type is None else msg_type
     targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
     P, obs_dim = qp.world.period_ticks, qp.world.obs_dim
     if inputs is None:

@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
-from . import numfmt
+from kiloforge import numfmt
+from kiloforge.actors.base import FloatPolicy, QuantizedActor
 
-if TYPE_CHECKING:  # pragma: no cover
-    from .artifact import Policy
-    from .budget import Budget
-    from .quantize import Calibration, ErrorReport, QuantizedPolicy
+from .budget import Budget
 
 MANIFEST_FORMAT = "kiloforge-export-manifest"
 MANIFEST_VERSION = 1
@@ -34,8 +32,8 @@ def _sha256(text: str | bytes) -> str:
     return hashlib.sha256(text.encode("utf-8") if isinstance(text, str) else text).hexdigest()
 
 
-def build_manifest(policy: "Policy", qp: "QuantizedPolicy", budget: "Budget", report: "ErrorReport",
-                   calib: "Calibration", files: Mapping[str, str | bytes],
+def build_manifest(policy: FloatPolicy, qp: QuantizedActor, budget: Budget, report: Any,
+                   calib: Any, files: Mapping[str, str | bytes],
                    options: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The manifest as a JSON-ready dict; ``files`` maps written file names to their contents."""
     return {
@@ -49,9 +47,9 @@ def build_manifest(policy: "Policy", qp: "QuantizedPolicy", budget: "Budget", re
         "policy_hash": policy.hash,
         "policy_provenance": policy.provenance,
         "world": policy.world.to_dict(),
-        "t_prev": policy.t_prev,
+        "kind": policy.kind,
+        "architecture": policy.describe(),
         "layer_sizes": policy.layer_sizes,
-        "activations": list(policy.activations),
         "quantization": qp.summary(),
         "calibration": dict(calib.info, n_samples=calib.n),
         "error": report.to_dict(),
