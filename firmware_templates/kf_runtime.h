@@ -120,4 +120,11 @@ static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
     return crc;
 }
 
+/* --- hand-off to the interrupt handlers ------------------------------------------------------- */
+
+/* A compiler barrier: every store before it is emitted before every store after it. The flag or index
+ * that hands data to an ISR is volatile, but the data itself need not be; this keeps its stores from
+ * being moved past the hand-off (the AVR itself never reorders memory accesses). */
+#define KF_BARRIER() __asm__ __volatile__("" ::: "memory")
+
 #endif /* KF_RUNTIME_H */

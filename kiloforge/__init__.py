@@ -1,3 +1,7 @@
-"""kiloforge: swarm policies from simulation to real Kilobot robots (the shared core of sim, learn and export)."""
+"""kiloforge: swarm policies from simulation to real Kilobot robots.
 
-__version__ = "0.2.0"
+The top-level package holds what every part shares; the parts themselves are ``sim`` (the
+simulator), ``learn`` (the trainer) and ``export`` (quantisation, firmware, verification).
+"""
+
+__version__ = "0.2.0"  #: the one definition of the version (pyproject.toml reads it)

@@ -38,6 +38,14 @@ def check_writable(paths: list[Path]) -> None:
         _check_dir(Path(p))
 
 
+def new_file_mode(executable: bool = False) -> int:
+    """The mode ``open()`` would give a new file: 0o666 (0o777 for an executable) less the process
+    umask (temp files get 0o600)."""
+    mask = os.umask(0o077)  # the umask can only be read by setting it; restored at once
+    os.umask(mask)
+    return (0o777 if executable else 0o666) & ~mask
+
+
 def _temp_sibling(path: Path) -> Path:
     """A new empty file beside ``path`` (same directory, so that ``os.replace`` is atomic)."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
@@ -58,7 +66,7 @@ def _write_temp(path: Path, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, new_file_mode())
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -110,16 +118,17 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, mode: int = 0o644) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, executable: bool = False) -> Iterator[Path]:
     """Yield a temp sibling of ``path`` (same suffix) to write by name; on success it is fsynced, given
-    ``mode`` and moved onto ``path``, on an exception removed (``path`` is left as it was)."""
+    the mode of a new file (:func:`new_file_mode`) and moved onto ``path``, on an exception removed
+    (``path`` is left as it was)."""
     path = Path(path)
     _check_dir(path)
     tmp = _temp_sibling(path)
     try:
         yield tmp
         _fsync_file(tmp)
-        os.chmod(tmp, mode)
+        os.chmod(tmp, new_file_mode(executable))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

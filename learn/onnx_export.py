@@ -45,12 +45,10 @@ class OnnxExportError(KiloforgeError):
 
 
 def kiloforge_version() -> str:
-    try:
-        from importlib.metadata import version
+    """kiloforge's version, written into the model's metadata."""
+    from kiloforge import __version__
 
-        return version("kiloforge")
-    except Exception:  # PackageNotFoundError or a broken install
-        return "0+unknown"
+    return __version__
 
 
 def obs_layout(world: WorldConfig) -> dict[str, Any]:

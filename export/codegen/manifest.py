@@ -20,12 +20,9 @@ MANIFEST_VERSION = 1
 
 
 def generator_version() -> str:
-    """kiloforge's installed version (``0+unknown`` when not installed as a distribution)."""
-    try:
-        from importlib.metadata import version
-        return version("kiloforge")
-    except Exception:  # PackageNotFoundError or a broken metadata install
-        return "0+unknown"
+    """kiloforge's version (``kiloforge.__version__``, installed or run from a checkout)."""
+    from kiloforge import __version__
+    return __version__
 
 
 def _sha256(text: str | bytes) -> str:

@@ -100,6 +100,8 @@ def _common_defines(msg_type: int) -> list[dict[str, str]]:
     return [
         _define("KF_MSG_TYPE", _u(msg_type), "message type of ours (a user type: < 0x80, not 1)"),
         _define("KF_MSG_VERSION", _u(fw.MSG_VERSION), "data[0] of our messages; others are dropped"),
+        _define("KF_READY", _u(fw.STATE_READY, "uint16_t"),
+                "kf_state_t.ready once setup() has finished (the callbacks idle until then)"),
         _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon"),
         _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period"),
         _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show"),

@@ -36,6 +36,11 @@ DEFAULT_MSG_TYPE = 0x2A  #: message type of ours unless the user picks another
 MSG_BYTES = 12  #: sizeof(message_t): 9 payload bytes, type, crc16
 MSG_CRC_BYTES = 10  #: the CRC covers data[0..8] and type
 RXQ_CAPACITY = 8  #: messages buffered between the rx ISR and loop(); a message arriving when full is dropped
+#: ``ready`` of the per-robot state once setup() has finished; until then the rx and tx callbacks do
+#: nothing (kilolib calls them before setup() too). 16 bits with two non-zero bytes: a garbage state
+#: (Kilombo's is malloc'd) matches it once in 65,536, and writing it byte by byte over 0 (or 0 over
+#: it) never passes through it.
+STATE_READY = 0x4B46
 
 ROLE_BIT = 0x01  #: data[3] bit 0: sender is the target beacon
 SENSING_BIT = 0x02  #: data[3] bit 1: sender heard the target during its last control period

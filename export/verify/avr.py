@@ -112,7 +112,7 @@ def runner() -> Path:
     src = RUNNER_SRC.read_bytes()
     exe = cache_dir() / f"kf_simavr-{hashlib.sha256(src).hexdigest()[:12]}"
     if not exe.exists():
-        with atomic_path(exe, mode=0o755) as tmp:
+        with atomic_path(exe, executable=True) as tmp:
             _run(["gcc", "-O2", "-std=c99", "-I", SIMAVR_INCLUDE, "-o", tmp, RUNNER_SRC, "-lsimavr"],
                  "building the simavr runner")
     return exe

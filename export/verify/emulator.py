@@ -8,7 +8,9 @@ state), the motor schedule applied tick by tick (with ``spinup_motors``), the LE
 message bytes with their CRC. The host build (:mod:`export.verify.hostbuild`) and the AVR build
 (:mod:`export.verify.avr`) run the same event streams and must give the same bytes.
 
-Tick model (what ``firmware_templates/host/harness.c`` does): for global tick T = 0, 1, 2, ...
+Tick model (what ``firmware_templates/host/harness.c`` does): setup() sets the whole state whatever
+memory held before (:meth:`FirmwareEmulator.reset` is that state) and until it has run the program
+hears and sends nothing; then for global tick T = 0, 1, 2, ...
 
 1. ``kilo_ticks = T`` and ``loop()`` runs once: it drains the rx queue into the period's table; if
    T is a control tick (``T = k * period_ticks`` with k >= 1) it runs the control step (observe from

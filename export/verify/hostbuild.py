@@ -7,6 +7,10 @@ binary input, :func:`decode_output` reads its output (formats in ``host/harness.
 :func:`run_host` does both around one process. :func:`verify_host` is the check behind
 ``python -m export --verify host``: random streams through the build and the emulator, compared
 byte for byte.
+
+On the host each robot's state is malloc'd and filled with garbage before setup() (``fill``, 0xA5
+unless told otherwise), and the callbacks are called before setup() as kilolib may; with
+``sanitize`` the build runs under AddressSanitizer and UndefinedBehaviorSanitizer.
 """
 from __future__ import annotations
 
@@ -33,6 +37,10 @@ from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs, n_contr
 
 HOST_DIR = TEMPLATE_DIR / "host"
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2")
+#: AddressSanitizer and UndefinedBehaviorSanitizer; any finding ends the run with an error
+SANITIZE_CFLAGS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer", "-g")
+#: the harness fills each robot's state with this before setup() unless told otherwise (host/harness.c)
+DEFAULT_FILL = "0xA5"
 STREAM_MAGIC = b"KFS1"
 MSG_RECORD_BYTES = 8  #: one message in the input stream
 
@@ -47,10 +55,12 @@ def compiler() -> str | None:
     return shutil.which(cc)
 
 
-def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy") -> Path:
+def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy", *,
+               sanitize: bool = False) -> Path:
     """Compile ``c_source`` with the stand-in and the harness; returns the executable's path.
 
-    The build is cached in ``workdir`` by the hash of the source (and of the stand-in files).
+    ``sanitize`` adds :data:`SANITIZE_CFLAGS` (ASan + UBSan, the first finding aborts the run). The
+    build is cached in ``workdir`` by the hash of the source, the flags and the stand-in files.
     """
     cc = compiler()
     if cc is None:
@@ -58,7 +68,8 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     sources = [HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c"]
-    h = hashlib.sha256(c_source.encode())
+    flags = (*HOST_CFLAGS, *(SANITIZE_CFLAGS if sanitize else ()))
+    h = hashlib.sha256(c_source.encode() + "\0".join(flags).encode())
     for p in sorted(HOST_DIR.parent.glob("kf_*.h")) + sorted(HOST_DIR.glob("*")):
         h.update(p.read_bytes())
     exe = workdir / f"{name}-{h.hexdigest()[:16]}"
@@ -66,8 +77,8 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy")
         return exe
     src = workdir / f"{name}.c"
     src.write_text(c_source, encoding="utf-8")
-    with atomic_path(exe, mode=0o755) as tmp:
-        cmd = [cc, *HOST_CFLAGS, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
+    with atomic_path(exe, executable=True) as tmp:
+        cmd = [cc, *flags, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             raise HostBuildError(f"host build of {src.name} failed:\n{res.stderr.strip()}")
@@ -135,10 +146,15 @@ def decode_output(data: bytes, n_robots: int, n_ticks: int, period_ticks: int, o
 
 
 def run_host(exe: Path | str, inputs: FirmwareInputs, period_ticks: int, obs_dim: int,
-             timeout: float = 300.0) -> FirmwareOutputs:
-    """Replay ``inputs`` through a host build; every output byte."""
+             timeout: float = 300.0, fill: str = DEFAULT_FILL) -> FirmwareOutputs:
+    """Replay ``inputs`` through a host build; every output byte.
+
+    ``fill``: the garbage each robot's state holds before setup(): a byte (``"0x5A"``) or
+    ``"random:SEED"`` (different bytes per robot).
+    """
     stream = encode_stream(inputs, period_ticks, obs_dim)
-    res = subprocess.run([str(exe)], input=stream, capture_output=True, timeout=timeout)
+    env = dict(os.environ, KF_HOST_FILL=fill)
+    res = subprocess.run([str(exe)], input=stream, capture_output=True, timeout=timeout, env=env)
     if res.returncode != 0:
         raise HostBuildError(f"{Path(exe).name} exited with {res.returncode}: "
                              f"{res.stderr.decode(errors='replace').strip()}")

@@ -6,6 +6,11 @@
  * Tick model (export/emulator.py models exactly this): for robot r, setup() once, then for every
  * global tick T = 0 .. n_ticks-1 (control ticks are T = k * period, k >= 1: the program listens
  * during its first period):
+ *   0. (host build only, before setup()) the robot's state is fresh garbage (KF_HOST_FILL: a byte,
+ *      0xA5 when unset, or random:SEED, different bytes per robot), then, as kilolib may, the rx
+ *      callback gets 512 messages of every user type and version bytes 0..3 and the tx callback is
+ *      asked for a message: it must return NULL (else the harness fails), and none of the 512 may
+ *      count (the emulator hears nothing before setup());
  *   1. kilo_ticks = T; at control ticks the next light reading is loaded;
  *   2. loop() runs once;
  *   3. the tick record is written: duties, spinup flag, colour, the message kilo_message_tx()
@@ -78,6 +83,79 @@ void kf_io_fail(const char *why)
 }
 #endif
 
+#ifdef KF_HOST_USERDATA
+#include <stdlib.h>
+#include <string.h>
+
+void *kf_host_userdata;
+static int kf_fill_random; /* 1: random bytes from kf_fill_seed, 0: every byte kf_fill_byte */
+static uint8_t kf_fill_byte = 0xA5u;
+static uint32_t kf_fill_seed;
+
+/* KF_HOST_FILL: "0xA5" (any byte value) or "random:SEED"; unset means 0xA5. */
+static void kf_fill_parse(void)
+{
+    const char *spec = getenv("KF_HOST_FILL");
+    char *end = 0;
+    unsigned long v;
+    if (spec == 0 || *spec == '\0') {
+        return;
+    }
+    kf_fill_random = strncmp(spec, "random:", 7u) == 0;
+    v = strtoul(kf_fill_random ? spec + 7 : spec, &end, 0);
+    if (end == spec || *end != '\0' || (!kf_fill_random && v > 0xFFu)) {
+        kf_io_fail("KF_HOST_FILL must be a byte value (e.g. 0xA5) or random:SEED");
+    }
+    kf_fill_byte = (uint8_t)v;
+    kf_fill_seed = (uint32_t)v;
+}
+
+/* A fresh garbage state for robot r (the previous robot's is freed). */
+static void kf_fill_state(uint16_t r)
+{
+    uint8_t *p;
+    uint16_t i;
+    uint32_t x = (kf_fill_seed ^ ((uint32_t)r << 16)) * 2654435761u | 1u; /* xorshift32, never 0 */
+    free(kf_host_userdata);
+    p = (uint8_t *)malloc(kf_host_userdata_size);
+    if (p == 0) {
+        kf_io_fail("out of memory");
+    }
+    for (i = 0u; i < kf_host_userdata_size; ++i) {
+        x ^= x << 13;
+        x ^= x >> 17;
+        x ^= x << 5;
+        p[i] = kf_fill_random ? (uint8_t)(x >> 24) : kf_fill_byte;
+    }
+    kf_host_userdata = p;
+}
+
+/* What kilolib may do before setup(): deliver messages and ask for one to send. */
+static void kf_before_setup(void)
+{
+    message_t m;
+    distance_measurement_t d;
+    uint16_t k;
+    memset(&m, 0, sizeof m);
+    for (k = 0u; k < 512u; ++k) {
+        m.type = (uint8_t)(k & 0x7Fu);
+        m.data[0] = (uint8_t)(k >> 7); /* version bytes 0..3 */
+        m.data[1] = (uint8_t)k;
+        m.data[2] = (uint8_t)(k >> 8);
+        m.data[3] = (uint8_t)(k & 3u);
+        m.crc = message_crc(&m);
+        d.low_gain = (int16_t)(k & 0xFFu);
+        d.high_gain = d.low_gain;
+        if (kilo_message_rx != 0) {
+            kilo_message_rx(&m, &d);
+        }
+    }
+    if (kilo_message_tx != 0 && kilo_message_tx() != 0) {
+        kf_io_fail("the program offers a message before setup() has run");
+    }
+}
+#endif
+
 static uint8_t kf_trace[KF_STEP_MAX];
 static uint8_t kf_trace_len; /* 2 + obs_dim from the stream header */
 static uint8_t kf_traced;
@@ -141,6 +219,9 @@ void kilo_start(void (*setup)(void), void (*loop)(void))
     uint32_t n_ticks, t;
 
     kf_io_open();
+#ifdef KF_HOST_USERDATA
+    kf_fill_parse();
+#endif
     kf_io_read(hdr, 16u);
     if (hdr[0] != 'K' || hdr[1] != 'F' || hdr[2] != 'S' || hdr[3] != '1') {
         kf_io_fail("not a kiloforge event stream (bad magic)");
@@ -155,6 +236,10 @@ void kilo_start(void (*setup)(void), void (*loop)(void))
     for (r = 0u; r < n_robots; ++r) {
         kf_io_read(rec, 8u);
         kf_host_reset(kf_u16(rec), rec[2], rec[3], rec[4], rec[5]);
+#ifdef KF_HOST_USERDATA
+        kf_fill_state(r);
+        kf_before_setup();
+#endif
         setup();
         phase = 0u;
         for (t = 0u; t < n_ticks; ++t) {

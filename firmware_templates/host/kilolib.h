@@ -10,7 +10,9 @@
  *     low_gain holds it in mm (0..255), high_gain a copy;
  *   - set_motors/spinup_motors/set_color only record what was asked (kf_host_state);
  *   - get_ambientlight() returns the reading the harness set for the current control period;
- *   - the harness calls kilo_message_rx (only for types < 0x80, as kilolib does) after loop().
+ *   - the harness calls kilo_message_rx (only for types < 0x80, as kilolib does) after loop(),
+ *     and on the host also before setup(), as kilolib may;
+ *   - on the host the per-robot state is garbage before setup() (KF_HOST_USERDATA below).
  */
 #ifndef KILOLIB_H
 #define KILOLIB_H
@@ -72,6 +74,19 @@ typedef struct {
 extern kf_host_state_t kf_host_state;
 void kf_host_reset(uint16_t uid, uint8_t straight_left, uint8_t straight_right, uint8_t turn_left,
                    uint8_t turn_right);
+
+#ifndef __AVR__
+/* On the host the harness owns each robot's per-robot state, as Kilombo does: a program declares it
+ * with KF_HOST_USERDATA(type) and reaches it through `mydata`; before each robot's setup() the
+ * harness allocates kf_host_userdata_size bytes and fills them with garbage (harness.c). The AVR
+ * build under simavr keeps the program's own static state. */
+extern void *kf_host_userdata;
+extern const uint16_t kf_host_userdata_size;
+#define KF_HOST_USERDATA(T)                                                                       \
+    const uint16_t kf_host_userdata_size = (uint16_t)sizeof(T);                                   \
+    static T *kf_host_mydata(void) { return (T *)kf_host_userdata; }
+#define mydata (kf_host_mydata())
+#endif
 
 /* Generated programs call KF_TRACE_STEP(q_left, q_right, obs, obs_dim) once per control step; the
  * stand-in records it so the harness can compare commands and observations with the emulator. */

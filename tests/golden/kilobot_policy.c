@@ -153,6 +153,13 @@ static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
     return crc;
 }
 
+/* --- hand-off to the interrupt handlers ------------------------------------------------------- */
+
+/* A compiler barrier: every store before it is emitted before every store after it. The flag or index
+ * that hands data to an ISR is volatile, but the data itself need not be; this keeps its stores from
+ * being moved past the hand-off (the AVR itself never reorders memory accesses). */
+#define KF_BARRIER() __asm__ __volatile__("" ::: "memory")
+
 #endif /* KF_RUNTIME_H */
 
 #if defined(__AVR__) && !defined(KF_GLUE_OPTIMIZE_SPEED)
@@ -746,6 +753,7 @@ __asm__(
 /* ===== message ===== */
 #define KF_MSG_TYPE 42u /* message type of ours (a user type: < 0x80, not 1) */
 #define KF_MSG_VERSION 1u /* data[0] of our messages; others are dropped */
+#define KF_READY 19270u /* kf_state_t.ready once setup() has finished (the callbacks idle until then) */
 #define KF_ROLE_BIT 1u /* data[3] bit: the sender is the target beacon */
 #define KF_SENSING_BIT 2u /* data[3] bit: the sender heard the target last period */
 #define KF_LED_OFF (RGB(0, 0, 0)) /* searcher, nothing to show */
@@ -776,6 +784,7 @@ static void kf_msg_set(kf_msgbuf_t *b, uint8_t info)
     }
     m->type = KF_MSG_TYPE;
     m->crc = kf_crc16_update(kf_crc16(m->data, 9u), m->type);
+    KF_BARRIER();
     b->active = next;
 }
 
@@ -959,14 +968,51 @@ typedef struct {
     uint8_t duty_right;
     kf_msgbuf_t tx;
     uint8_t is_beacon;
+    volatile uint16_t ready; /* KF_READY once setup() has finished (_state.c.j2) */
 } kf_state_t;
 
+/* ===== per-robot state: storage, clearing, hand-off to the callbacks ===== */
 #ifdef KILOMBO
 REGISTER_USERDATA(kf_state_t)
+#elif defined(KF_HOST_USERDATA)
+KF_HOST_USERDATA(kf_state_t) /* the host harness allocates it per robot, filled with garbage */
 #else
 static kf_state_t kf_state;
 static kf_state_t *const mydata = &kf_state;
 #endif
+
+/* setup() never relies on zeroed memory: it starts with this, so every byte of the state is set
+ * (Kilombo's per-robot state is malloc'd and not zeroed). kilolib calls the rx and tx callbacks in
+ * every awake state, also before and during setup(); they do nothing while `ready` is not KF_READY.
+ * On the robot the state is in .bss, so `ready` is 0 from reset until setup() ends. A garbage state
+ * matches KF_READY once in 65,536, and even then the callbacks stay inside the state: every index
+ * they use is masked. */
+static void kf_state_clear(kf_state_t *s)
+{
+    volatile uint8_t *p = (volatile uint8_t *)s;
+    uint16_t i;
+    s->ready = 0u; /* first: the callbacks go idle before anything they read changes */
+    for (i = 0u; i < (uint16_t)sizeof(kf_state_t); ++i) {
+        p[i] = 0u;
+    }
+}
+
+/* The last thing setup() does: from here on the callbacks see a complete state. */
+static void kf_state_ready(kf_state_t *s)
+{
+    KF_BARRIER();
+    s->ready = KF_READY;
+}
+
+/* tx callback (from kilolib's timer interrupt): the buffer loop() is not writing; nothing before setup(). */
+static message_t *kf_tx(void)
+{
+    kf_state_t *s = mydata;
+    if (s->ready != KF_READY) {
+        return 0;
+    }
+    return &s->tx.msg[s->tx.active & 1u];
+}
 
 /* scratch of the control step (not per-robot state) */
 static int16_t kf_y[KF_Y_LEN]; /* one layer's requantised output */
@@ -978,11 +1024,12 @@ static int8_t kf_x[KF_X_LEN];  /* one hidden layer's activation */
 static void kf_rx(message_t *m, distance_measurement_t *d)
 {
     kf_state_t *s = mydata;
-    uint8_t head = s->rxq_head;
+    uint8_t head;
     volatile kf_rx_entry_t *e;
-    if (m->type != KF_MSG_TYPE || m->data[0] != KF_MSG_VERSION || s->is_beacon) {
-        return; /* a foreign or malformed message, or we are the beacon (it ignores messages) */
+    if (s->ready != KF_READY || m->type != KF_MSG_TYPE || m->data[0] != KF_MSG_VERSION || s->is_beacon) {
+        return; /* before setup() has finished, a foreign or malformed message, or we are the beacon */
     }
+    head = s->rxq_head;
     if ((uint8_t)(head - s->rxq_tail) >= KF_RXQ_CAPACITY) {
         return; /* queue full: this message is dropped */
     }
@@ -1185,28 +1232,18 @@ static uint8_t kf_is_target_uid(uint16_t uid)
 static void setup(void)
 {
     kf_state_t *s = mydata;
+    kf_state_clear(s); /* all zero: rx queue and tables empty, nothing heard, history not started,
+                          wall flag and commands 0, no motor schedule, duties 0, tx buffer 0 active */
     s->is_beacon = kf_is_target_uid(kilo_uid);
-    s->rxq_tail = s->rxq_head; /* empty the queue (one byte: safe against the rx ISR) */
-    s->nbr_count = 0u;
-    s->tgt_heard = 0u;
-    s->tgt_dist = 0u;
-    s->hist_head = 0u;
-    s->started = 0u;
-    s->wall = 0u;
-    s->q_left = 0u;
-    s->q_right = 0u;
     s->period_start = kf_now();
     s->next_step = s->period_start + KF_PERIOD_TICKS; /* the first period only listens: Algorithm 4
                                                          observes o_1 before the first action */
-    s->turn = 0u;
     s->turn_mode = KF_MODE_STOP;
-    s->straight = 0u;
     s->mode = KF_MODE_STOP;
-    s->duty_left = 0u;
-    s->duty_right = 0u;
     set_motors(0u, 0u);
     set_color(s->is_beacon ? KF_LED_BEACON : KF_LED_OFF);
     kf_msg_set(&s->tx, s->is_beacon ? KF_ROLE_BIT : 0u);
+    kf_state_ready(s);
 }
 
 static void loop(void)
@@ -1228,12 +1265,6 @@ static void loop(void)
         kf_control_step(s);
     }
     kf_motors(s, now);
-}
-
-static message_t *kf_tx(void)
-{
-    kf_state_t *s = mydata;
-    return &s->tx.msg[s->tx.active];
 }
 
 int main(void)

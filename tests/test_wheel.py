@@ -1,0 +1,146 @@
+"""The installed package works where its users work: a wheel in a fresh venv, run outside the repository.
+
+Builds a wheel from a copy of the source tree, installs it into a new virtual environment (no system
+site-packages, so no editable kiloforge can leak in; the core dependencies come from the package
+index, pip's cache makes reruns quick) and runs the README's Quick start and the --verify ladder
+from an empty directory. About a minute; CI runs it (it proves the Quick start). Without a reachable
+package index it skips locally and fails in CI.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import venv
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from avr_tools import require_avr
+from kiloforge import __version__
+
+pytestmark = pytest.mark.wheel
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("kiloforge", "sim", "learn", "export", "firmware_templates")
+JUNK = shutil.ignore_patterns(".git", "build", "dist", "*.egg-info", "__pycache__", "*.pyc", ".pytest_cache",
+                              ".hypothesis", "runs", ".venv", "venv", ".whl", ".gl", "out")
+
+
+@dataclass(frozen=True)
+class Installed:
+    wheel: Path
+    python: Path  #: the fresh venv's interpreter
+    bin: Path
+    env: dict  #: environment for commands run with it (no PYTHONPATH, a private build cache)
+    tmp: Path
+
+
+def _run(cmd, *, cwd: Path | None = None, env: dict | None = None, timeout: float = 600):
+    return subprocess.run([str(c) for c in cmd], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def _index_unreachable_or_fail(what: str, res: subprocess.CompletedProcess) -> None:
+    """Skip (locally) when the package index cannot be reached, else fail with pip's output."""
+    probe = _run([sys.executable, "-m", "pip", "index", "versions", "setuptools"], timeout=120)
+    out = (res.stdout + res.stderr).strip()[-3000:]
+    if probe.returncode != 0 and not os.environ.get("CI"):
+        pytest.skip(f"package index unreachable ({probe.stderr.strip()[-200:]}); cannot {what}")
+    pytest.fail(f"{what} failed (rc {res.returncode}):\n{out}")
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> Installed:
+    tmp = tmp_path_factory.mktemp("wheel")
+    src = tmp / "src"
+    shutil.copytree(ROOT, src, ignore=JUNK)  # built in a copy: no build/ left in (or stale files taken from) the tree
+    dist = tmp / "dist"
+    res = _run([sys.executable, "-m", "pip", "wheel", src, "--no-deps", "-q", "-w", dist])
+    if res.returncode != 0:
+        _index_unreachable_or_fail("build the wheel", res)
+    (wheel,) = dist.glob("kiloforge-*.whl")
+    env_dir = tmp / "venv"
+    venv.EnvBuilder(with_pip=True, system_site_packages=False, clear=True).create(env_dir)
+    bindir = env_dir / ("Scripts" if os.name == "nt" else "bin")
+    python = bindir / "python"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    env.update(PYTHONNOUSERSITE="1", KILOFORGE_CACHE=str(tmp / "cache"), PATH=f"{bindir}{os.pathsep}{env['PATH']}")
+    res = _run([python, "-m", "pip", "install", "-q", wheel], env=env)
+    if res.returncode != 0:
+        _index_unreachable_or_fail("install the wheel and its dependencies", res)
+    return Installed(wheel=wheel, python=python, bin=bindir, env=env, tmp=tmp)
+
+
+def _workdir(inst: Installed, name: str, stray: bool = False) -> Path:
+    d = inst.tmp / name
+    d.mkdir()
+    if stray:
+        for mod in ("learn", "sim", "export"):
+            (d / f"{mod}.py").write_text("raise SystemExit('a stray module of the user was imported')\n")
+    return d
+
+
+def _export(inst: Installed, cwd: Path, *args: str, exe: str | None = None) -> subprocess.CompletedProcess:
+    cmd = [inst.bin / exe] if exe else [inst.python, "-m", "export"]
+    res = _run([*cmd, *args], cwd=cwd, env=inst.env)
+    assert res.returncode == 0, f"{' '.join(map(str, cmd + list(args)))} in {cwd} exited {res.returncode}:\n" \
+                                f"{(res.stdout + res.stderr)[-3000:]}"
+    return res
+
+
+def _wrote(cwd: Path, out: str) -> None:
+    text = (cwd / out).read_text()
+    assert "DO NOT EDIT" in text and "int main(void)" in text
+    assert "int main(void)" in (cwd / "kilobot_target.c").read_text()
+    assert f'"generator_version": "{__version__}"' in (cwd / f"{out}.manifest.json").read_text()
+
+
+def test_wheel_holds_every_runtime_file(installed):
+    """Every non-Python file of the packages (templates, C, headers, data, py.typed) and the LICENSE is in the wheel."""
+    names = set(zipfile.ZipFile(installed.wheel).namelist())
+    want = {p.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("*")
+            if p.is_file() and p.suffix not in (".py", ".pyc") and "__pycache__" not in p.parts}
+    assert {"export/verify/simavr_run.c", "export/data/default_policy.npz", "kiloforge/py.typed"} <= want
+    assert want - names == set(), f"missing from the wheel: {sorted(want - names)}"
+    meta = zipfile.ZipFile(installed.wheel).read(f"kiloforge-{__version__}.dist-info/METADATA").decode()
+    assert f"Version: {__version__}" in meta and "License-Expression: MIT" in meta and "Project-URL: Homepage" in meta
+    assert f"kiloforge-{__version__}.dist-info/licenses/LICENSE" in names
+
+
+def test_quick_start_outside_the_repository(installed):
+    """`python -m export --out kp.c` in an empty directory uses the installed package and writes the files."""
+    cwd = _workdir(installed, "quick")
+    where = _run([installed.python, "-c", "import export, kiloforge; print(export.__file__, kiloforge.__version__)"],
+                 cwd=cwd, env=installed.env)
+    assert where.returncode == 0 and str(installed.tmp / "venv") in where.stdout, where.stdout + where.stderr
+    assert where.stdout.split()[1] == __version__
+    _export(installed, cwd, "--out", "kp.c")
+    _wrote(cwd, "kp.c")
+
+
+def test_verify_host_outside_the_repository(installed):
+    """`--verify host` from the installed package builds the firmware with its own harness files, bit-exact."""
+    cwd = _workdir(installed, "host")
+    res = _export(installed, cwd, "--out", "kp2.c", "--verify", "host")
+    assert "host build vs emulator: bit-exact" in res.stdout
+    _wrote(cwd, "kp2.c")
+
+
+def test_verify_avr_outside_the_repository(installed):
+    """`--verify avr` from the installed package builds the simavr runner from its package data and matches."""
+    require_avr(simulate=True)
+    cwd = _workdir(installed, "avr")
+    res = _export(installed, cwd, "--out", "kp3.c", "--verify", "avr")
+    assert "simavr (ATmega328P, 8 MHz) vs emulator: bit-exact" in res.stdout
+    assert list((installed.tmp / "cache").glob("kf_simavr-*")), "the runner was not built from the wheel's source"
+    _wrote(cwd, "kp3.c")
+
+
+def test_console_script_ignores_stray_modules(installed):
+    """`kiloforge-export` in a directory holding stray learn.py, sim.py and export.py still uses the package."""
+    cwd = _workdir(installed, "stray", stray=True)
+    _export(installed, cwd, "--out", "kp.c", exe="kiloforge-export")
+    _wrote(cwd, "kp.c")
