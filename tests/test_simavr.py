@@ -112,8 +112,8 @@ def test_stack_paint_point_has_no_frame(tmp_path):
     require_avr()
     import subprocess
     obj = tmp_path / "io.o"
-    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, "-I", str(avr.STANDIN_DIR), "-c", "-o", str(obj),
-                    str(avr.STANDIN_DIR / "kf_avr_io.c")], check=True)
+    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, *(f"-D{d}" for d in avr.MARK_DEFINES), "-I", str(avr.STANDIN_DIR),
+                    "-c", "-o", str(obj), str(avr.STANDIN_DIR / "kf_avr_io.c")], check=True)
     dis = subprocess.run(["avr-objdump", "-d", str(obj)], capture_output=True, text=True, check=True).stdout
     body = dis.split("<kf_io_read>:")[1].split("\n\n")[0]
     assert "ret" in body and "push" not in body and "rcall" not in body

@@ -27,6 +27,7 @@ from kiloforge.errors import QuantizeError
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 
+from ..contract import crc
 from ..contract import firmware as fw
 from ..errors import ExportError
 from . import kernel
@@ -89,7 +90,7 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
         "",
         "Robot: avr-gcc -mmcu=atmega328p -O3 -funsigned-char -funsigned-bitfields -fpack-struct",
         "       -fshort-enums -DF_CPU=8000000 -I<kilolib> -o prog.elf this.c <kilolib>/kilolib.a",
-        "Kilombo: add -DKILOMBO. Host replay: export/hostbuild.py with firmware_templates/host/.",
+        "Kilombo: add -DKILOMBO. Host replay: export/verify/hostbuild.py with firmware_templates/host/.",
     ]
     for ln in lines:
         assert "*/" not in ln and "/*" not in ln, f"banner line is not comment-safe: {ln!r}"
@@ -102,6 +103,9 @@ def _common_defines(msg_type: int) -> list[dict[str, str]]:
         _define("KF_MSG_VERSION", _u(fw.MSG_VERSION), "data[0] of our messages; others are dropped"),
         _define("KF_READY", _u(fw.STATE_READY, "uint16_t"),
                 "kf_state_t.ready once setup() has finished (the callbacks idle until then)"),
+        _define("KF_MSG_DATA_BYTES", _u(fw.MSG_DATA_BYTES), "message_t payload bytes (the CRC covers them and the type)"),
+        _define("KF_MSG_USED_BYTES", _u(fw.MSG_USED_BYTES), "data[0..3] carry version, uid and info; the rest is 0"),
+        _define("KF_MSG_INFO_BYTE", _u(fw.MSG_INFO_BYTE), "data[] index of role | sensing << 1"),
         _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon"),
         _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period"),
         _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show"),
@@ -111,6 +115,18 @@ def _common_defines(msg_type: int) -> list[dict[str, str]]:
         _define("KF_LED_NBR_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_NBR_SENSING),
                 "yellow: a neighbour heard last period senses the target"),
     ]
+
+
+def runtime_defines() -> dict[str, str]:
+    """What the hand-written runtime (kf_runtime.h) needs defined before it: the CRC of
+    export/contract/crc.py. The programs define them; a build of other C that includes kf_runtime.h
+    (the host and simavr harnesses, tests/c/test_runtime.c) passes them as ``-D``."""
+    return {"KF_CRC_POLY": c_int(crc.POLY_REFLECTED, "uint16_t"), "KF_CRC_INIT": c_int(crc.INIT, "uint16_t")}
+
+
+def _runtime_defines() -> list[dict[str, str]]:
+    comments = {"KF_CRC_POLY": "CRC-16/MCRF4XX: reflected polynomial", "KF_CRC_INIT": "CRC-16/MCRF4XX: initial value"}
+    return [_define(name, value, comments[name]) for name, value in runtime_defines().items()]
 
 
 def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> tuple[list[dict[str, str]], list[str]]:
@@ -183,8 +199,8 @@ def _dense_arrays(d: CDense) -> tuple[list[str], dict[str, str]]:
     assert kl.b.shape == (n_out,) and kl.w.size == n_out * n_in, f"{d.descriptor}: kernel arrays have wrong shapes"
     arrays = [
         c_array(d.w, "int8_t", kl.w, comment=f"{d.what}: {n_out} x {n_in} weights in kernel order "
-                                             f"(export/kernel.py), input exponent {layer.e_in}"),
-        c_array(d.b, "int32_t", kl.b, per_line=8, comment=f"{d.label}: folded int32 biases (export/kernel.py)"),
+                                             f"(export/codegen/kernel.py), input exponent {layer.e_in}"),
+        c_array(d.b, "int32_t", kl.b, per_line=8, comment=f"{d.label}: folded int32 biases (export/codegen/kernel.py)"),
         c_array(d.s, "uint8_t", kl.shift, comment=f"{d.label}: requantisation shifts to exponent {layer.e_out}"),
     ]
     entry = {"name": c_ident(d.descriptor), "init": kl.c_initializer(d.w, d.b, d.s), "n_out": _u(n_out, "uint16_t"),
@@ -230,7 +246,8 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
     if generator_version is None:
         generator_version = installed_version()
     env = environment()
-    common = {"defines_common": _common_defines(msg_type), "runtime_c": inline_sources(RUNTIME_SOURCES)}
+    common = {"defines_common": _common_defines(msg_type), "defines_runtime": _runtime_defines(),
+              "runtime_c": inline_sources(RUNTIME_SOURCES)}
     policy_ctx = dict(common, **_policy_context(qp, uids),
                       banner=_banner(POLICY_FILE, qp, generator_version,
                                      ["One program for every robot: robots whose kilo_uid is a target uid act",

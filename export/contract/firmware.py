@@ -33,8 +33,12 @@ import numpy as np
 
 MSG_VERSION = 1  #: data[0] of every message of ours
 DEFAULT_MSG_TYPE = 0x2A  #: message type of ours unless the user picks another
-MSG_BYTES = 12  #: sizeof(message_t): 9 payload bytes, type, crc16
-MSG_CRC_BYTES = 10  #: the CRC covers data[0..8] and type
+MSG_DATA_BYTES = 9  #: kilolib's message_t payload, data[0..8]
+MSG_USED_BYTES = 4  #: data[0..3] carry version, uid and info; data[4..8] are 0
+MSG_INFO_BYTE = 3  #: data[3]: role | sensing << 1
+MSG_TYPE_BYTE = MSG_DATA_BYTES  #: the type follows the payload
+MSG_CRC_BYTES = MSG_DATA_BYTES + 1  #: the CRC covers the payload and the type
+MSG_BYTES = MSG_CRC_BYTES + 2  #: sizeof(message_t): payload, type, crc16 (packed)
 RXQ_CAPACITY = 8  #: messages buffered between the rx ISR and loop(); a message arriving when full is dropped
 #: ``ready`` of the per-robot state once setup() has finished; until then the rx and tx callbacks do
 #: nothing (kilolib calls them before setup() too). 16 bits with two non-zero bytes: a garbage state

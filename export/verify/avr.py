@@ -51,7 +51,7 @@ from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..errors import ExportError
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs
-from .hostbuild import HOST_DIR, StreamSpec, compare, decode_output, encode_stream, random_inputs
+from .hostbuild import HOST_DIR, StreamSpec, compare, decode_output, encode_stream, random_inputs, runtime_flags
 
 #: kilolib's build regime (platform notes): it changes the ABI (char signedness, enum and struct sizes)
 KILOLIB_CFLAGS = ("-mmcu=atmega328p", "-O3", "-funsigned-char", "-funsigned-bitfields", "-fpack-struct",
@@ -419,9 +419,12 @@ static void loop(void) {}
 int main(void) { kilo_init(); kilo_start(setup, loop); return 0; }
 """
 #: marks the firmware build for simavr emits (firmware_templates/avr/kf_avr_io.c, kf_dense.c)
-MARK_STEP_BEGIN, MARK_STEP_END = 10, 11
-MARK_LAYER_BEGIN, MARK_LAYER_END = 21, 22
-LAYER_MARK_DEFINE = "KF_DENSE_MARK(id)=(*(volatile unsigned char *)0x3E = (unsigned char)(20u + (id)))"
+MARK_STEP_BEGIN, MARK_STEP_END, MARK_FAIL = 10, 11, 12
+LAYER_MARK_BASE = 20  #: kf_dense.c marks 1 and 2 around each layer: LAYER_MARK_BASE + 1, + 2 in simavr
+MARK_LAYER_BEGIN, MARK_LAYER_END = LAYER_MARK_BASE + 1, LAYER_MARK_BASE + 2
+LAYER_MARK_DEFINE = f"KF_DENSE_MARK(id)=(*(volatile unsigned char *)0x3E = (unsigned char)({LAYER_MARK_BASE}u + (id)))"
+#: the marks of kf_avr_io.c, defined from here
+MARK_DEFINES = (f"KF_MARK_STEP_BEGIN={MARK_STEP_BEGIN}u", f"KF_MARK_STEP_END={MARK_STEP_END}u", f"KF_MARK_FAIL={MARK_FAIL}u")
 IO_CALL_RETURN_B = 2  #: return address of the harness's kf_io_read call (the paint is inside it)
 
 
@@ -557,7 +560,8 @@ class SimavrCheck:
 
 def build_simavr_firmware(c_source: str, out_dir: Path, *, portable: bool = False) -> Build:
     """The generated program + the host stand-in + the replay harness, for the AVR under simavr."""
-    defines = ["KF_HARNESS_CUSTOM_IO", LAYER_MARK_DEFINE] + (["KF_DENSE_PORTABLE"] if portable else [])
+    defines = ["KF_HARNESS_CUSTOM_IO", LAYER_MARK_DEFINE, *MARK_DEFINES, *(f.removeprefix("-D") for f in runtime_flags())] \
+        + (["KF_DENSE_PORTABLE"] if portable else [])
     return build({POLICY_FILE: c_source}, out_dir, name="kilobot_policy_sim", include_dirs=(HOST_DIR, STANDIN_DIR),
                  defines=defines, extra_objects=(HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c",
                                                  STANDIN_DIR / "kf_avr_io.c"))

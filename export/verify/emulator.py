@@ -139,11 +139,11 @@ def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarr
     m[:, 0] = fw.MSG_VERSION
     m[:, 1] = uids & 0xFF
     m[:, 2] = uids >> 8
-    m[:, 3] = np.asarray(info, np.uint8)
-    m[:, 9] = msg_type
+    m[:, fw.MSG_INFO_BYTE] = np.asarray(info, np.uint8)
+    m[:, fw.MSG_TYPE_BYTE] = msg_type
     crc = crc16_rows(m[:, :fw.MSG_CRC_BYTES])  # (R,)
-    m[:, 10] = crc & 0xFF
-    m[:, 11] = crc >> 8
+    m[:, fw.MSG_CRC_BYTES] = crc & 0xFF
+    m[:, fw.MSG_CRC_BYTES + 1] = crc >> 8
     return m
 
 

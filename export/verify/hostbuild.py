@@ -28,7 +28,7 @@ import numpy as np
 from kiloforge.actors.base import QuantizedActor
 from kiloforge.io import atomic_path
 
-from ..codegen.render import POLICY_FILE, TARGET_FILE
+from ..codegen.render import POLICY_FILE, TARGET_FILE, runtime_defines
 from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..contract.firmware import EVENT_DTYPE, TICK_RECORD_BYTES
@@ -47,6 +47,11 @@ MSG_RECORD_BYTES = 8  #: one message in the input stream
 
 class HostBuildError(ExportError):
     """The host compiler is missing or rejected the generated program."""
+
+
+def runtime_flags() -> list[str]:
+    """``-D`` flags of :func:`export.codegen.render.runtime_defines` for C that includes kf_runtime.h."""
+    return [f"-D{name}={value}" for name, value in runtime_defines().items()]
 
 
 def compiler() -> str | None:
@@ -68,7 +73,7 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy",
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     sources = [HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c"]
-    flags = (*HOST_CFLAGS, *(SANITIZE_CFLAGS if sanitize else ()))
+    flags = (*HOST_CFLAGS, *(SANITIZE_CFLAGS if sanitize else ()), *runtime_flags())
     h = hashlib.sha256(c_source.encode() + "\0".join(flags).encode())
     for p in sorted(HOST_DIR.parent.glob("kf_*.h")) + sorted(HOST_DIR.glob("*")):
         h.update(p.read_bytes())

@@ -582,6 +582,7 @@ class GRUKind(ActorKind):
         return RenderSpec(
             memory=(CDefine("KF_HIDDEN", H, comment=f"GRU hidden units (int8 state at exponent {HIDDEN_EXP})"),),
             scratch=(CDefine("KF_Y_LEN", 2 * H, "uint16_t", "scratch: two gate vectors (int16)"),
+                     CDefine("KF_GATE_EXP", GATE_EXP, comment="gates are uint8 at this exponent"),
                      CDefine("KF_RN_SHIFT", c.rn_shift, comment=f"r * (W_hn h + b_hn): exponent {GATE_EXP} + e_nh "
                                                                 f"{c.nh.e_out} -> e_n {c.e_n}"),
                      CDefine("KF_NX_SHIFT", c.nx_shift,

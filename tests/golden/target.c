@@ -8,13 +8,13 @@
  * policy sha256   0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef
  * number format   kf-int8-pow2-v1 (int8, power-of-two exponents, int32 accumulator, rounding half-up)
  * world           thesis: control period 8 kilo_ticks, comm radius 40 mm, 3 RBF bins, neighbour table 4
- * actor           t_prev 2, 16 -> 4 -> 2 (elu, identity), e_in 6
+ * actor           GRU: input 8 ([a_prev, obs]), 4 hidden units int8 at exponent 7, linear output 2; e_in 6, e_r 4, e_z 4, e_nx 5, e_nh 6, e_n 5
  * target uids     0, 77 (these robots act as the beacon)
  * message         type 0x2a, version 1
  *
  * Robot: avr-gcc -mmcu=atmega328p -O3 -funsigned-char -funsigned-bitfields -fpack-struct
  *        -fshort-enums -DF_CPU=8000000 -I<kilolib> -o prog.elf this.c <kilolib>/kilolib.a
- * Kilombo: add -DKILOMBO. Host replay: export/hostbuild.py with firmware_templates/host/.
+ * Kilombo: add -DKILOMBO. Host replay: export/verify/hostbuild.py with firmware_templates/host/.
  */
 #include <stdint.h>
 #ifdef KILOMBO
@@ -30,137 +30,9 @@
 #pragma GCC push_options
 #pragma GCC optimize("Os")
 #endif
-/* ---- firmware_templates/kf_runtime.h ---- */
-/*
- * kf_runtime.h: the hand-written fixed-point and message helpers of kiloforge firmware.
- *
- * Part of kiloforge (MIT). The renderer inlines this file into every generated program; it is also
- * compiled on its own by tests/c/test_runtime.c. Rules: <stdint.h> types only, never the width of
- * `int`, a cast to int32_t before every multiply, no floats, no division. Everything is `static
- * inline`, so a program pays only for what it calls.
- */
-#ifndef KF_RUNTIME_H
-#define KF_RUNTIME_H
-
-#include <stdint.h>
-
-/* --- flash tables: PROGMEM on AVR, plain const memory elsewhere (host build, Kilombo) ---------- */
-#ifdef __AVR__
-#include <avr/pgmspace.h>
-#else
-#ifndef PROGMEM
-#define PROGMEM
-#endif
-#ifndef pgm_read_byte
-#define pgm_read_byte(addr) (*(const uint8_t *)(addr))
-#endif
-#ifndef pgm_read_word
-#define pgm_read_word(addr) (*(const uint16_t *)(addr))
-#endif
-#ifndef pgm_read_dword
-#define pgm_read_dword(addr) (*(const uint32_t *)(addr))
-#endif
-#endif
-
-/* --- integer helpers (export/numfmt.py defines the semantics) ---------------------------------- */
-
-/* Arithmetic (flooring) right shift of a signed value, without relying on the implementation-defined
- * behaviour of >> on negative numbers: for a < 0, ~a >= 0 and floor(a / 2^s) == ~(~a >> s). */
-static inline int32_t kf_asr32(int32_t a, uint8_t s)
-{
-    return a >= 0 ? (int32_t)(a >> s) : (int32_t)~((~a) >> s);
-}
-
-/* numfmt.rshift_round: (a + 2^(s-1)) >> s with half-up rounding, s = 0 is the identity. Written as
- * floor(a / 2^s) + bit (s-1) of a, which is the same number and cannot overflow. s <= 30. */
-static inline int32_t kf_rshift_round(int32_t a, uint8_t s)
-{
-    if (s == 0u) {
-        return a;
-    }
-    return kf_asr32(a, s) + (int32_t)(((uint32_t)a >> (uint8_t)(s - 1u)) & 1u);
-}
-
-/* numfmt.saturate to [lo, hi], result fits int16_t. */
-static inline int16_t kf_sat16(int32_t a, int16_t lo, int16_t hi)
-{
-    if (a < (int32_t)lo) {
-        return lo;
-    }
-    if (a > (int32_t)hi) {
-        return hi;
-    }
-    return (int16_t)a;
-}
-
-/* --- activations: int16 requantised layer output (already clamped to int8) -> int8 input -------- */
-
-/* ReLU: max(0, z), same exponent. */
-static inline void kf_act_relu(const int16_t *z, int8_t *x, uint16_t n)
-{
-    uint16_t i;
-    for (i = 0u; i < n; ++i) {
-        x[i] = (int8_t)(z[i] > 0 ? z[i] : 0);
-    }
-}
-
-/* Identity: the value itself (z is already in -128..127). */
-static inline void kf_act_identity(const int16_t *z, int8_t *x, uint16_t n)
-{
-    uint16_t i;
-    for (i = 0u; i < n; ++i) {
-        x[i] = (int8_t)z[i];
-    }
-}
-
-/* Table activation (ELU, tanh, sigmoid): x = table[z + 128], a 256-entry int8 table in flash. */
-static inline void kf_act_table(const int8_t *table, const int16_t *z, int8_t *x, uint16_t n)
-{
-    uint16_t i;
-    for (i = 0u; i < n; ++i) {
-        x[i] = (int8_t)pgm_read_byte(&table[(uint8_t)(z[i] + 128)]);
-    }
-}
-
-/* --- CRC-16/MCRF4XX (export/crc.py): reflected poly 0x8408, init 0xFFFF, no final xor ----------- */
-
-#ifdef __AVR__
-#include <util/crc16.h>
-/* avr-libc's _crc_ccitt_update is exactly this update (reflected 0x8408), in a few instructions */
-static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
-{
-    return _crc_ccitt_update(crc, byte);
-}
-#else
-static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
-{
-    uint8_t bit;
-    crc ^= byte;
-    for (bit = 0u; bit < 8u; ++bit) {
-        crc = (crc & 1u) ? (uint16_t)((crc >> 1) ^ 0x8408u) : (uint16_t)(crc >> 1);
-    }
-    return crc;
-}
-#endif
-
-static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
-{
-    uint16_t crc = 0xFFFFu;
-    uint8_t i;
-    for (i = 0u; i < n; ++i) {
-        crc = kf_crc16_update(crc, p[i]);
-    }
-    return crc;
-}
-
-/* --- hand-off to the interrupt handlers ------------------------------------------------------- */
-
-/* A compiler barrier: every store before it is emitted before every store after it. The flag or index
- * that hands data to an ISR is volatile, but the data itself need not be; this keeps its stores from
- * being moved past the hand-off (the AVR itself never reorders memory accesses). */
-#define KF_BARRIER() __asm__ __volatile__("" ::: "memory")
-
-#endif /* KF_RUNTIME_H */
+#define KF_CRC_POLY 33800u /* CRC-16/MCRF4XX: reflected polynomial */
+#define KF_CRC_INIT 65535u /* CRC-16/MCRF4XX: initial value */
+/* [inlined here: kf_runtime.h (hand-written, tested on its own)] */
 
 #if defined(__AVR__) && !defined(KF_GLUE_OPTIMIZE_SPEED)
 #pragma GCC pop_options
@@ -170,6 +42,9 @@ static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
 #define KF_MSG_TYPE 42u /* message type of ours (a user type: < 0x80, not 1) */
 #define KF_MSG_VERSION 1u /* data[0] of our messages; others are dropped */
 #define KF_READY 19270u /* kf_state_t.ready once setup() has finished (the callbacks idle until then) */
+#define KF_MSG_DATA_BYTES 9u /* message_t payload bytes (the CRC covers them and the type) */
+#define KF_MSG_USED_BYTES 4u /* data[0..3] carry version, uid and info; the rest is 0 */
+#define KF_MSG_INFO_BYTE 3u /* data[] index of role | sensing << 1 */
 #define KF_ROLE_BIT 1u /* data[3] bit: the sender is the target beacon */
 #define KF_SENSING_BIT 2u /* data[3] bit: the sender heard the target last period */
 #define KF_LED_OFF (RGB(0, 0, 0)) /* searcher, nothing to show */
@@ -194,12 +69,12 @@ static void kf_msg_set(kf_msgbuf_t *b, uint8_t info)
     m->data[0] = KF_MSG_VERSION;
     m->data[1] = (uint8_t)(kilo_uid & 0xFFu);
     m->data[2] = (uint8_t)(kilo_uid >> 8);
-    m->data[3] = info;
-    for (i = 4u; i < 9u; ++i) {
+    m->data[KF_MSG_INFO_BYTE] = info;
+    for (i = KF_MSG_USED_BYTES; i < KF_MSG_DATA_BYTES; ++i) {
         m->data[i] = 0u;
     }
     m->type = KF_MSG_TYPE;
-    m->crc = kf_crc16_update(kf_crc16(m->data, 9u), m->type);
+    m->crc = kf_crc16_update(kf_crc16(m->data, KF_MSG_DATA_BYTES), m->type);
     KF_BARRIER();
     b->active = next;
 }
