@@ -22,6 +22,7 @@ from export.codegen.templates import inline_sources  # noqa: E402
 from kiloforge import numfmt  # noqa: E402
 from kiloforge.actors.base import QuantizedActor, sensing_tables  # noqa: E402
 from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU  # noqa: E402
+from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell  # noqa: E402
 from kiloforge.actors.mlp import QuantizedMLP  # noqa: E402
 from kiloforge.actors.registry import kind_of  # noqa: E402
 from kiloforge.io import write_atomic  # noqa: E402
@@ -82,9 +83,21 @@ def golden_gru() -> QuantizedGRU:
                         **sensing_tables(WORLD, E_IN))
 
 
+def golden_lstm() -> QuantizedLSTM:
+    """A tiny fixed LSTM of 4 hidden units."""
+    D, H = WORLD.tuple_dim, 4
+    i, f, g, o = (_gate(H, D + H, a, b, shifts, E_IN, e) for a, b, shifts, e in
+                  ((3, 5, [7, 8, 9, 6], 4), (5, 3, [8, 8, 7, 9], 5), (2, 7, [6, 7, 8, 9], 5), (7, 2, [9, 8, 7, 6], 4)))
+    cell = QuantLSTMCell(i=i, f=f, g=g, o=o, i_table=numfmt.gate_table(4), f_table=numfmt.gate_table(5),
+                         g_table=numfmt.act_table("tanh", 5, HIDDEN_EXP), o_table=numfmt.gate_table(4),
+                         c_table=numfmt.act_table("tanh", 6, HIDDEN_EXP), e_c=6)
+    return QuantizedLSTM(cell=cell, out=_output(H, HIDDEN_EXP), e_in=E_IN, world=WORLD, policy_hash=GOLDEN_HASH,
+                         **sensing_tables(WORLD, E_IN))
+
+
 def golden_policies() -> dict[str, QuantizedActor]:
     """Kind name -> its golden quantised policy."""
-    return {q.kind: q for q in (golden_mlp(), golden_gru())}
+    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm())}
 
 
 def render(qp: QuantizedActor) -> dict[str, str]:
@@ -108,7 +121,7 @@ def golden_files() -> dict[str, str]:
     for kind, qp in golden_policies().items():
         files = render(qp)
         out[f"{kind}.c"] = generated_part(files[POLICY_FILE], (RUNTIME_SOURCES, DENSE_SOURCES, kind_of(qp).c_sources))
-        out[TARGET_GOLDEN] = generated_part(files[TARGET_FILE], (RUNTIME_SOURCES,))
+    out[TARGET_GOLDEN] = generated_part(render(golden_mlp())[TARGET_FILE], (RUNTIME_SOURCES,))  # its banner names an actor
     return out
 
 

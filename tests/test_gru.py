@@ -13,8 +13,9 @@ from export.verify.emulator import FirmwareEmulator
 from export.verify.hostbuild import StreamSpec, random_inputs
 from kiloforge import numfmt
 from kiloforge.actors.base import HiddenArch, StatefulActor
-from kiloforge.actors.gru import (ARRAYS, GRU, GRUPolicy, QuantizedGRU, calibration_from_sequences, gru_error_report,
-                                  QuantGRUCell, quantize_gru, random_gru_policy)
+from kiloforge.actors.gru import (GRU, GRUPolicy, QuantGRUCell, QuantizedGRU, gru_error_report, quantize_gru,
+                                  random_gru_policy)
+from kiloforge.actors.recurrent import ARRAYS, calibration_from_sequences
 from kiloforge.errors import PolicyError
 from kiloforge.policies import load_policy, save_policy
 from sim.config import preset

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from export.codegen.cformat import c_comment, clamp_index_table, nonzero_windows
-from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.codegen.render import POLICY_FILE, render_firmware
 from export.codegen.templates import TEMPLATE_DIR, templates_loaded
 from export.contract import firmware as fwspec
 from export.errors import ExportError
 from fixtures import synthetic_qpolicy
 from kiloforge import numfmt
-from kiloforge.actors.gru import calibration_from_sequences, quantize_gru, random_gru_policy
+from kiloforge.actors.gru import quantize_gru, random_gru_policy
+from kiloforge.actors.recurrent import calibration_from_sequences
 from regen_golden import GOLDEN_DIR, GOLDEN_VERSION, TARGET_GOLDEN, golden_files, golden_mlp, golden_policies, render
 from sim.config import preset
 from sim.motion import schedule_constants

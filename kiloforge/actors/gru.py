@@ -47,8 +47,8 @@ layers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -56,19 +56,15 @@ from sim.config import ACTION_DIM, WorldConfig
 from sim.motion import action_to_u8
 
 from .. import numfmt
-from ..artifact import plain_provenance
-from ..errors import PolicyError, QuantizeError
+from ..errors import QuantizeError
 from ..numfmt import GATE_EXP, HIDDEN_EXP, INT8_MAX, INT8_MIN, MAX_SHIFT, QuantLayer, choose_exp
-from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CDense, CTable, FloatPolicy,
-                   HiddenArch, QuantizedActor, RenderSpec, Resize, check_world, dense_summary, float_arrays,
-                   invalid, sensing_tables, sigmoid)
-from .dense import (check_range_options, input_exponent, is_gate_layer, is_output_layer, output_layer,
+from .base import (BudgetItem, BudgetSpec, CDefine, CDense, CTable, HiddenArch, RenderSpec,
+                   dense_summary, sensing_tables, sigmoid)
+from .dense import (check_range_options, input_exponent, is_gate_layer, output_layer,
                     quantize_dense, saturated_fraction, value_range)
+from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentKind, RecurrentPolicy, SequenceCalibration, free_run,
+                        random_recurrent)
 
-GATE_ORDER = "rzn"  #: PyTorch's order of the three row blocks of w_ih, w_hh, b_ih, b_hh
-INPUT_LAYOUT = "a_prev+obs"  #: one sim.history tuple per step
-ARRAYS = ("w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
-MAX_HIDDEN = 255  #: the firmware indexes hidden units with uint8
 MAX_NX_SHIFT = 7  #: nx -> e_n is a multiply by 2^nx_shift of an int8 value (fits int16)
 
 
@@ -76,73 +72,13 @@ MAX_NX_SHIFT = 7  #: nx -> e_n is a multiply by 2^nx_shift of an int8 value (fit
 # The float actor
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
-class GRUPolicy(FloatPolicy):
-    """A float GRU actor (see the module doc); invalid contents raise :class:`PolicyError`."""
+class GRUPolicy(RecurrentPolicy):
+    """A float GRU actor (see the module doc): arrays in gate order r, z, n; invalid contents raise PolicyError."""
 
     kind: ClassVar[str] = "gru"
-    w_ih: np.ndarray  #: (3H, D) float32, gate blocks r, z, n
-    w_hh: np.ndarray  #: (3H, H)
-    b_ih: np.ndarray  #: (3H,)
-    b_hh: np.ndarray  #: (3H,)
-    w_out: np.ndarray  #: (2, H)
-    b_out: np.ndarray  #: (2,)
-    world: WorldConfig
-    provenance: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        bad = invalid
-        check_world(self.world)
-        arrs = float_arrays(self, ARRAYS)
-        w_hh = arrs["w_hh"]
-        if w_hh.ndim != 2 or w_hh.shape[0] != 3 * w_hh.shape[1] or w_hh.shape[1] < 1:
-            bad(f"w_hh must be (3H, H), got {w_hh.shape}")
-        H = w_hh.shape[1]
-        if H > MAX_HIDDEN:
-            bad(f"hidden size {H} > {MAX_HIDDEN} (the firmware indexes hidden units with uint8)")
-        D = self.world.tuple_dim
-        want = {"w_ih": (3 * H, D), "b_ih": (3 * H,), "b_hh": (3 * H,), "w_out": (ACTION_DIM, H),
-                "b_out": (ACTION_DIM,)}
-        for name, shape in want.items():
-            if arrs[name].shape != shape:
-                extra = (f" = (3 x hidden {H}, tuple {D}: 2 actions + {self.world.obs_dim} observations of world "
-                         f"'{self.world.name}')") if name == "w_ih" else ""
-                bad(f"'{name}' has shape {arrs[name].shape}, expected {shape}{extra}")
-        prov = plain_provenance(self.provenance)
-        for name, a in arrs.items():
-            a.setflags(write=False)
-            object.__setattr__(self, name, a)
-        object.__setattr__(self, "provenance", prov)
-
-    # --- shapes -----------------------------------------------------------------------------
-    @property
-    def hidden_size(self) -> int:
-        return int(self.w_hh.shape[1])
-
-    @property
-    def in_dim(self) -> int:
-        """Input width per step: one tuple, ``world.tuple_dim``."""
-        return int(self.w_ih.shape[1])
-
-    @property
-    def layer_sizes(self) -> list[int]:
-        """[input tuple, hidden, 2] (printing and manifests)."""
-        return [self.in_dim, self.hidden_size, ACTION_DIM]
-
-    def describe(self) -> str:
-        return f"GRU: input {self.in_dim} ([a_prev, obs]), {self.hidden_size} hidden units, linear output {ACTION_DIM}"
-
-    # --- artifact ---------------------------------------------------------------------------
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in ARRAYS}
-
-    def kind_meta(self) -> dict[str, Any]:
-        return {"hidden": self.hidden_size, "input_dim": self.in_dim, "gate_order": GATE_ORDER,
-                "input": INPUT_LAYOUT}
-
-    # --- inference --------------------------------------------------------------------------
-    def initial_state(self, n: int) -> np.ndarray:
-        """Zero hidden states (n, H) float64: the start of an episode."""
-        return np.zeros((int(n), self.hidden_size))
+    GATE_COUNT: ClassVar[int] = 3
+    GATE_ORDER: ClassVar[str] = "rzn"  #: PyTorch's order of the three row blocks of w_ih, w_hh, b_ih, b_hh
+    STATE_WIDTH: ClassVar[int] = 1  #: the state is h
 
     def gates(self, x: np.ndarray, h: np.ndarray) -> dict[str, np.ndarray]:
         """Every intermediate of one step in float64 (calibration): pre-activations and gates, h' and u."""
@@ -162,25 +98,14 @@ class GRUPolicy(FloatPolicy):
         h2 = (1.0 - z) * n + z * h
         out = h2 @ self.w_out.astype(np.float64).T + self.b_out  # (..., 2)
         return {"a_r": a_r, "a_z": a_z, "nx": nx, "nh": nh, "r": r, "z": z, "pre_n": pre_n, "n": n,
-                "h": h2, "out": out, "u": np.clip(out, 0.0, 1.0)}
-
-    def step(self, x: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One control step: tuples (..., D) and states (..., H) -> (u (..., 2) in [0, 1], new states)."""
-        g = self.gates(x, h)
-        return g["u"], g["h"]
+                "h": h2, "state": h2, "out": out, "u": np.clip(out, 0.0, 1.0)}
 
 
-def random_gru_policy(world: WorldConfig, hidden: int, seed: int = 0, scale: float = 1.0,
-                      out_bias: float = 0.5, out_scale: float = 1.0, provenance: dict | None = None) -> GRUPolicy:
-    """A deterministic untrained GRU policy (tests, benchmarks): cell weights U(±scale/√H), output
-    weights U(±out_scale/√H) and biases ``out_bias`` so that the commands spread over [0, 1]."""
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
-    D, H = world.tuple_dim, int(hidden)
-    b = scale / np.sqrt(H)
-    u = lambda *shape, lim=b: rng.uniform(-lim, lim, size=shape).astype(np.float32)  # noqa: E731
-    return GRUPolicy(w_ih=u(3 * H, D), w_hh=u(3 * H, H), b_ih=u(3 * H), b_hh=u(3 * H),
-                     w_out=u(ACTION_DIM, H, lim=out_scale / np.sqrt(H)), b_out=np.full(ACTION_DIM, out_bias, np.float32),
-                     world=world, provenance=dict(provenance or {"notes": f"random_gru_policy seed {seed}"}))
+def random_gru_policy(world: WorldConfig, hidden: int, seed: int = 0, scale: float = 1.0, out_bias: float = 0.5,
+                      out_scale: float = 1.0, provenance: dict | None = None) -> GRUPolicy:
+    """A deterministic untrained GRU policy (tests, benchmarks): :func:`~kiloforge.actors.recurrent.random_recurrent`."""
+    return random_recurrent(GRUPolicy, world, hidden, seed, scale, out_bias, out_scale,
+                            provenance or {"notes": f"random_gru_policy seed {seed}"})
 
 
 # --------------------------------------------------------------------------------------------
@@ -216,6 +141,11 @@ class QuantGRUCell:
         assert 0 <= self.nx_shift <= MAX_NX_SHIFT, f"nx_shift must be in 0..{MAX_NX_SHIFT}, got {self.nx_shift}"
         assert self.rn_shift == GATE_EXP + self.nh.e_out - self.e_n and 0 <= self.rn_shift <= MAX_SHIFT, \
             f"rn_shift {self.rn_shift} != {GATE_EXP} + e_nh {self.nh.e_out} - e_n {self.e_n} (or out of range)"
+
+    @property
+    def layers(self) -> list[QuantLayer]:
+        """The four dense layers in firmware order: r, z, nx, nh."""
+        return [self.r, self.z, self.nx, self.nh]
 
     @property
     def e_n(self) -> int:
@@ -257,44 +187,12 @@ LAYER_NAMES = ("r", "z", "nx", "nh", "out")
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class QuantizedGRU(QuantizedActor):
+class QuantizedGRU(QuantizedRecurrent):
     """The int8 GRU actor: ``h' = cell.step(x, h)``, ``q = out(h')`` uint8; ``h`` int8 at HIDDEN_EXP."""
 
     kind: ClassVar[str] = "gru"
+    STATE_WIDTH: ClassVar[int] = 1
     cell: QuantGRUCell
-    out: QuantLayer  #: (2, H) on h' at HIDDEN_EXP -> uint8 motor commands
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        c, w = self.cell, self.world
-        assert c.in_dim == w.tuple_dim, f"cell input {c.in_dim} != tuple width {w.tuple_dim}"
-        assert c.r.e_in == self.e_in, "the gates read x at e_in"
-        o = self.out
-        assert o.w.shape == (ACTION_DIM, c.hidden), f"output layer must be ({ACTION_DIM}, {c.hidden})"
-        assert is_output_layer(o) and o.e_in == HIDDEN_EXP, \
-            "output layer: h at HIDDEN_EXP -> uint8 commands (exponent 0, clamp 0..255)"
-
-    @property
-    def layers(self) -> list[QuantLayer]:
-        """The five dense layers in firmware order: r, z, nx, nh, out."""
-        return [self.cell.r, self.cell.z, self.cell.nx, self.cell.nh, self.out]
-
-    @property
-    def hidden_size(self) -> int:
-        return self.cell.hidden
-
-    @property
-    def in_dim(self) -> int:
-        return self.world.tuple_dim
-
-    @property
-    def layer_sizes(self) -> list[int]:
-        """[input tuple, hidden, 2]."""
-        return [self.in_dim, self.hidden_size, ACTION_DIM]
-
-    def initial_state(self, n: int) -> np.ndarray:
-        """Zero hidden states (n, H) int64: what setup() leaves."""
-        return np.zeros((int(n), self.hidden_size), np.int64)
 
     def step_int(self, x: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One control step: int8 tuples (R, D) and states (R, H) -> (uint8 commands (R, 2), new states)."""
@@ -322,45 +220,7 @@ class QuantizedGRU(QuantizedActor):
 # --------------------------------------------------------------------------------------------
 # Calibration, quantisation, error report
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class GRUCalibration:
-    """What the float GRU saw: input tuples and states per robot-episode, and every intermediate."""
-
-    seqs: np.ndarray  #: (S, T, D) float32 input tuples, one row per robot-episode
-    states: np.ndarray  #: (S, T, H) float64 hidden state before each step
-    values: dict[str, np.ndarray]  #: GRUPolicy.gates() over every (S*T) step, flattened
-    info: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def n(self) -> int:
-        return int(self.seqs.shape[0] * self.seqs.shape[1])
-
-    @property
-    def inputs(self) -> np.ndarray:
-        """(S*T, D) every input tuple."""
-        return self.seqs.reshape(-1, self.seqs.shape[-1])
-
-
-def calibration_from_sequences(policy: GRUPolicy, seqs: np.ndarray, info: dict | None = None) -> GRUCalibration:
-    """Run the float GRU over recorded input sequences (S, T, D) from zero states; keep everything."""
-    seqs = np.asarray(seqs, np.float32)
-    assert seqs.ndim == 3 and seqs.shape[-1] == policy.in_dim and seqs.shape[1] >= 1, \
-        f"sequences must be (S, T, {policy.in_dim}), got {seqs.shape}"
-    S, T, _ = seqs.shape
-    h = policy.initial_state(S)
-    states = np.empty((S, T, policy.hidden_size))
-    vals: dict[str, list[np.ndarray]] = {}
-    for t in range(T):
-        states[:, t] = h
-        g = policy.gates(seqs[:, t], h)
-        for k, v in g.items():
-            vals.setdefault(k, []).append(v)
-        h = g["h"]
-    values = {k: np.stack(v, 1).reshape(S * T, -1) for k, v in vals.items()}  # (S*T, ...) row s*T + t
-    return GRUCalibration(seqs=seqs, states=states, values=values, info=dict(info or {}))
-
-
-def quantize_gru(policy: GRUPolicy, calib: GRUCalibration, *, percentile: float = 100.0, headroom: float = 1.0,
+def quantize_gru(policy: GRUPolicy, calib: SequenceCalibration, *, percentile: float = 100.0, headroom: float = 1.0,
                  e_in: int | None = None, gate_exp_max: int | None = None) -> QuantizedGRU:
     """Quantise ``policy`` with exponents from the calibration ranges (see the module doc).
 
@@ -447,7 +307,7 @@ class GRUErrorReport:
                 "e_in": self.e_in, "input_saturated": self.input_saturated}
 
 
-def gru_error_report(policy: GRUPolicy, qp: QuantizedGRU, calib: GRUCalibration) -> GRUErrorReport:
+def gru_error_report(policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> GRUErrorReport:
     """Compare the float and the integer cell on every calibration step (see :class:`GRUErrorReport`)."""
     S, T, D = calib.seqs.shape
     xq = qp.quantize_tuple(calib.inputs)  # (S*T, D)
@@ -461,14 +321,7 @@ def gru_error_report(policy: GRUPolicy, qp: QuantizedGRU, calib: GRUCalibration)
            "u": np.abs(q / 255.0 - v["u"])}
     step_err = {k: (float(e.max()), float(e.mean())) for k, e in err.items()}
     sat = {k: saturated_fraction(gi[a]) for k, a in (("r", "a_r"), ("1-z", "a_z"), ("n", "pre_n"))}
-    # free-running: the integer cell carries its own state over each recorded episode
-    h = qp.initial_state(S)
-    xs = qp.quantize_tuple(calib.seqs)  # (S, T, D)
-    qs = np.empty((S, T, ACTION_DIM), np.int64)
-    hs = np.empty((S, T, qp.hidden_size), np.int64)
-    for t in range(T):
-        qs[:, t], h = qp.step_int(xs[:, t], h)
-        hs[:, t] = h
+    qs, hs = free_run(qp, calib.seqs)  # the integer cell carries its own state over each recorded episode
     u_f = v["u"].reshape(S, T, ACTION_DIM)
     du = np.abs(qs / 255.0 - u_f)
     drift = np.abs(hs / 2.0 ** HIDDEN_EXP - v["h"].reshape(S, T, -1))
@@ -500,53 +353,20 @@ def gru_sizes(in_dim: int, hidden: int) -> list[tuple[int, int]]:
     return [(H, D + H), (H, D + H), (H, D), (H, H), (ACTION_DIM, H)]
 
 
-class GRUKind(ActorKind):
+class GRUKind(RecurrentKind):
     """The recurrent GRU actor (MAGRDPG)."""
 
     name: ClassVar[str] = "gru"
     template: ClassVar[str] = "actors/gru.c.j2"
     c_sources: ClassVar[tuple[str, ...]] = ("kf_gru.h",)
-    budget_usage: ClassVar[str] = "--gru H"
-    budget_options: ClassVar[tuple[BudgetOption, ...]] = (
-        BudgetOption("--gru", "a recurrent actor instead: one GRU layer of H units (learn train-recurrent)",
-                     metavar="H"),)
+    policy_type: ClassVar[type[RecurrentPolicy]] = GRUPolicy
 
-    def from_arrays(self, arrays: dict[str, np.ndarray], meta: dict[str, Any], world: WorldConfig,
-                    provenance: dict[str, Any]) -> GRUPolicy:
-        missing = [n for n in ARRAYS if n not in arrays]
-        if missing:
-            raise PolicyError(f"policy: lacks array(s) {', '.join(missing)} of a '{self.name}' policy")
-        extra = sorted(set(arrays) - set(ARRAYS))
-        if extra:
-            raise PolicyError(f"policy: has unexpected arrays: {', '.join(extra)}")
-        for key in ("hidden", "gate_order", "input"):
-            if key not in meta:
-                raise PolicyError(f"policy: 'meta' lacks '{key}'")
-        if meta["gate_order"] != GATE_ORDER:
-            raise PolicyError(f"policy: gate order {meta['gate_order']!r} is not supported (only '{GATE_ORDER}')")
-        if meta["input"] != INPUT_LAYOUT:
-            raise PolicyError(f"policy: input layout {meta['input']!r} is not supported (only '{INPUT_LAYOUT}')")
-        p = GRUPolicy(**{n: arrays[n] for n in ARRAYS}, world=world, provenance=provenance)
-        if meta["hidden"] != p.hidden_size or meta.get("input_dim", p.in_dim) != p.in_dim:
-            raise PolicyError(f"policy: meta says hidden {meta['hidden']}, input {meta.get('input_dim')} but the "
-                              f"arrays have hidden {p.hidden_size}, input {p.in_dim}")
-        return p
-
-    def calibration(self, policy: GRUPolicy, seqs: np.ndarray, info: dict[str, Any]) -> GRUCalibration:
-        return calibration_from_sequences(policy, seqs, info)
-
-    def quantize(self, policy: GRUPolicy, calib: GRUCalibration, *, percentile: float = 100.0,
+    def quantize(self, policy: GRUPolicy, calib: SequenceCalibration, *, percentile: float = 100.0,
                  headroom: float = 1.0, e_in: int | None = None) -> QuantizedGRU:
         return quantize_gru(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
 
-    def error_report(self, policy: GRUPolicy, qp: QuantizedGRU, calib: GRUCalibration) -> GRUErrorReport:
+    def error_report(self, policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> GRUErrorReport:
         return gru_error_report(policy, qp, calib)
-
-    def arch_of(self, policy: GRUPolicy) -> HiddenArch:
-        return HiddenArch(policy.hidden_size)
-
-    def arch_of_quantized(self, qp: QuantizedGRU) -> HiddenArch:
-        return HiddenArch(qp.hidden_size)
 
     def budget_spec(self, world: WorldConfig, arch: HiddenArch, e_in: int) -> BudgetSpec:
         D, H, T = world.tuple_dim, arch.hidden, numfmt.TABLE_SIZE
@@ -557,13 +377,6 @@ class GRUKind(ActorKind):
             memory=(BudgetItem("sram", "hidden state + input", H + D, f"{H} + {D} int8"),),
             scratch=(BudgetItem("sram", "gate buffers", 2 * 2 * H + H, f"{2 * H} int16 + {H} uint8"),),
             code_b=GRU_CODE_B, code_note="GRU step", arch={"hidden": H})
-
-    def resizes(self, world: WorldConfig, arch: HiddenArch) -> list[Resize]:
-        return [Resize(arch=HiddenArch, found=lambda n: f"a GRU of <= {n} hidden units", none="no GRU size fits",
-                       cap=MAX_HIDDEN)]
-
-    def budget_arch(self, values: Mapping[str, Any]) -> HiddenArch:
-        return HiddenArch(int(values["gru"]))
 
     def render_spec(self, qp: QuantizedGRU) -> RenderSpec:
         H, c = qp.hidden_size, qp.cell

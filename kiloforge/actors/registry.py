@@ -10,9 +10,10 @@ from typing import Any
 from ..errors import PolicyError
 from .base import ActorKind
 from .gru import GRU
+from .lstm import LSTM
 from .mlp import MLP
 
-KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU)}
+KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM)}
 
 
 def kind_named(name: object) -> ActorKind:

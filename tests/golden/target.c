@@ -8,7 +8,7 @@
  * policy sha256   0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef
  * number format   kf-int8-pow2-v1 (int8, power-of-two exponents, int32 accumulator, rounding half-up)
  * world           thesis: control period 8 kilo_ticks, comm radius 40 mm, 3 RBF bins, neighbour table 4
- * actor           GRU: input 8 ([a_prev, obs]), 4 hidden units int8 at exponent 7, linear output 2; e_in 6, e_r 4, e_z 4, e_nx 5, e_nh 6, e_n 5
+ * actor           t_prev 2, 16 -> 4 -> 2 (elu, identity), e_in 6
  * target uids     0, 77 (these robots act as the beacon)
  * message         type 0x2a, version 1
  *
