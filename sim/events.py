@@ -1,4 +1,4 @@
-"""Heard-message events and the observation computed from them (DESIGN.md control-step contract).
+"""Heard-message events and the observation computed from them (docs/design.md control-step contract).
 
 The radio model (:mod:`sim.radio`) produces, for one control period, a flat list of *events*: one per
 message that one robot received. The simulator turns them into observations with
