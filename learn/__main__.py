@@ -5,6 +5,7 @@
     python -m learn evaluate --policy P [P ...] --robots 16 32 --episodes 500 --steps 500 --out DIR
     python -m learn plot RUN_DIR [RUN_DIR ...] [--out curve.png]
     python -m learn export-onnx --policy P.npz --out actor.onnx
+    python -m learn sweep --seeds 1 2 3 --robots 1 2 4 --preset quick --out DIR   (Ray Tune; docs/sweeps.md)
 
 Every ``TrainConfig`` field is an option (``--lr-actor 3e-4``, ``--actor-hidden 32 32``).
 Precedence: defaults < ``--preset`` < ``--config`` file < options on the command line.
@@ -100,6 +101,9 @@ def build_parser() -> ArgumentParser:
                    help="train a recurrent (GRU) policy with MAGRDPG (python -m learn train-recurrent --help)")
     sub.add_parser("export-onnx", add_help=False,
                    help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
+
+    sub.add_parser("sweep", add_help=False,
+                   help="a grid of trainings x seeds on Ray Tune, aggregated (python -m learn sweep --help)")
 
     pl = sub.add_parser("plot", help="learning curves of runs (mean ± 2 std over seeds)",
                         description="Plot learning curves; runs that differ only in seed are averaged.")
@@ -223,6 +227,10 @@ def main(argv: list[str] | None = None) -> int:
         from .onnx_export import main_export_onnx
 
         return main_export_onnx(argv[1:])
+    if argv and argv[0] == "sweep":  # its own parser lives with the sweep (learn/sweep/cli.py)
+        from .sweep import main_sweep
+
+        return main_sweep(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return {"train": cmd_train, "evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
