@@ -149,11 +149,12 @@ def read_json(path: Path) -> dict:
 
 def cmd_train(args: argparse.Namespace) -> int:
     cfg, out = resolve_train_config(args)
-    from export.budget import fits
+    from export.codegen.budget import estimate
+    from kiloforge.actors.mlp import MLP, MLPArch
 
     from .train import train
 
-    budget = fits(cfg.world_config(), cfg.t_prev, cfg.actor_hidden)
+    budget = estimate(MLP, cfg.world_config(), MLPArch(cfg.t_prev, tuple(cfg.actor_hidden)))
     if not budget.ok:
         print(f"note: this actor (t_prev {cfg.t_prev}, hidden {list(cfg.actor_hidden)}) does not fit the Kilobot "
               f"budget ({budget.summary()}); it trains, but the exporter will refuse it", file=sys.stderr)
@@ -172,7 +173,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
 
     from .evaluate import evaluate_policies
 
@@ -215,7 +216,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from export.errors import ExportError
+    from kiloforge.errors import KiloforgeError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "train-recurrent":  # MAGRDPG (learn/magrdpg.py) has its own parser
@@ -233,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"train": cmd_train, "evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
-    except (ConfigError, ExportError, ValueError) as e:
+    except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"python -m learn {args.command}: error: {e}", file=sys.stderr)
         return 2
 

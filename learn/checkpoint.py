@@ -9,14 +9,13 @@ a checkpoint never runs code when it is loaded.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from export.atomic import new_file_mode, write_bytes_atomic
+from kiloforge.io import atomic_path
 
 _NP_TAG = "__ndarray__"
 
@@ -44,27 +43,13 @@ def _from_torch(obj: Any) -> Any:
 
 
 def save_checkpoint(state: dict, path: str | os.PathLike) -> Path:
-    """Write ``state`` to ``path`` atomically (temp file + fsync + os.replace)."""
+    """Write ``state`` to ``path`` atomically (:func:`kiloforge.io.atomic_path`)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(_to_torch(state), f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        torch.save(_to_torch(state), tmp)
     return path
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: no code runs)."""
     return _from_torch(torch.load(Path(path), map_location="cpu", weights_only=True))
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write a small text file atomically (UTF-8)."""
-    return write_bytes_atomic(path, text)

@@ -2,7 +2,7 @@
 
 The defaults are the thesis's MAGDDPG hyper-parameters (§4.3, §4.3.1), except the actor, which
 has to run on a Kilobot: ``t_prev = 10`` and two hidden layers of 32 ELUs fit the ATmega328P
-(checked against :mod:`export.budget`); the thesis's actor had four hidden layers on a 20-step
+(checked against :mod:`export.codegen.budget`); the thesis's actor had four hidden layers on a 20-step
 history. The thesis gives neither γ nor the layer widths (its Fig. 4.2 is not available to us): γ is
 0.99 as in DDPG, and the critic has three hidden ELU layers of 256, 128 and 64 units.
 

@@ -3,8 +3,9 @@
 What differs from MAGDDPG (:mod:`learn.magddpg`, whose critic, soft updates, inverting gradients,
 OU noise, episode replay and evaluator are reused here):
 
-* the actor (:class:`learn.recurrent.GRUActor`) reads one tuple ``x_t = [a_{t−1}, o_t]`` per step
-  and carries a GRU hidden state (zero at the start of an episode, ``a_0 = 0``) instead of a
+* the actor (:class:`learn.recurrent.GRUActor`, or with ``--cell lstm`` :class:`learn.recurrent.LSTMActor`)
+  reads one tuple ``x_t = [a_{t−1}, o_t]`` per step and carries a recurrent state (zero at the
+  start of an episode, ``a_0 = 0``) instead of a
   ``t_prev`` history: it fits the Kilobot's SRAM whatever the memory horizon;
 * updates are *random updates* (Hausknecht & Stone 2015, the thesis's choice): a minibatch is
   ``batch_windows`` windows cut from stored episodes at random starts ``t_s``. Each window
@@ -50,22 +51,24 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from export.artifact import save_policy
-from export.gru import GRUPolicy, GRUSwarmPolicy
+from kiloforge.actors.base import StatefulActor
+from kiloforge.actors.recurrent import RecurrentPolicy
+from kiloforge.io import write_atomic
+from kiloforge.policies import save_policy
 from sim.config import ACTION_DIM
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import preset as world_preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 
-from .checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
+from .checkpoint import load_checkpoint, save_checkpoint
 from .config import ConfigError
 from .demos import DEMO_POLICIES, bc_pretrain, collect_demos, demonstrator
 from .evaluate import Evaluator, metrics_row
 from .magddpg import A_MAX, A_MIN, UpdateStats, invert_gradients, soft_update
 from .networks import Critic
 from .noise import OUNoise
-from .recurrent import GRUActor
+from .recurrent import RECURRENT_ACTORS
 from .replay import EpisodeReplay
 from .train import Counters, finite_or_none, git_hash, prepare_run_dir, rows_to_csv, write_summary
 
@@ -86,7 +89,8 @@ class RecurrentConfig:
     n_robots: int = 2  #: robots trained together
     episode_steps: int = 0  #: control steps per episode; 0 = the world's (thesis: 200)
     # --- networks ----------------------------------------------------------------------------
-    hidden: int = 32  #: GRU units of the actor (the firmware keeps them as int8 in SRAM)
+    hidden: int = 32  #: units of the actor's recurrent cell (the firmware keeps them as int8 in SRAM)
+    cell: str = "gru"  #: the actor's recurrent cell: gru or lstm (the thesis's MAGRDPG used an LSTM)
     critic_hidden: tuple[int, ...] = (256, 128, 64)  #: critic hidden widths (ELU), as MAGDDPG
     # --- MAGRDPG -----------------------------------------------------------------------------
     unroll: int = 8  #: T_unroll: steps per window with loss and gradient (truncated BPTT length)
@@ -138,6 +142,7 @@ class RecurrentConfig:
         need(1 <= self.n_robots <= 256, f"n_robots must be in 1..256, got {self.n_robots}")
         need(self.episode_steps >= 0, f"episode_steps must be >= 0 (0 = the world's), got {self.episode_steps}")
         need(1 <= self.hidden <= 255, f"hidden must be in 1..255 (uint8 index in the firmware), got {self.hidden}")
+        need(self.cell in RECURRENT_ACTORS, f"cell must be one of {', '.join(RECURRENT_ACTORS)}, got '{self.cell}'")
         need(len(self.critic_hidden) >= 1 and all(1 <= w <= 4096 for w in self.critic_hidden),
              f"critic_hidden must be one or more widths in 1..4096, got {list(self.critic_hidden)}")
         need(self.unroll >= 1, f"unroll must be >= 1, got {self.unroll}")
@@ -298,11 +303,11 @@ class MAGRDPG:
 
     def __init__(self, in_dim: int, state_dim: int, n_robots: int, hidden: int, critic_hidden: tuple[int, ...],
                  gamma: float, tau: float, lr_actor: float, lr_critic: float, reward_scale: float = 1.0,
-                 burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert") -> None:
+                 burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert", cell: str = "gru") -> None:
         assert action_gradient in ACTION_GRADIENTS, f"unknown action_gradient {action_gradient!r}"
         self.n_robots, self.burn_in, self.action_gradient = n_robots, int(burn_in), action_gradient
         self.gamma, self.tau, self.reward_scale, self.grad_clip = float(gamma), float(tau), float(reward_scale), float(grad_clip)
-        self.actor = GRUActor(in_dim, hidden)
+        self.actor = RECURRENT_ACTORS[cell](in_dim, hidden)
         self.critic = Critic(state_dim, n_robots, critic_hidden)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
@@ -407,19 +412,19 @@ class MAGRDPG:
             getattr(self, name).load_state_dict(d[name])
 
 
-def torch_swarm_policy(agent: MAGRDPG, world) -> GRUSwarmPolicy:
+def torch_swarm_policy(agent: MAGRDPG, world) -> StatefulActor:
     """The learning actor as a deterministic SwarmPolicy (evaluation)."""
     def step(x: np.ndarray, h: torch.Tensor):
         return agent.act(x, h)
-    return GRUSwarmPolicy(step, agent.actor.initial_state, world)
+    return StatefulActor(step, agent.actor.initial_state, world)
 
 
-def actor_artifact(agent: MAGRDPG, cfg: RecurrentConfig, world, c: Counters, metrics: dict) -> GRUPolicy:
-    """The current actor as an ``export.gru.GRUPolicy`` with provenance."""
+def actor_artifact(agent: MAGRDPG, cfg: RecurrentConfig, world, c: Counters, metrics: dict) -> RecurrentPolicy:
+    """The current actor as a policy artifact of its cell's kind, with provenance."""
     prov = {"trainer": "kiloforge.learn MAGRDPG", "config": cfg.to_dict(), "seed": cfg.seed, "git": git_hash(),
             "torch": torch.__version__, "trained_robots": cfg.n_robots, "env_steps": c.env_steps,
             "updates": c.updates, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(metrics))}
-    return GRUPolicy(**agent.actor.arrays(), world=world, provenance=prov)
+    return agent.actor.policy(world, prov)
 
 
 # --------------------------------------------------------------------------------------------
@@ -453,7 +458,7 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
 
     env = SwarmEnv(world, n_envs=B, n_robots=M, seed=int(env_rng.integers(2 ** 31)))
     agent = MAGRDPG(D, S, M, cfg.hidden, cfg.critic_hidden, cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic,
-                    cfg.reward_scale, cfg.burn_in, cfg.grad_clip, cfg.action_gradient)
+                    cfg.reward_scale, cfg.burn_in, cfg.grad_clip, cfg.action_gradient, cfg.cell)
     replay = EpisodeReplay(cfg.replay_size, T, M, D, S, 1)
     noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
     evaluator = Evaluator(world, M, 1, cfg.eval_episodes, eval_seed)
@@ -481,8 +486,8 @@ def train_recurrent(cfg: RecurrentConfig, run_dir: str | os.PathLike, resume: bo
         c = Counters(**ck["counters"])
         log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
     else:
-        write_text_atomic(run_dir / "config.json", cfg.to_json() + "\n")
-        write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+        write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+        write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
         if demos is not None and cfg.bc_updates:
             _pretrain(cfg, agent, world, demos, evaluator, demo_rng, run_dir, c, progress, log)
         if demos is not None and cfg.critic_pretrain:
@@ -605,7 +610,7 @@ def _pretrain(cfg: RecurrentConfig, agent: MAGRDPG, world, demos: EpisodeReplay,
     info = {"demo_policy": cfg.demo_policy, "demo_episodes": int((demos.filled > 0).sum()),
             "bc_updates": cfg.bc_updates, "bc_loss": loss, "bc_s": round(bc_s, 1),
             "eval_demonstrator": finite_or_none(metrics_row(demo_m)), "eval_after_bc": finite_or_none(metrics_row(bc_m))}
-    write_text_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+    write_atomic(run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
     clone = actor_artifact(agent, cfg, world, c, metrics_row(bc_m))
     save_policy(clone, run_dir / "policy_bc.npz")
     save_policy(clone, run_dir / "policy_best.npz")
@@ -654,9 +659,9 @@ def _evaluate_and_log(cfg, agent, world, evaluator, c, train_returns, losses, ru
     if row["eval_return"] > c.best_return:
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
-    write_text_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
     plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
-                         title=f"MAGRDPG, {cfg.n_robots} robots, GRU {cfg.hidden} ({cfg.world} world)")
+                         title=f"MAGRDPG, {cfg.n_robots} robots, {cfg.cell.upper()} {cfg.hidden} ({cfg.world} world)")
     msg = (f"return {row['eval_return']:.1f}  final cov {row['eval_final_coverage']:.2f}  "
            f"find {row['eval_time_to_find']:.0f}")
     if bar is not None:
@@ -686,7 +691,7 @@ def _field_docs() -> dict[str, str]:
 
 def build_parser(prog: str = "python -m learn train-recurrent") -> argparse.ArgumentParser:
     """Options: --preset, --config, --out, --resume, --quiet and one per RecurrentConfig field."""
-    p = _Parser(prog=prog, description="Train a recurrent (GRU) swarm policy with MAGRDPG (thesis Algorithm 5).")
+    p = _Parser(prog=prog, description="Train a recurrent (GRU or LSTM) swarm policy with MAGRDPG (thesis Algorithm 5).")
     p.add_argument("--preset", default=None, choices=list(PRESETS), help="training preset (default 'fast')")
     p.add_argument("--config", default=None, help="JSON file of RecurrentConfig fields")
     p.add_argument("--out", default=None, help="run directory (default runs/<task>__<exp>__<seed>__<time>)")
@@ -732,18 +737,20 @@ def _read_json(path: Path) -> dict:
 
 def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:
     """CLI entry point; returns the exit status (2 with a one-line message for user errors)."""
-    from export.budget import estimate_gru
-    from export.errors import ExportError
+    from export.codegen.budget import estimate
+    from kiloforge.actors.base import HiddenArch
+    from kiloforge.actors.registry import kind_named
+    from kiloforge.errors import KiloforgeError
 
     args = build_parser(prog).parse_args(sys.argv[1:] if argv is None else list(argv))
     try:
         cfg, out = resolve_config(args)
-        budget = estimate_gru(cfg.world_config(), cfg.hidden)
+        budget = estimate(kind_named(cfg.cell), cfg.world_config(), HiddenArch(cfg.hidden))
         if not budget.ok:
-            print(f"note: a GRU of {cfg.hidden} units does not fit the Kilobot budget ({budget.summary()}); "
+            print(f"note: an actor of {cfg.hidden} {cfg.cell.upper()} units does not fit the Kilobot budget ({budget.summary()}); "
                   "it trains, but the exporter will refuse it", file=sys.stderr)
         res = train_recurrent(cfg, out, resume=args.resume, progress=not args.quiet)
-    except (ConfigError, ExportError, ValueError) as e:
+    except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     c = res.counters

@@ -13,7 +13,7 @@ A run directory holds::
     metrics.csv          one row per evaluation (see METRIC_COLUMNS)
     learning_curve.png   evaluation return and final coverage over transitions
     checkpoint.pt        everything needed to resume exactly (written atomically)
-    policy_best.npz      the actor with the best evaluation return (export.artifact format)
+    policy_best.npz      the actor with the best evaluation return (kiloforge.artifact format)
     policy_last.npz      the latest actor
     summary.json         final numbers: best evaluation, wall time, updates/s, env steps/s
 """
@@ -33,12 +33,14 @@ from typing import Callable
 import numpy as np
 import torch
 
-from export.artifact import Policy, save_policy
+from kiloforge.actors.mlp import MLPPolicy
+from kiloforge.io import write_atomic
+from kiloforge.policies import save_policy
 from sim.config import ACTION_DIM
 from sim.env import SwarmEnv
 from sim.history import History
 
-from .checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
+from .checkpoint import load_checkpoint, save_checkpoint
 from .config import ConfigError, TrainConfig
 from .evaluate import Evaluator, metrics_row
 from .augment import PhantomNeighbours
@@ -137,8 +139,8 @@ def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         c = Counters(**ck["counters"])
         log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
     else:
-        write_text_atomic(run_dir / "config.json", cfg.to_json() + "\n")
-        write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+        write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+        write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
 
     def snapshot() -> dict:
         return {"version": CHECKPOINT_VERSION, "config": cfg.to_dict(), "agent": agent.state_dict(),
@@ -253,7 +255,7 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
     if row["eval_return"] > c.best_return:
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
-    write_text_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
     if plot:
         plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
                              title=f"MAGDDPG, {cfg.n_robots} robots, T_prev {cfg.t_prev} ({cfg.world} world)")
@@ -286,8 +288,8 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
                 for r in csv.DictReader(f)]
 
 
-def actor_policy(agent: MAGDDPG, cfg: TrainConfig, world, c: Counters, metrics: dict) -> Policy:
-    """The current actor as an ``export.artifact.Policy`` with provenance."""
+def actor_policy(agent: MAGDDPG, cfg: TrainConfig, world, c: Counters, metrics: dict) -> MLPPolicy:
+    """The current actor as a :class:`kiloforge.actors.mlp.MLPPolicy` with provenance."""
     layers = agent.actor.layers()
     provenance = {
         "trainer": "kiloforge.learn MAGDDPG", "config": cfg.to_dict(), "seed": cfg.seed,
@@ -295,9 +297,8 @@ def actor_policy(agent: MAGDDPG, cfg: TrainConfig, world, c: Counters, metrics: 
         "env_steps": c.env_steps, "updates": c.updates, "wall_s": round(c.wall_s, 1),
         "eval": finite_or_none(dict(metrics)),
     }
-    return Policy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
-                  activations=[a for _, _, a in layers], t_prev=cfg.t_prev, world=world,
-                  provenance=provenance, kind="mlp")
+    return MLPPolicy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
+                     activations=[a for _, _, a in layers], t_prev=cfg.t_prev, world=world, provenance=provenance)
 
 
 def prepare_run_dir(run_dir: Path, resume: bool) -> None:
@@ -339,7 +340,7 @@ def write_summary(run_dir: Path, cfg: TrainConfig, c: Counters, stopped: str) ->
         "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
         "seed": cfg.seed, "git": git_hash(),
     }
-    write_text_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
+    write_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
 
 
 def finite_or_none(obj):

@@ -18,13 +18,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import shutil
 import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
+
+from kiloforge.errors import PolicyError
+from kiloforge.io import write_files_atomic
+from kiloforge.policies import load_policy, swarm_policy
 
 from .config import PRESETS, preset
 
@@ -97,15 +100,9 @@ def _load_policy(a: argparse.Namespace):
     if not path.is_file():
         raise UserError(f"--policy must be 'random', 'baseline' or a policy file; '{a.policy}' is neither")
     try:
-        from export.artifact import PolicyError, load_policy
-    except ImportError as e:  # pragma: no cover - export ships with kiloforge
-        raise UserError(f"cannot load policy artifacts: {e}") from None
-    try:
         art = load_policy(path)
     except PolicyError as e:
         raise UserError(str(e)) from None
-    from .rollout import HistoryActor
-
     art_world = art.world
     if a.steps is not None:
         art_world = dataclasses.replace(art_world, episode_steps=a.steps)
@@ -113,9 +110,9 @@ def _load_policy(a: argparse.Namespace):
     if a.preset is not None and art_world != world:
         note = (f"note: {path.name} was trained in world '{art.world.name}', which differs from preset "
                 f"'{a.preset}'; using the policy's world")
-    desc = {"kind": "artifact", "path": str(path), "t_prev": int(art.t_prev), "hash": art.hash,
-            "layer_sizes": art.layer_sizes}
-    return art_world, lambda w: HistoryActor(art.act, art.t_prev, w), desc, note
+    desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
+            "hash": art.hash, "layer_sizes": art.layer_sizes}
+    return art_world, lambda w: swarm_policy(art, w), desc, note
 
 
 def _prepare_out(out: str) -> tuple[Path, bool]:
@@ -139,8 +136,7 @@ def _staged_output(out: Path, files: tuple[str, ...]) -> Iterator[Path]:
     staging = Path(tempfile.mkdtemp(dir=out, prefix=".sim-"))
     try:
         yield staging
-        for f in files:
-            os.replace(staging / f, out / f)
+        write_files_atomic({out / f: (staging / f).read_bytes() for f in files})
     except BaseException:
         if created:
             shutil.rmtree(out, ignore_errors=True)

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-# Observation layout (DESIGN.md control-step contract, step 2; thesis §4.1). One definition, used
+# Observation layout (docs/design.md control-step contract, step 2; thesis §4.1). One definition, used
 # by the simulator, the trainer, the emulator and the renderer.
 OBS_WALL = 0  #: 1.0 when the ambient-light reading says a wall is near, else 0.0
 OBS_TARGET = 1  #: distance to the target / comm radius in [0, 1] when heard this period, else -1

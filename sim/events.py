@@ -1,8 +1,8 @@
-"""Heard-message events and the observation computed from them (DESIGN.md control-step contract).
+"""Heard-message events and the observation computed from them (docs/design.md control-step contract).
 
 The radio model (:mod:`sim.radio`) produces, for one control period, a flat list of *events*: one per
 message that one robot received. The simulator turns them into observations with
-:func:`observe`; the firmware (and its emulator, :mod:`export.emulator`) consumes exactly the same
+:func:`observe`; the firmware (and its emulator, :mod:`export.verify.emulator`) consumes exactly the same
 events tick by tick. This module is the single written-down definition of what a robot does with
 what it hears, in float; the firmware does the same in fixed point.
 

@@ -11,20 +11,20 @@ The target is ``(2,)`` (a fixed beacon) or ``(T+1, 2)`` (its position at every s
 * :func:`plot_coverage` — fraction of robots in range over time, mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
-Every file is written atomically (temporary file in the same folder, then :func:`os.replace`).
+Every file is written atomically (:func:`kiloforge.io.atomic_path`).
 """
 from __future__ import annotations
 
 import os
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 from PIL import Image, ImageDraw
+
+from kiloforge.io import atomic_path
 
 from .config import WorldConfig
 from .metrics import summarise
@@ -33,19 +33,6 @@ C_IN = "#e6550d"  # robots within range of the target
 C_OUT = "#3182bd"  # other robots
 C_TARGET = "#d62728"
 C_WALL = "0.25"
-
-
-@contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path`` (same suffix); on success move it onto ``path``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _figure(size_in: float = 5.0) -> Figure:

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from export.artifact import load_policy
-from export.gru import GRUPolicy, GRUSwarmPolicy
+from kiloforge.policies import load_policy
+from kiloforge.actors.gru import GRU, GRUPolicy
 from learn.magrdpg import MAGRDPG, RecurrentConfig, main_train_recurrent, sample_windows, torch_swarm_policy
 from learn.recurrent import GRUActor, gru_params, mlp_params
 from learn.replay import EpisodeReplay
@@ -36,7 +36,7 @@ def filled_replay(T: int = 30, M: int = 2, episodes: int = 3, seed: int = 0) -> 
 
 
 def test_actor_is_pytorch_gru_and_exports_the_same_numbers():
-    """GRUActor's artifact (export.gru.GRUPolicy) computes the torch actor's clipped actions step by step."""
+    """GRUActor's artifact (kiloforge.actors.gru.GRUPolicy) computes the torch actor's clipped actions step by step."""
     torch.manual_seed(0)
     actor = GRUActor(WORLD.tuple_dim, 12)
     with torch.no_grad():
@@ -150,7 +150,7 @@ def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
     # the artifact is the actor: same evaluation episodes, same rewards
     from learn.magrdpg import actor_artifact  # noqa: F401 (documented pairing)
     env = SwarmEnv(p.world, 2, 2, seed=0)
-    float_run = rollout(env, GRUSwarmPolicy.float_policy(p), 2, seed=5)
+    float_run = rollout(env, GRU.swarm_policy(p), 2, seed=5)
     agent = MAGRDPG(p.in_dim, p.world.state_dim(2), 2, 6, (16,), 0.9, 0.1, 1e-3, 1e-3)
     g = agent.actor.gru
     with torch.no_grad():

@@ -90,32 +90,33 @@ def test_cli_unwritable_out_exit_2(tmp_path, capsys):
 
 
 def test_cli_runs_a_policy_artifact_in_its_own_world(tmp_path, capsys):
-    """An artifact runs through HistoryActor in its own world; a different --preset gives a note."""
-    artifact = pytest.importorskip("export.artifact")
+    """An artifact runs through its kind's float actor in its own world; a different --preset gives a note."""
+    from kiloforge.actors.mlp import MLPPolicy
+    from kiloforge.policies import save_policy
     from sim.config import preset
 
     world = preset("thesis", episode_steps=50)
     rng = np.random.default_rng(0)
     t_prev = 2
     d = world.history_dim(t_prev)
-    pol = artifact.Policy(weights=[rng.normal(0, 0.1, (8, d)).astype(np.float32), np.zeros((2, 8), np.float32)],
-                          biases=[np.zeros(8, np.float32), np.full(2, 0.6, np.float32)],
-                          activations=["elu", "identity"], t_prev=t_prev, world=world)
+    pol = MLPPolicy(weights=[rng.normal(0, 0.1, (8, d)).astype(np.float32), np.zeros((2, 8), np.float32)],
+                    biases=[np.zeros(8, np.float32), np.full(2, 0.6, np.float32)],
+                    activations=["elu", "identity"], t_prev=t_prev, world=world)
     path = tmp_path / "p.npz"
-    artifact.save_policy(pol, path)
+    save_policy(pol, path)
     out = tmp_path / "o"
     assert main(["--policy", str(path), "--preset", "kilobot", "--out", str(out), "--robots", "2",
                  "--episodes", "1", "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "differs from preset 'kilobot'" in err
     m = json.loads((out / "metrics.json").read_text())
-    assert m["policy"]["kind"] == "artifact" and m["policy"]["t_prev"] == t_prev
+    assert m["policy"]["kind"] == "artifact" and m["policy"]["actor"] == "mlp"
+    assert m["policy"]["architecture"].startswith(f"t_prev {t_prev},")
     assert m["world"]["name"] == "thesis" and m["world"]["episode_steps"] == 50
 
 
 def test_cli_corrupt_artifact_exit_2(tmp_path, capsys):
     """A file that is not a policy artifact is a one-line error with exit 2."""
-    pytest.importorskip("export.artifact")
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip file")
     assert main(["--policy", str(bad), "--out", str(tmp_path / "o")] + TINY) == 2

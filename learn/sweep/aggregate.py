@@ -23,9 +23,9 @@ from typing import Callable
 
 import numpy as np
 
+from kiloforge.io import write_atomic
 from sim.metrics import summarise
 
-from ..checkpoint import write_text_atomic
 from ..config import ConfigError
 from . import trial as tr
 from .grid import Grid, Trial, labels
@@ -52,7 +52,7 @@ def write_manifest(sweep_dir: Path, grid: Grid, trials: list[Trial]) -> None:
     old = tr.read_json(path) or {}
     merged = dict(old.get("trials", {}))
     merged.update({t.name: t.to_dict() for t in trials})
-    write_text_atomic(path, json.dumps({"version": 1, "latest": grid.to_dict(), "trials": merged},
+    write_atomic(path, json.dumps({"version": 1, "latest": grid.to_dict(), "trials": merged},
                                        indent=1, sort_keys=True) + "\n")
 
 
@@ -119,8 +119,8 @@ def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict
     if ev is not None:
         summary["evaluation"], eval_text = aggregate_evaluation(sweep_dir, trials, records, label, ev)
         text += "\n\n" + eval_text
-    write_text_atomic(sweep_dir / "summary.json", json.dumps(summary, indent=1, sort_keys=True) + "\n")
-    write_text_atomic(sweep_dir / "table.txt", text + "\n")
+    write_atomic(sweep_dir / "summary.json", json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    write_atomic(sweep_dir / "table.txt", text + "\n")
     log(text)
     return summary
 

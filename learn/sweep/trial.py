@@ -216,7 +216,7 @@ def run_trial(trainer: str, config: dict, run_dir: str | Path, *, budget_minutes
 
 def evaluate_best(run_dir: Path, ev: EvalSpec) -> None:
     """The trial's best policy and the baselines at ``ev.robots`` robots, into ``run_dir/evaluation``."""
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
 
     from ..evaluate import evaluate_policies
 
