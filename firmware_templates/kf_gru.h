@@ -1,14 +1,15 @@
 /*
  * kf_gru.h: the gate and state arithmetic of kiloforge's int8 GRU cell (number format kf-int8-pow2-v1).
  *
- * Part of kiloforge (MIT). The semantics are export/numfmt.py QuantGRUCell (module doc, "The GRU
- * cell"); the four dense products are kf_dense calls, this file holds what lies between them:
- *   kf_gru_gates   g[j] = TABLE[a[j] + 128]: a uint8 gate at exponent 8 (r = sigmoid, k = 1 - z)
+ * Part of kiloforge (MIT). The semantics are kiloforge/actors/gru.py QuantGRUCell (module doc, "The GRU
+ * cell"); the four dense products are kf_dense calls and the gates r = R[a_r + 128], k = K[a_z + 128]
+ * kf_act_gate lookups (kf_runtime.h); this file holds the rest of what lies between them:
  *   kf_gru_rn      t[j] = rshift_round(r[j] * nh[j], s): gate x (W_hn h + b_hn), half-up, at e_n
  *   kf_gru_update  p = sat8(nx[j] * 2^s_nx + t[j]); n = TANH[p + 128];
- *                  h[j] = sat8(h[j] + rshift_round(k[j] * (n - h[j]), 8))   ((1 - z) n + z h)
+ *                  h[j] = sat8(h[j] + rshift_round(k[j] * (n - h[j]), KF_GATE_EXP))   ((1 - z) n + z h)
  * Rules: <stdint.h> types only, a cast to int32_t before every multiply, no floats, no division.
- * The renderer inlines it after kf_runtime.h (kf_rshift_round, kf_sat16, pgm_read_byte).
+ * The renderer inlines it after kf_runtime.h (kf_rshift_round, kf_sat16, pgm_read_byte) and defines
+ * KF_GATE_EXP (kiloforge/numfmt.py GATE_EXP) before it.
  */
 #ifndef KF_GRU_H
 #define KF_GRU_H
@@ -19,16 +20,9 @@
 #error "include kf_runtime.h before kf_gru.h"
 #endif
 
-#define KF_GRU_GATE_EXP 8u /* gates are uint8 at exponent 8 (numfmt.GATE_EXP) */
-
-/* g[j] = table[a[j] + 128] for the int8 pre-activations a (held in int16), table in flash. */
-static inline void kf_gru_gates(const uint8_t *table, const int16_t *a, uint8_t *g, uint8_t n)
-{
-    uint8_t j;
-    for (j = 0u; j < n; ++j) {
-        g[j] = pgm_read_byte(&table[(uint8_t)(a[j] + 128)]);
-    }
-}
+#ifndef KF_GATE_EXP
+#error "the renderer defines KF_GATE_EXP before kf_gru.h"
+#endif
 
 /* In place: nh[j] = rshift_round(r[j] * nh[j], s); |r * nh| <= 255 * 128, so the result fits int16. */
 static inline void kf_gru_rn(const uint8_t *r, int16_t *nh, uint8_t n, uint8_t s)
@@ -50,7 +44,7 @@ static inline void kf_gru_update(const int8_t *tanh_table, const int16_t *nx, ui
         int16_t p = kf_sat16((int32_t)nx[j] * scale + (int32_t)rn[j], -128, 127);
         int32_t c = (int32_t)(int8_t)pgm_read_byte(&tanh_table[(uint8_t)(p + 128)]);
         int32_t d = (int32_t)k[j] * (c - (int32_t)h[j]); /* |d| <= 255 * 255 */
-        h[j] = (int8_t)kf_sat16((int32_t)h[j] + kf_rshift_round(d, KF_GRU_GATE_EXP), -128, 127);
+        h[j] = (int8_t)kf_sat16((int32_t)h[j] + kf_rshift_round(d, KF_GATE_EXP), -128, 127);
     }
 }
 

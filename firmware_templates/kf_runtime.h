@@ -29,7 +29,7 @@
 #endif
 #endif
 
-/* --- integer helpers (export/numfmt.py defines the semantics) ---------------------------------- */
+/* --- integer helpers (kiloforge/numfmt.py defines the semantics) ---------------------------------- */
 
 /* Arithmetic (flooring) right shift of a signed value, without relying on the implementation-defined
  * behaviour of >> on negative numbers: for a < 0, ~a >= 0 and floor(a / 2^s) == ~(~a >> s). */
@@ -80,7 +80,8 @@ static inline void kf_act_identity(const int16_t *z, int8_t *x, uint16_t n)
     }
 }
 
-/* Table activation (ELU, tanh, sigmoid): x = table[z + 128], a 256-entry int8 table in flash. */
+/* Table activation (ELU, tanh, sigmoid; a recurrent cell's tanh): x = table[z + 128], a 256-entry int8
+ * table in flash. */
 static inline void kf_act_table(const int8_t *table, const int16_t *z, int8_t *x, uint16_t n)
 {
     uint16_t i;
@@ -89,7 +90,20 @@ static inline void kf_act_table(const int8_t *table, const int16_t *z, int8_t *x
     }
 }
 
-/* --- CRC-16/MCRF4XX (export/crc.py): reflected poly 0x8408, init 0xFFFF, no final xor ----------- */
+/* Gate: g = table[z + 128], a 256-entry uint8 table in flash (a recurrent cell's sigmoid gates). */
+static inline void kf_act_gate(const uint8_t *table, const int16_t *z, uint8_t *g, uint16_t n)
+{
+    uint16_t i;
+    for (i = 0u; i < n; ++i) {
+        g[i] = pgm_read_byte(&table[(uint8_t)(z[i] + 128)]);
+    }
+}
+
+/* --- CRC-16/MCRF4XX (export/contract/crc.py): reflected poly KF_CRC_POLY, init KF_CRC_INIT, no final xor */
+
+#if !defined(KF_CRC_POLY) || !defined(KF_CRC_INIT)
+#error "define KF_CRC_POLY and KF_CRC_INIT (export/contract/crc.py; the renderer does) before kf_runtime.h"
+#endif
 
 #ifdef __AVR__
 #include <util/crc16.h>
@@ -104,7 +118,7 @@ static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
     uint8_t bit;
     crc ^= byte;
     for (bit = 0u; bit < 8u; ++bit) {
-        crc = (crc & 1u) ? (uint16_t)((crc >> 1) ^ 0x8408u) : (uint16_t)(crc >> 1);
+        crc = (crc & 1u) ? (uint16_t)((crc >> 1) ^ KF_CRC_POLY) : (uint16_t)(crc >> 1);
     }
     return crc;
 }
@@ -112,7 +126,7 @@ static inline uint16_t kf_crc16_update(uint16_t crc, uint8_t byte)
 
 static inline uint16_t kf_crc16(const uint8_t *p, uint8_t n)
 {
-    uint16_t crc = 0xFFFFu;
+    uint16_t crc = KF_CRC_INIT;
     uint8_t i;
     for (i = 0u; i < n; ++i) {
         crc = kf_crc16_update(crc, p[i]);

@@ -6,6 +6,7 @@
     python -m learn evaluate --policy P [P ...] --robots 16 32 --episodes 500 --steps 500 --out DIR
     python -m learn plot RUN_DIR [RUN_DIR ...] [--out curve.png]
     python -m learn export-onnx --policy P.npz --out actor.onnx
+    python -m learn sweep --seeds 1 2 3 --robots 1 2 4 --preset quick --out DIR   (Ray Tune; docs/sweeps.md)
 
 ``train`` and ``train-recurrent`` are :mod:`learn.cli` (every config field is a flag, tyro).
 User errors print one line and exit with status 2.
@@ -52,6 +53,8 @@ def build_parser() -> ArgumentParser:
                    help="train a recurrent (GRU) policy with MAGRDPG (python -m learn train-recurrent --help)")
     sub.add_parser("export-onnx", add_help=False,
                    help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
+    sub.add_parser("sweep", add_help=False,
+                   help="a grid of trainings x seeds on Ray Tune, aggregated (python -m learn sweep --help)")
 
     pl = sub.add_parser("plot", help="learning curves of runs (mean ± 2 std over seeds)",
                         description="Plot learning curves; runs that differ only in seed are averaged.")
@@ -62,7 +65,7 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
 
     from .evaluate import evaluate_policies
 
@@ -102,7 +105,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from export.errors import ExportError
+    from kiloforge.errors import KiloforgeError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("train", "train-recurrent"):  # learn/cli.py: tyro parsers of the configs
@@ -113,10 +116,14 @@ def main(argv: list[str] | None = None) -> int:
         from .onnx_export import main_export_onnx
 
         return main_export_onnx(argv[1:])
+    if argv and argv[0] == "sweep":  # its own parser lives with the sweep (learn/sweep/cli.py)
+        from .sweep import main_sweep
+
+        return main_sweep(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
-    except (ConfigError, ExportError, ValueError) as e:
+    except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"python -m learn {args.command}: error: {e}", file=sys.stderr)
         return 2
 

@@ -11,7 +11,7 @@ Incremental: a block is written again only when an episode slot in it changed si
 checkpoint; each write gets a new generation number, and ``checkpoint.pt`` (written last, atomically)
 names the exact block files (and their hashes) it belongs with. Killing the process at any moment
 therefore leaves the previous checkpoint and its blocks intact: resuming continues exactly from it.
-Block files no checkpoint names (and orphan ``.tmp`` files) are removed when a run starts.
+Block files no checkpoint names (and orphan temporary files) are removed when a run starts.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 import torch
 
-from export.atomic import new_file_mode, write_bytes_atomic
+from kiloforge.io import atomic_path
 
 from .config import ConfigError
 
@@ -61,20 +61,6 @@ def _from_torch(obj: Any) -> Any:
     return obj
 
 
-def _write_atomic(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_file(state: Any, path: str | os.PathLike) -> str:
     """Write ``state`` to ``path`` atomically as a self-verifying file; returns the payload's SHA-256."""
     import io
@@ -84,11 +70,9 @@ def save_file(state: Any, path: str | os.PathLike) -> str:
     payload = buf.getbuffer()
     digest = hashlib.sha256(payload).digest()
 
-    def write(f) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(_HEADER.pack(MAGIC, len(payload), digest))
         f.write(payload)
-
-    _write_atomic(Path(path), write)
     return digest.hex()
 
 
@@ -181,7 +165,7 @@ class Checkpointer:
             if not d.is_dir():
                 continue
             for p in d.iterdir():
-                orphan_tmp = p.name.startswith(".") and p.name.endswith(".tmp")
+                orphan_tmp = p.name.startswith(".") and (".tmp" in p.name or p.name.endswith(".bak"))
                 stale_block = d.name == REPLAY_DIR and _BLOCK_RE.match(p.name) and p.name not in keep
                 if (orphan_tmp or stale_block) and p.is_file():
                     p.unlink(missing_ok=True)
@@ -227,8 +211,3 @@ def published_dir(out: str | os.PathLike) -> Iterator[Path]:
             os.replace(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write a small text file atomically (UTF-8)."""
-    return write_bytes_atomic(path, text)

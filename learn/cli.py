@@ -138,7 +138,7 @@ def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, de
 def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = TrainConfig,
                prog: str = "python -m learn train", default_preset: str = "default") -> int:
     """CLI entry point of one algorithm; returns the exit status."""
-    from export.errors import ExportError
+    from kiloforge.errors import KiloforgeError
 
     from .train import train
 
@@ -149,7 +149,7 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
         if note:
             print(f"note: {note}; it trains, but the exporter will refuse it", file=sys.stderr)
         res = train(cfg, out, resume=resume, progress=not quiet)
-    except (ConfigError, ExportError, ValueError) as e:
+    except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     c = res.counters

@@ -60,7 +60,7 @@ REWARDS = ("team", "linear", "potential")  #: values of ``reward`` (learn.reward
 SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
 DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher")  #: values of ``demo_policy`` (learn.demos)
-CELLS = ("gru",)  #: recurrent cells of RecurrentConfig.cell
+CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
 MAX_ROBOTS = 256
 
 Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
@@ -281,9 +281,10 @@ class TrainConfig(ExperimentConfig):
 
     def budget_note(self) -> str | None:
         """Why the exporter would refuse this actor (None when it fits the Kilobot)."""
-        from export.budget import fits
+        from export.codegen.budget import estimate
+        from kiloforge.actors.mlp import MLP, MLPArch
 
-        b = fits(self.world_config(), self.t_prev, self.actor_hidden)
+        b = estimate(MLP, self.world_config(), MLPArch(self.t_prev, tuple(self.actor_hidden)))
         return None if b.ok else (f"this actor (t_prev {self.t_prev}, hidden {list(self.actor_hidden)}) does not "
                                   f"fit the Kilobot budget ({b.summary()})")
 
@@ -310,7 +311,7 @@ class RecurrentConfig(ExperimentConfig):
     eval_every: int = 25_600  #: evaluate every this many transitions (at the next episode end)
     exp_name: str = "gru"  #: experiment name used in the default run directory name
 
-    cell: str = "gru"  #: recurrent cell of the actor
+    cell: str = "gru"  #: the actor's recurrent cell: gru or lstm (the thesis's MAGRDPG used an LSTM)
     hidden: int = 32  #: recurrent units of the actor (the firmware keeps them as int8 in SRAM)
     unroll: int = 8  #: T_unroll: steps per window with loss and gradient (truncated BPTT length)
     burn_in: int = 8  #: steps before them that only warm up the hidden state from zero
@@ -335,10 +336,13 @@ class RecurrentConfig(ExperimentConfig):
 
     def budget_note(self) -> str | None:
         """Why the exporter would refuse this actor (None when it fits the Kilobot)."""
-        from export.budget import estimate_gru
+        from export.codegen.budget import estimate
+        from kiloforge.actors.base import HiddenArch
+        from kiloforge.actors.registry import kind_named
 
-        b = estimate_gru(self.world_config(), self.hidden)
-        return None if b.ok else f"a GRU of {self.hidden} units does not fit the Kilobot budget ({b.summary()})"
+        b = estimate(kind_named(self.cell), self.world_config(), HiddenArch(self.hidden))
+        return None if b.ok else (f"an actor of {self.hidden} {self.cell.upper()} units does not fit the Kilobot "
+                                  f"budget ({b.summary()})")
 
     @property
     def demo_samples(self) -> int:
@@ -412,6 +416,36 @@ def check_type(cls: type, name: str, value: Any) -> Any:
             return tuple(value)
         bad()
     raise ConfigError(f"{name}: unsupported field type {hint}")  # pragma: no cover
+
+
+def parse_text(cls: type, name: str, value: Any) -> Any:
+    """Command-line text as field ``name``'s JSON value (then :func:`check_type` applies): a string for a
+    scalar field, a string or list of strings of integers for a tuple field (``"32x32"``, ``["32", "32"]``;
+    ``n_robots`` also a single integer). Values that are not text pass through unchanged."""
+    hint = _hints(cls)[name]
+    texts = value if isinstance(value, list) else [value]
+    if not all(isinstance(v, str) for v in texts) or hint is str:
+        return value
+
+    def read(kind: str, conv):
+        try:
+            return conv(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: cannot read {value!r} as {kind}") from None
+
+    if typing.get_origin(hint) is tuple:
+        if name == "n_robots" and isinstance(value, str) and "x" not in value and " " not in value.strip():
+            return read("int", int)
+        items = value if isinstance(value, list) else value.replace("x", " ").split()
+        return read("a list of integers", lambda _: [int(v) for v in items])
+    if hint is int:
+        return read("int", int)
+    if hint is float:
+        f = read("float", float)
+        return f if math.isfinite(f) else read("a finite float", lambda _: float("x"))
+    if hint is bool:
+        return read("bool (true or false)", lambda v: {"true": True, "false": False}[v.strip().lower()])
+    return value  # pragma: no cover
 
 
 #: MAGDDPG training presets: fields that differ from TrainConfig's defaults. ``fast`` departs from the

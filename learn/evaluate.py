@@ -17,7 +17,8 @@ from typing import Callable
 
 import numpy as np
 
-from export.gru import swarm_policy  # MLP: HistoryActor; GRU: its stateful actor
+from kiloforge.io import write_atomic
+from kiloforge.policies import swarm_policy
 from sim.baselines import make_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
@@ -83,7 +84,7 @@ class Contender:
 def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes: int, steps: int,
                       out_dir: Path, seed: int = 0, n_envs: int = 50, baselines: bool = True,
                       gif: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> dict:
-    """Evaluate policy artifacts (name → ``export.artifact.Policy``) and the baselines.
+    """Evaluate policy artifacts (name → a float policy of any actor kind) and the baselines.
 
     All policies must share one world (the first's). Every policy sees the same episode seeds.
     Writes to ``out_dir``: ``reward_over_time_{M}.png``, ``returns_box_{M}.png``,
@@ -140,9 +141,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
             "mean_reward_over_time": {n: r.rewards.mean(axis=0).round(6).tolist() for n, r in runs.items()},
             "returns": {n: r.rewards.sum(axis=1).round(6).tolist() for n, r in runs.items()},
         }
-    from .checkpoint import write_text_atomic
 
-    write_text_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
+    write_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
     return results
 
 

@@ -31,7 +31,7 @@ def randomisation(name: str) -> Any:
     except ImportError:
         raise ConfigError(f"randomise '{name}' needs sim.variants, which this version of the simulator lacks") from None
     if name not in RANDOMISATIONS:
-        raise ConfigError(f"unknown randomise '{name}'; choose one of: none, {', '.join(RANDOMISATIONS)}")
+        raise ConfigError(f"unknown randomise '{name}'; choose one of: {', '.join(dict.fromkeys(['none', *RANDOMISATIONS]))}")
     return RANDOMISATIONS[name]
 
 

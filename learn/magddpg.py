@@ -74,13 +74,12 @@ class MAGDDPG(CentralisedDDPG):
         return torch.mean((self.actor(b.h) - b.a) ** 2)
 
     def artifact(self, world: WorldConfig, provenance: dict):
-        """The actor as an ``export.artifact.Policy`` (kind mlp)."""
-        from export.artifact import Policy
+        """The actor as a :class:`kiloforge.actors.mlp.MLPPolicy`."""
+        from kiloforge.actors.mlp import MLPPolicy
 
         layers = self.actor.layers()
-        return Policy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
-                      activations=[a for _, _, a in layers], t_prev=self.t_prev, world=world,
-                      provenance=provenance, kind="mlp")
+        return MLPPolicy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
+                         activations=[a for _, _, a in layers], t_prev=self.t_prev, world=world, provenance=provenance)
 
     def describe(self) -> str:
         return f"MLP {'-'.join(map(str, self.actor.hidden))}, T_prev {self.t_prev}"

@@ -3,8 +3,8 @@
 What the recurrent actor model changes against MAGDDPG (:mod:`learn.magddpg`; the update itself is
 :class:`learn.ddpg.CentralisedDDPG`'s):
 
-* the actor (:class:`learn.recurrent.GRUActor`) reads one tuple ``x_t = [a_{t−1}, o_t]`` per step and
-  carries a hidden state (zero at the start of an episode, ``a_0 = 0``) instead of a ``t_prev``
+* the actor (:class:`learn.recurrent.GRUActor`, or with ``--cell lstm`` :class:`learn.recurrent.LSTMActor`)
+  reads one tuple ``x_t = [a_{t−1}, o_t]`` per step and carries a recurrent state (zero at the start of an episode, ``a_0 = 0``) instead of a ``t_prev``
   history: it fits the Kilobot's SRAM whatever the memory horizon;
 * minibatches are *random updates* (Hausknecht & Stone 2015, the thesis's choice): windows cut from
   stored episodes at random starts ``t_s`` (:meth:`learn.replay.EpisodeReplay.sample_windows`). Each
@@ -30,10 +30,8 @@ from sim.config import ACTION_DIM, WorldConfig
 
 from .ddpg import CentralisedDDPG, Rows, np_float64
 from .networks import Critic, config_critic
-from .recurrent import GRUActor
+from .recurrent import RECURRENT_ACTORS
 from .replay import EpisodeReplay, Windows
-
-CELLS: dict[str, type[torch.nn.Module]] = {"gru": GRUActor}  #: recurrent actor per ``cell``
 
 
 class MAGRDPG(CentralisedDDPG):
@@ -46,8 +44,8 @@ class MAGRDPG(CentralisedDDPG):
                  burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert", actor_robots: int = 0,
                  make_critic: Callable[[], torch.nn.Module] | None = None, unroll: int = 8, cell: str = "gru",
                  device: str | torch.device = "cpu") -> None:
-        assert cell in CELLS, f"unknown recurrent cell {cell!r}"
-        actor = CELLS[cell](in_dim, hidden)
+        assert cell in RECURRENT_ACTORS, f"unknown recurrent cell {cell!r}"
+        actor = RECURRENT_ACTORS[cell](in_dim, hidden)
         critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
         super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
                          actor_robots, device)
@@ -88,10 +86,8 @@ class MAGRDPG(CentralisedDDPG):
         return torch.mean((y - seq[:, 1:, :ACTION_DIM]) ** 2)  # a_t is stored in x_{t+1}
 
     def artifact(self, world: WorldConfig, provenance: dict):
-        """The actor as an ``export.gru.GRUPolicy``."""
-        from export.gru import GRUPolicy
-
-        return GRUPolicy(**self.actor.arrays(), world=world, provenance=provenance)
+        """The actor as a policy artifact of its cell's kind (:mod:`kiloforge.actors`)."""
+        return self.actor.policy(world, provenance)
 
     def describe(self) -> str:
         return f"{self.cell.upper()} {self.actor.hidden}"

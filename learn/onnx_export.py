@@ -9,7 +9,7 @@ and neither onnxscript nor the deprecated TorchScript exporter is needed)::
     action   float32 [N, 2]                         (u_left, u_right) in [0, 1]
 
 ``metadata_props`` carry everything needed to bring the file back to a Kilobot
-(:func:`export.onnx_import.load_onnx_policy`): ``kiloforge.world`` (WorldConfig JSON),
+(:func:`export.interop.onnx_import.load_onnx_policy`): ``kiloforge.world`` (WorldConfig JSON),
 ``kiloforge.t_prev``, ``kiloforge.obs_layout`` (feature names of one tuple, oldest-first order),
 ``kiloforge.action`` (``clip01``), ``kiloforge.version``, ``kiloforge.policy_hash``,
 ``kiloforge.activations``. Default opset: 17 (``DEFAULT_OPSET``).
@@ -26,19 +26,21 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from export.errors import ExportError
-from export.onnx_import import META_ACTION, META_OBS_LAYOUT, META_T_PREV, META_VERSION, META_WORLD
+from export.interop.onnx_import import META_ACTION, META_OBS_LAYOUT, META_T_PREV, META_VERSION, META_WORLD
+from kiloforge.errors import KiloforgeError
+from kiloforge.io import write_atomic
+from kiloforge.numfmt import ACTIVATIONS, act_float
+from kiloforge.policies import load_policy
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 
 DEFAULT_OPSET = 17
 MIN_OPSET = 11  #: Clip takes its bounds as inputs from opset 11
 INPUT_NAME = "history"
 OUTPUT_NAME = "action"
-SUPPORTED_ACTS = ("elu", "relu", "tanh", "sigmoid", "identity")
 _ONNX_ACT = {"elu": "Elu", "relu": "Relu", "tanh": "Tanh", "sigmoid": "Sigmoid"}
 
 
-class OnnxExportError(ExportError):
+class OnnxExportError(KiloforgeError):
     """The actor cannot be written as a kiloforge ONNX model; the message is one line."""
 
 
@@ -140,8 +142,6 @@ def _check_module_matches(module: Any, layers: list, in_dim: int) -> None:
 
 
 def _forward_np(layers: Sequence[tuple[np.ndarray, np.ndarray, str]], x: np.ndarray) -> np.ndarray:
-    from export.numfmt import act_float
-
     h = np.asarray(x, np.float64)
     for w, b, a in layers:
         h = act_float(a, h @ np.asarray(w, np.float64).T + np.asarray(b, np.float64))
@@ -175,8 +175,8 @@ def build_onnx_model(layers: Sequence[tuple[np.ndarray, np.ndarray, str]], world
     nodes, inits = [], []
     x = INPUT_NAME
     for k, (w, b, act) in enumerate(layers):
-        if act not in SUPPORTED_ACTS:
-            raise OnnxExportError(f"layer {k}: activation '{act}' is not supported ({', '.join(SUPPORTED_ACTS)})")
+        if act not in ACTIVATIONS:
+            raise OnnxExportError(f"layer {k}: activation '{act}' is not supported ({', '.join(ACTIVATIONS)})")
         w32 = np.ascontiguousarray(w, np.float32)  # (out, in): Gemm with transB=1 reads it as is
         b32 = np.ascontiguousarray(b, np.float32)
         if k > 0 and w32.shape[1] != layers[k - 1][0].shape[0]:
@@ -229,7 +229,7 @@ def export_onnx(actor_or_policy: Any, path: str | os.PathLike, world: WorldConfi
                 t_prev: int | None = None, opset: int = DEFAULT_OPSET) -> Any:
     """Write the float actor to ``path`` as ONNX (atomically) and return the ModelProto.
 
-    ``actor_or_policy``: an :class:`export.artifact.Policy` (world and t_prev come from it; if given
+    ``actor_or_policy``: a :class:`kiloforge.actors.mlp.MLPPolicy` (world and t_prev come from it; if given
     they must match) or a torch module (``learn.networks.Actor``, or an ``nn.Sequential`` of Linear /
     ELU / ReLU / Tanh / Sigmoid with a linear last layer), for which ``world`` and ``t_prev`` are required.
     """
@@ -259,11 +259,9 @@ def export_onnx(actor_or_policy: Any, path: str | os.PathLike, world: WorldConfi
             _check_module_matches(actor_or_policy, layers, layers[0][0].shape[1])
     model = build_onnx_model(layers, world, int(t_prev), opset, extra)
 
-    from export.atomic import write_bytes_atomic
-
     try:
-        write_bytes_atomic(path, model.SerializeToString())
-    except ExportError as e:
+        write_atomic(path, model.SerializeToString())
+    except KiloforgeError as e:
         raise OnnxExportError(str(e)) from None
     return model
 
@@ -299,12 +297,10 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
     ap.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
     args = ap.parse_args(argv)
     try:
-        from export.artifact import load_policy
-
         pol = load_policy(args.policy)
         export_onnx(pol, args.out, opset=args.opset)
         diff, check = check_with_onnxruntime(args.out, pol)
-    except ExportError as e:
+    except KiloforgeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except ImportError as e:

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from sim.render import atomic_path
+from kiloforge.io import atomic_path
 
 
 def _save(fig: Figure, path: str | os.PathLike) -> Path:

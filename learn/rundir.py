@@ -27,7 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from .checkpoint import Checkpointer, write_text_atomic
+from kiloforge.io import write_atomic
+
+from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig
 
 TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
@@ -174,7 +176,7 @@ def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: st
         "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
         "algorithm": cfg.algorithm, "seed": cfg.seed, "git": git_hash(),
     }
-    write_text_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
+    write_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
 
 
 def finite_or_none(obj):

@@ -33,7 +33,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .checkpoint import Checkpointer, write_text_atomic
+from kiloforge.io import write_atomic
+
+from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
 from .demos import bc_pretrain, collect_demos, demonstrator
 from .evaluate import Evaluator, LearnerPolicy, metrics_row
@@ -107,7 +109,7 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
         c.checkpoint_s += time.perf_counter() - t0
 
     def export(name: str, metrics: dict) -> None:
-        from export.artifact import save_policy
+        from kiloforge.policies import save_policy
 
         save_policy(algo.artifact(world, provenance(cfg, algo, c, metrics)), run_dir / name)
 
@@ -138,8 +140,8 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
                 log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
             else:
                 ckpt.clean()
-                write_text_atomic(run_dir / "config.json", cfg.to_json() + "\n")
-                write_text_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+                write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+                write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
                 for g in groups:
                     g.demos = prep.collect(g, demo_rng, stop, algo.replay_t_prev) if guided else None
                 if guided and cfg.bc_updates:
@@ -290,7 +292,7 @@ def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, 
     if row["eval_return"] > c.best_return:
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
-    write_text_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
     if tb is not None:
         tb.row(row)
     if plot:
@@ -382,7 +384,7 @@ class Preparation:
                 "eval_demonstrator": finite_or_none(demo_m[first]), "eval_after_bc": finite_or_none(bc_m[first]),
                 "per_size": {str(M): {"demonstrator": finite_or_none(demo_m[M]), "after_bc": finite_or_none(bc_m[M])}
                              for M in bc_m}}
-        write_text_atomic(self.run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+        write_atomic(self.run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
         export("policy_bc.npz", mean)
         export("policy_best.npz", mean)
         sizes = ", ".join(f"{M} robots {bc_m[M]['eval_final_coverage']:.3f} (demonstrator "

@@ -1,7 +1,7 @@
 """The motor schedule: how (u_left, u_right) becomes kilolib motor modes over one control period.
 
 Vibration motors do not run proportionally to duty cycle, so a continuous command is realised by
-switching between kilolib's calibrated modes over the ticks of a period (DESIGN.md step 5):
+switching between kilolib's calibrated modes over the ticks of a period (docs/design.md, step 4 "Act"):
 
 * ``turn`` ticks of pivoting first (left when u_left > u_right: ``set_motors(kilo_turn_left, 0)``;
   right otherwise), so the heading change matches the thesis's k_angular = u_left - u_right;

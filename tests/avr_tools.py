@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from export import avr
+from export.verify import avr
 
 
 def require_avr(simulate: bool = False) -> None:

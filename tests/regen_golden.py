@@ -1,12 +1,15 @@
-"""The golden-file policy and its regeneration: ``python tests/regen_golden.py``.
+"""The golden-file policies (one per actor kind) and their regeneration: ``python tests/regen_golden.py``.
 
-tests/test_render.py renders :func:`golden_policy` and compares with the committed
-``tests/golden/*.c`` byte for byte. Run this script after an intended change of the templates, the
-hand-written C, the kernel layout or the number format, and review the diff of the golden files.
+tests/test_render.py renders :func:`golden_policies` and compares the generated part of each program
+with the committed ``tests/golden/<kind>.c`` (and the beacon program with ``target.c``) byte for
+byte. The generated part is the program with every inlined hand-written C file (``kf_runtime.h``,
+``kf_dense.h``/``.c``, the kind's kernel header) replaced by one marker line: that C is tested on
+its own (tests/c/test_runtime.c, the kernel and cell tests) and would otherwise make every golden
+change with it. Run this script after an intended change of the templates, the renderer, the kernel
+layout or the number format, and review the diff of the golden files.
 """
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -14,15 +17,25 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from export import numfmt  # noqa: E402
-from export.numfmt import QuantLayer  # noqa: E402
-from export.quantize import QuantizedPolicy  # noqa: E402
-from export.render import render_firmware  # noqa: E402
+from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, TARGET_FILE, render_firmware  # noqa: E402
+from export.codegen.templates import inline_sources  # noqa: E402
+from kiloforge import numfmt  # noqa: E402
+from kiloforge.actors.base import QuantizedActor, sensing_tables  # noqa: E402
+from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU  # noqa: E402
+from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell  # noqa: E402
+from kiloforge.actors.mlp import QuantizedMLP  # noqa: E402
+from kiloforge.actors.registry import kind_of  # noqa: E402
+from kiloforge.io import write_atomic  # noqa: E402
+from kiloforge.numfmt import HIDDEN_EXP, QuantLayer  # noqa: E402
 from sim.config import preset  # noqa: E402
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN_VERSION = "golden"  #: generator version written into the golden banner
 GOLDEN_TARGET_UIDS = (0, 77)
+GOLDEN_HASH = "0123456789abcdef" * 4
+TARGET_GOLDEN = "target.c"  #: the beacon-only program (the same for every kind)
+WORLD = preset("thesis", n_rbf=3, neighbour_table_size=4, period_ticks=8)  #: tuple of 8 entries
+E_IN = 6
 
 
 def _int_pattern(n_out: int, n_in: int, a: int, b: int) -> np.ndarray:
@@ -31,42 +44,91 @@ def _int_pattern(n_out: int, n_in: int, a: int, b: int) -> np.ndarray:
     return (((j * a + i * b) * 37) % 255 - 127).astype(np.int8)
 
 
-def golden_policy() -> QuantizedPolicy:
-    """A tiny fixed policy: thesis world with 3 RBF bins, t_prev 2, one ELU hidden layer of 4."""
-    world = preset("thesis", n_rbf=3, neighbour_table_size=4, period_ticks=8)
-    e_in = 6
-    n_in = world.history_dim(2)
+def _gate(n_out: int, n_in: int, a: int, b: int, shifts, e_in: int, e_out: int) -> QuantLayer:
+    """An int8 gate layer (no activation of its own) with a fixed pattern."""
+    bias = np.array([(-1) ** j * 300 * (j + 1) for j in range(n_out)], np.int32)
+    return QuantLayer(w=_int_pattern(n_out, n_in, a, b), b=bias, shift=np.array(shifts, np.uint8), lo=-128, hi=127,
+                      activation="identity", e_in=e_in, e_out=e_out, e_act=e_out, table=None)
+
+
+def _output(n_in: int, e_in: int) -> QuantLayer:
+    """The uint8 output layer (2 rows) with a fixed pattern."""
+    return QuantLayer(w=_int_pattern(2, n_in, 7, 11), b=np.array([128 << 6, 100 << 6], np.int32),
+                      shift=np.array([6, 6], np.uint8), lo=0, hi=255, activation="identity",
+                      e_in=e_in, e_out=0, e_act=0, table=None)
+
+
+def golden_mlp() -> QuantizedMLP:
+    """A tiny fixed MLP: t_prev 2, one ELU hidden layer of 4."""
+    n_in = WORLD.history_dim(2)
     l0 = QuantLayer(w=_int_pattern(4, n_in, 3, 5), b=np.array([100, -2000, 0, 4095], np.int32),
                     shift=np.array([7, 8, 9, 6], np.uint8), lo=-128, hi=127, activation="elu",
-                    e_in=e_in, e_out=5, e_act=6, table=numfmt.act_table("elu", 5, 6))
-    l1 = QuantLayer(w=_int_pattern(2, 4, 7, 11), b=np.array([128 << 6, 100 << 6], np.int32),
-                    shift=np.array([6, 6], np.uint8), lo=0, hi=255, activation="identity",
-                    e_in=6, e_out=0, e_act=0, table=None)
-    layers = [l0, l1]
-    return QuantizedPolicy(
-        layers=layers, e_in=e_in, world=world, t_prev=2,
-        rbf_table=numfmt.rbf_table(world.rbf_centres_mm, world.rbf_sigma_mm, world.rbf_norm,
-                                   world.comm_radius_mm, e_in),
-        target_table=numfmt.target_table(world.comm_radius_mm, e_in),
-        action_table=numfmt.action_table(e_in),
-        policy_hash="0123456789abcdef" * 4,
-        acc24_safe=tuple(numfmt.fits_acc24(l.w, l.b) for l in layers),
-        acc_max=tuple(int(numfmt.acc_bound(l.w, l.b).max()) for l in layers))
+                    e_in=E_IN, e_out=5, e_act=6, table=numfmt.act_table("elu", 5, 6))
+    return QuantizedMLP(layers=[l0, _output(4, l0.e_act)], e_in=E_IN, world=WORLD, t_prev=2, policy_hash=GOLDEN_HASH,
+                        **sensing_tables(WORLD, E_IN))
+
+
+def golden_gru() -> QuantizedGRU:
+    """A tiny fixed GRU of 4 hidden units."""
+    D, H = WORLD.tuple_dim, 4
+    r = _gate(H, D + H, 3, 5, [7, 8, 9, 6], E_IN, 4)
+    z = _gate(H, D + H, 5, 3, [8, 8, 7, 9], E_IN, 4)
+    nx = _gate(H, D, 2, 7, [6, 7, 8, 9], E_IN, 5)
+    nh = _gate(H, H, 7, 2, [9, 8, 7, 6], HIDDEN_EXP, 6)
+    cell = QuantGRUCell(r=r, z=z, nx=nx, nh=nh, r_table=numfmt.gate_table(4),
+                        k_table=numfmt.gate_table(4, complement=True),
+                        n_table=numfmt.act_table("tanh", 5, HIDDEN_EXP),
+                        rn_shift=numfmt.GATE_EXP + nh.e_out - 5, nx_shift=0)
+    return QuantizedGRU(cell=cell, out=_output(H, HIDDEN_EXP), e_in=E_IN, world=WORLD, policy_hash=GOLDEN_HASH,
+                        **sensing_tables(WORLD, E_IN))
+
+
+def golden_lstm() -> QuantizedLSTM:
+    """A tiny fixed LSTM of 4 hidden units."""
+    D, H = WORLD.tuple_dim, 4
+    i, f, g, o = (_gate(H, D + H, a, b, shifts, E_IN, e) for a, b, shifts, e in
+                  ((3, 5, [7, 8, 9, 6], 4), (5, 3, [8, 8, 7, 9], 5), (2, 7, [6, 7, 8, 9], 5), (7, 2, [9, 8, 7, 6], 4)))
+    cell = QuantLSTMCell(i=i, f=f, g=g, o=o, i_table=numfmt.gate_table(4), f_table=numfmt.gate_table(5),
+                         g_table=numfmt.act_table("tanh", 5, HIDDEN_EXP), o_table=numfmt.gate_table(4),
+                         c_table=numfmt.act_table("tanh", 6, HIDDEN_EXP), e_c=6)
+    return QuantizedLSTM(cell=cell, out=_output(H, HIDDEN_EXP), e_in=E_IN, world=WORLD, policy_hash=GOLDEN_HASH,
+                         **sensing_tables(WORLD, E_IN))
+
+
+def golden_policies() -> dict[str, QuantizedActor]:
+    """Kind name -> its golden quantised policy."""
+    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm())}
+
+
+def render(qp: QuantizedActor) -> dict[str, str]:
+    """Both programs of a golden policy, rendered as the golden files were."""
+    return render_firmware(qp, target_uids=GOLDEN_TARGET_UIDS, msg_type=0x2A, generator_version=GOLDEN_VERSION)
+
+
+def generated_part(text: str, inlined: tuple[tuple[str, ...], ...]) -> str:
+    """The program with each block of inlined hand-written C (``inlined``: the file groups) replaced
+    by one marker line."""
+    for names in filter(None, inlined):
+        block = inline_sources(names)
+        assert text.count(block) == 1, f"{names} is not inlined once"
+        text = text.replace(block, f"/* [inlined here: {', '.join(names)} (hand-written, tested on its own)] */\n")
+    return text
 
 
 def golden_files() -> dict[str, str]:
-    """What the golden policy renders to."""
-    return render_firmware(golden_policy(), target_uids=GOLDEN_TARGET_UIDS, msg_type=0x2A,
-                           generator_version=GOLDEN_VERSION)
+    """Golden file name -> the generated part it must hold."""
+    out = {}
+    for kind, qp in golden_policies().items():
+        files = render(qp)
+        out[f"{kind}.c"] = generated_part(files[POLICY_FILE], (RUNTIME_SOURCES, DENSE_SOURCES, kind_of(qp).c_sources))
+    out[TARGET_GOLDEN] = generated_part(render(golden_mlp())[TARGET_FILE], (RUNTIME_SOURCES,))  # its banner names an actor
+    return out
 
 
 def main() -> int:
     GOLDEN_DIR.mkdir(exist_ok=True)
     for name, text in golden_files().items():
-        path = GOLDEN_DIR / name
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
+        path = write_atomic(GOLDEN_DIR / name, text)
         print(f"wrote {path} ({len(text):,} bytes)")
     return 0
 

@@ -1,4 +1,4 @@
-"""The policy artifact: round trip, hash, validation of malformed files (export.artifact)."""
+"""The policy artifact: round trip, hash, validation of malformed files (kiloforge.artifact, kiloforge.policies)."""
 from __future__ import annotations
 
 import json
@@ -7,14 +7,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.artifact import FORMAT_VERSION, Policy, PolicyError, load_policy, save_policy
-from export.make_placeholder import init_policy
+from kiloforge.actors.mlp import MLPPolicy
+from kiloforge.artifact import FORMAT_VERSION
+from kiloforge.errors import PolicyError
+from kiloforge.policies import load_policy, save_policy
+from fixtures import init_policy
 from sim.config import preset
 
 WORLD = preset("kilobot")
 
 
-def small_policy(seed: int = 1, t_prev: int = 3, hidden=(8, 6), act: str = "elu") -> Policy:
+def small_policy(seed: int = 1, t_prev: int = 3, hidden=(8, 6), act: str = "elu") -> MLPPolicy:
     return init_policy(WORLD, t_prev, hidden, act, seed=seed, out_scale=0.3,
                        provenance={"trainer": "test", "seed": seed, "notes": "unit test"})
 
@@ -29,7 +32,7 @@ def write_raw(path: Path, arrays: dict[str, np.ndarray], meta: dict | None) -> P
     return path
 
 
-def parts(p: Policy) -> tuple[dict[str, np.ndarray], dict]:
+def parts(p: MLPPolicy) -> tuple[dict[str, np.ndarray], dict]:
     arrays = {}
     for k, (w, b) in enumerate(zip(p.weights, p.biases)):
         arrays[f"w{k}"], arrays[f"b{k}"] = np.array(w), np.array(b)
@@ -74,12 +77,12 @@ def test_hash_depends_on_weights_and_meta():
     assert small_policy().hash == p.hash
     w = [np.array(x) for x in p.weights]
     w[1][0, 0] += 1e-3
-    assert Policy(w, p.biases, p.activations, p.t_prev, p.world, p.provenance).hash != p.hash
-    assert Policy(p.weights, p.biases, p.activations, p.t_prev, p.world, {"notes": "x"}).hash != p.hash
+    assert MLPPolicy(w, p.biases, p.activations, p.t_prev, p.world, p.provenance).hash != p.hash
+    assert MLPPolicy(p.weights, p.biases, p.activations, p.t_prev, p.world, {"notes": "x"}).hash != p.hash
 
 
 def test_act_is_float64_clipped_forward():
-    """Policy.act equals a hand-written float64 forward, clipped to [0, 1]."""
+    """MLPPolicy.act equals a hand-written float64 forward, clipped to [0, 1]."""
     p = small_policy(act="tanh")
     rng = np.random.default_rng(0)
     x = rng.normal(size=(5, 7, p.in_dim))
@@ -158,7 +161,7 @@ def test_wrong_format_and_kind(tmp_path):
     """Another format name or an unknown kind is refused."""
     arrays, meta = parts(small_policy())
     assert_policy_error(write_raw(tmp_path / "f.npz", arrays, dict(meta, format="other")), "format")
-    assert_policy_error(write_raw(tmp_path / "k.npz", arrays, dict(meta, kind="lstm")), "kind")
+    assert_policy_error(write_raw(tmp_path / "k.npz", arrays, dict(meta, kind="transformer")), "kind")
 
 
 def test_meta_not_json(tmp_path):
@@ -234,23 +237,23 @@ def test_modified_weights_fail_hash(tmp_path):
 
 
 def test_constructor_validates():
-    """Policy() itself refuses a wrong output width and a non-dict provenance."""
+    """MLPPolicy() itself refuses a wrong output width and a non-dict provenance."""
     p = small_policy()
     w = list(p.weights)
     w[-1] = np.zeros((3, 6), np.float32)
     b = list(p.biases)
     b[-1] = np.zeros(3, np.float32)
     with pytest.raises(PolicyError, match="output width"):
-        Policy(w, b, p.activations, p.t_prev, p.world)
+        MLPPolicy(w, b, p.activations, p.t_prev, p.world)
     with pytest.raises(PolicyError, match="provenance"):
-        Policy(p.weights, p.biases, p.activations, p.t_prev, p.world, provenance=[1])  # type: ignore[arg-type]
+        MLPPolicy(p.weights, p.biases, p.activations, p.t_prev, p.world, provenance=[1])  # type: ignore[arg-type]
 
 
 def test_save_is_atomic(tmp_path, monkeypatch):
     """A failing write leaves the previous file untouched and no temp files behind."""
     path = save_policy(small_policy(1), tmp_path / "p.npz")
     before = path.read_bytes()
-    import export.atomic as atomic
+    import kiloforge.io as atomic
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")

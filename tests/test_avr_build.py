@@ -1,4 +1,4 @@
-"""Exact AVR budgets (export.avr.exact_budget) and robot builds against a kilolib checkout."""
+"""Exact AVR budgets (export.verify.avr.exact_budget) and robot builds against a kilolib checkout."""
 from __future__ import annotations
 
 import subprocess
@@ -6,10 +6,10 @@ import subprocess
 import pytest
 
 from avr_tools import require_avr
-from export import avr
-from export.budget import FLASH_LIMIT_B
-from export.render import POLICY_FILE, TARGET_FILE, render_firmware
-from export.synthetic import synthetic_qpolicy
+from export.verify import avr
+from export.codegen.budget import FLASH_LIMIT_B, KILOLIB_FLASH_B
+from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from fixtures import synthetic_qpolicy
 from sim.config import preset
 
 pytestmark = pytest.mark.avr
@@ -21,7 +21,7 @@ def test_empty_program_costs_exactly_kilolib(tmp_path):
     """The kilolib correction: an empty setup/loop program is kilolib's 7,028 B flash and 0 B user SRAM."""
     require_avr()
     pb = avr.program_budget("empty.c", avr.EMPTY_PROGRAM, tmp_path)
-    assert (pb.flash, pb.sram_static) == (avr.KILOLIB_FLASH, 0)
+    assert (pb.flash, pb.sram_static) == (KILOLIB_FLASH_B, 0)
     assert pb.sizes == pb.standin
 
 
@@ -32,7 +32,7 @@ def test_exact_budget_of_a_rendered_policy():
     eb_small = avr.exact_budget(render_firmware(small))
     eb_big = avr.exact_budget(render_firmware(big))
     for eb in (eb_small, eb_big):
-        assert avr.KILOLIB_FLASH < eb["flash"] <= FLASH_LIMIT_B
+        assert KILOLIB_FLASH_B < eb["flash"] <= FLASH_LIMIT_B
         assert eb["sram_user"] == eb["sram_static"] + eb["stack"] and eb["stack_source"] == "estimate"
         assert eb["kilobot_target_flash"] < eb["flash"]
     extra_weights = (24 - 8) * (small.layers[0].w.shape[1] + 2)  # int8 weights only, kernel arrays add more

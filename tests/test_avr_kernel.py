@@ -1,4 +1,4 @@
-"""The int8 dense kernel (firmware_templates/kf_dense.c, export/kernel.py): bit-exact with numfmt.
+"""The int8 dense kernel (firmware_templates/kf_dense.c, export/codegen/kernel.py): bit-exact with numfmt.
 
 Pure-Python checks of the kernel's algebra and layout run everywhere; the portable C runs on the
 host; the AVR assembly kernel and the portable C on the AVR run in simavr (marked ``avr``).
@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from avr_tools import require_avr
-from export import avr, kernel, numfmt
-from export.numfmt import QuantLayer
+from export.codegen import kernel
+from export.verify import avr
+from kiloforge import numfmt
+from kiloforge.numfmt import QuantLayer
 
 
 def _layer(rng: np.random.Generator, n_out: int, n_in: int, *, clamp=(-128, 127), shifts=None,
@@ -61,7 +63,7 @@ def _suite(seed: int) -> tuple[list[QuantLayer], list[tuple[int, int, np.ndarray
 
 
 def test_kernel_doctests():
-    """The doctests of export.kernel (layout and rounding helpers) pass."""
+    """The doctests of export.codegen.kernel (layout and rounding helpers) pass."""
     res = doctest.testmod(kernel)
     assert res.failed == 0 and res.attempted >= 4
 
@@ -77,7 +79,7 @@ def test_row_groups_cover_rows_in_order():
 
 
 def test_kernel_arithmetic_matches_numfmt():
-    """The kernel's folded-bias, offset-binary, modular arithmetic (export.kernel.run) equals dense_int."""
+    """The kernel's folded-bias, offset-binary, modular arithmetic (export.codegen.kernel.run) equals dense_int."""
     layers, reqs, refs = _suite(1)
     kls = [kernel.kernel_layer(L) for L in layers]
     for (li, _, x), ref in zip(reqs, refs):
@@ -107,7 +109,7 @@ def test_int32_overflow_with_rounding_is_refused():
 
 
 def test_generated_asm_block_is_current():
-    """kf_dense.c holds exactly the assembly export.kernel generates (no hand edits, no drift)."""
+    """kf_dense.c holds exactly the assembly export.codegen.kernel generates (no hand edits, no drift)."""
     text = kernel.kf_dense_c_path().read_text()
     assert kernel.avr_asm_block() in text
 

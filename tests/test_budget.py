@@ -1,14 +1,20 @@
-"""The analytic flash / SRAM budget (export.budget)."""
+"""The analytic flash / SRAM budget (export.codegen.budget) of the MLP actor kind."""
 from __future__ import annotations
 
 import pytest
 
-from export import budget as bud
-from export.artifact import load_policy
-from export.make_placeholder import init_policy
+from export.codegen import budget as bud
+from fixtures import init_policy
+from kiloforge.actors.mlp import MLP, MLPArch
+from kiloforge.policies import load_policy
 from sim.config import preset
 
 KB = preset("kilobot")
+
+
+def mlp(t_prev: int, hidden, activations=None) -> bud.Budget:
+    """The MLP budget in the kilobot world."""
+    return bud.estimate(MLP, KB, MLPArch(t_prev, tuple(hidden), None if activations is None else tuple(activations)))
 
 
 def item(b: bud.Budget, name: str) -> int:
@@ -17,9 +23,9 @@ def item(b: bud.Budget, name: str) -> int:
 
 def test_breakdown_numbers():
     """kilobot, t_prev 10, hidden (32, 32) ELU: every data item has its exact size."""
-    from export import numfmt
-    from export.cformat import clamp_index_table, nonzero_windows
-    b = bud.estimate(KB, 10, (32, 32))
+    from kiloforge import numfmt
+    from export.codegen.cformat import clamp_index_table, nonzero_windows
+    b = mlp(10, (32, 32))
     assert b.layer_sizes == (160, 32, 32, 2)
     assert item(b, "kilolib") == 7028
     assert item(b, "weights int8") == 160 * 32 + 32 * 32 + 32 * 2
@@ -44,7 +50,8 @@ def test_for_quantized_counts_shared_tables():
 
     import numpy as np
 
-    from export.quantize import calibration_from_inputs, quantize_policy
+    from export.quantize import quantize_policy
+    from kiloforge.actors.mlp import calibration_from_inputs
     p = init_policy(KB, 3, (8, 8), "elu", seed=1, out_scale=0.3)
     qp = quantize_policy(p, calibration_from_inputs(p, np.zeros((4, p.in_dim))), e_in=5)
     l0, l1 = qp.layers[0], qp.layers[1]
@@ -60,27 +67,26 @@ def test_for_quantized_counts_shared_tables():
 
 def test_relu_needs_no_tables():
     """ReLU hidden layers cost no activation tables; tanh costs one per layer."""
-    assert item(bud.estimate(KB, 5, (16, 16), ["relu", "relu"]), "activation tables") == 0
-    assert item(bud.estimate(KB, 5, (16, 16), ["tanh", "relu"]), "activation tables") == 256
+    assert item(mlp(5, (16, 16), ["relu", "relu"]), "activation tables") == 0
+    assert item(mlp(5, (16, 16), ["tanh", "relu"]), "activation tables") == 256
 
 
 def test_monotonic_in_history_and_width():
     """More history or wider layers never cost less flash or SRAM."""
     for t in range(1, 30):
-        a, b = bud.estimate(KB, t, (32, 32)), bud.estimate(KB, t + 1, (32, 32))
+        a, b = mlp(t, (32, 32)), mlp(t + 1, (32, 32))
         assert b.flash_total > a.flash_total and b.sram_total > a.sram_total
-    a, b = bud.estimate(KB, 10, (32, 32)), bud.estimate(KB, 10, (33, 33))
+    a, b = mlp(10, (32, 32)), mlp(10, (33, 33))
     assert b.flash_total > a.flash_total
 
 
 def test_over_flash_and_suggestions():
     """An over-budget architecture fails and suggest() names a history and a width that fit (and +1 does not)."""
-    b = bud.estimate(KB, 40, (64, 64))
+    b = mlp(40, (64, 64))
     assert not b.ok and not b.flash_ok
-    t = bud.largest_t_prev(KB, (64, 64))
-    w = bud.largest_width(KB, 40, 2)
-    assert t >= 1 and bud.estimate(KB, t, (64, 64)).ok and not bud.estimate(KB, t + 1, (64, 64)).ok
-    assert w >= 1 and bud.estimate(KB, 40, (w, w)).ok and not bud.estimate(KB, 40, (w + 1, w + 1)).ok
+    t, w = (bud.largest(MLP, KB, r) for r in MLP.resizes(KB, MLPArch(40, (64, 64))))
+    assert t >= 1 and mlp(t, (64, 64)).ok and not mlp(t + 1, (64, 64)).ok
+    assert w >= 1 and mlp(40, (w, w)).ok and not mlp(40, (w + 1, w + 1)).ok
     s = b.suggest()
     assert s == [f"t_prev <= {t} with hidden [64, 64]", f"hidden [{w}, {w}] with t_prev 40"]
     assert "DOES NOT FIT" in b.table()
@@ -88,14 +94,14 @@ def test_over_flash_and_suggestions():
 
 def test_over_sram():
     """A very long history with a tiny network fails on SRAM, not flash."""
-    b = bud.estimate(KB, 100, (2,), ["relu"])
+    b = mlp(100, (2,), ["relu"])
     assert b.flash_ok and not b.sram_ok and not b.ok
     assert item(b, "history ring buffer") == 1600
 
 
 def test_exact_figures_decide():
     """Real-build figures merged via with_exact() override the analytic totals."""
-    b = bud.estimate(KB, 10, (32, 32))
+    b = mlp(10, (32, 32))
     assert b.exact is None
     over = b.with_exact({"flash": 30_000, "sram_user": 500})
     assert not over.ok and over.flash_total == 30_000 and over.flash_analytic == b.flash_analytic
@@ -107,15 +113,15 @@ def test_for_policy_matches_estimate():
     """for_policy uses the policy's world, history, widths and activations."""
     p = init_policy(KB, 6, (12, 7), "tanh", seed=1)
     b = bud.for_policy(p)
-    assert b.layer_sizes == tuple(p.layer_sizes) and b.activations == ("tanh", "tanh", "identity")
-    assert b.to_dict()["flash"]["total"] == bud.estimate(KB, 6, (12, 7), ["tanh", "tanh"]).flash_total
+    assert b.layer_sizes == tuple(p.layer_sizes) and b.arch.activations == ("tanh", "tanh", "identity")
+    assert b.to_dict()["flash"]["total"] == mlp(6, (12, 7), ["tanh", "tanh"]).flash_total
 
 
 def test_default_policy_fits_with_headroom():
     """The shipped default policy fits with at least the documented flash headroom."""
     from importlib import resources
 
-    from export.make_placeholder import FLASH_HEADROOM_B
+    from fixtures import FLASH_HEADROOM_B
     with resources.as_file(resources.files("export").joinpath("data", "default_policy.npz")) as path:
         p = load_policy(path)
     b = bud.for_policy(p)
@@ -125,6 +131,6 @@ def test_default_policy_fits_with_headroom():
 def test_bad_arguments():
     """Non-positive history or widths are programming errors (asserts)."""
     with pytest.raises(AssertionError):
-        bud.estimate(KB, 0, (8,))
+        mlp(0, (8,))
     with pytest.raises(AssertionError):
-        bud.estimate(KB, 3, (0,))
+        mlp(3, (0,))

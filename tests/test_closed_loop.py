@@ -6,12 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from export.artifact import Policy, save_policy
-from export.cli import main
-from export.closed_loop import (ROBOT_BUDGET, Comparison, batch_env_seeds, default_n_envs, run_firmware,
+from kiloforge.actors.mlp import MLPPolicy
+from kiloforge.policies import save_policy
+from export.cli.main import main
+from export.verify.closed_loop import (ROBOT_BUDGET, Comparison, batch_env_seeds, default_n_envs, run_firmware,
                                 run_float, spread_ticks)
-from export.quantize import calibration_from_inputs, quantize_policy
-from export.synthetic import synthetic_qpolicy
+from export.quantize import quantize_policy
+from kiloforge.actors.mlp import calibration_from_inputs
+from fixtures import synthetic_qpolicy
 from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
 from sim.events import HeardEvents, summarise
 
@@ -19,7 +21,7 @@ KILOBOT = preset("kilobot", arena_half_mm=140.0, episode_steps=40)
 THESIS = preset("thesis", episode_steps=40)
 
 
-def flag_policy(world, t_prev: int, out: dict[str, tuple[float, float]]) -> Policy:
+def flag_policy(world, t_prev: int, out: dict[str, tuple[float, float]]) -> MLPPolicy:
     """A policy whose float and int8 forwards agree exactly (see the test using it).
 
     Hidden ReLU units read only exactly representable inputs of the newest tuple: h_wall = wall,
@@ -35,7 +37,7 @@ def flag_policy(world, t_prev: int, out: dict[str, tuple[float, float]]) -> Poli
     W0[2, newest + OBS_TARGET] = -1.0
     W1 = np.array([out["wall"], out["nbr"], out["lost"]], np.float64).T  # (2, 3)
     b1 = np.array(out["base"], np.float64) - np.array(out["lost"], np.float64)
-    return Policy(weights=[W0, W1], biases=[np.zeros(3), b1], activations=["relu", "identity"],
+    return MLPPolicy(weights=[W0, W1], biases=[np.zeros(3), b1], activations=["relu", "identity"],
                   t_prev=t_prev, world=world, provenance={"notes": "lossless test policy"})
 
 
@@ -81,7 +83,7 @@ def test_lossless_needs_exact_plumbing():
     D = KILOBOT.tuple_dim
     W0 = np.array(p.weights[0], np.float64)
     W0[2, 2 * D + 2 + OBS_RBF:] = 0.3  # the 'lost' unit now also reads the newest RBF histogram
-    p2 = Policy(weights=[W0, p.weights[1]], biases=list(p.biases), activations=list(p.activations),
+    p2 = MLPPolicy(weights=[W0, p.weights[1]], biases=list(p.biases), activations=list(p.activations),
                 t_prev=p.t_prev, world=p.world)
     x = np.zeros((1, p2.in_dim))
     x[0, 2 * D + 2:] = 1.0

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from export.crc import crc16_mcrf4xx, crc16_rows
-from export.emulator import message_bytes
+from export.contract.crc import crc16_mcrf4xx, crc16_rows
+from export.verify.emulator import message_bytes
 
 
 def test_platform_test_vectors():

@@ -1,4 +1,4 @@
-"""Run the doctests of every module in sim/ and export/ (number-formatting helpers document themselves)."""
+"""Run the doctests of every module in sim/, kiloforge/ and export/ (number-formatting helpers document themselves)."""
 from __future__ import annotations
 
 import doctest
@@ -8,10 +8,12 @@ import pkgutil
 import pytest
 
 import export
+import kiloforge
 import sim
 
-MODULES = sorted(f"{pkg.__name__}.{m.name}" for pkg in (sim, export)
-                 for m in pkgutil.iter_modules(pkg.__path__) if not m.name.startswith("__"))
+MODULES = sorted(m.name for pkg in (sim, kiloforge, export)
+                 for m in pkgutil.walk_packages(pkg.__path__, prefix=f"{pkg.__name__}.")
+                 if not m.name.rsplit(".", 1)[-1].startswith("__"))
 
 
 @pytest.mark.parametrize("name", MODULES)

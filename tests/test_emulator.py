@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from export import fwspec
-from export.crc import crc16_mcrf4xx
-from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim, n_control_steps
-from export.fwspec import EVENT_DTYPE
-from export.synthetic import synthetic_qpolicy
+from export.contract import firmware as fwspec
+from export.contract.crc import crc16_mcrf4xx
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim, n_control_steps
+from export.contract.firmware import EVENT_DTYPE
+from fixtures import synthetic_qpolicy
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
 from sim.events import HeardEvents
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STRAIGHT, mode_at_tick, schedule

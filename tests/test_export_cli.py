@@ -1,4 +1,4 @@
-"""The exporter command line: python -m export [budget] (export.cli, export.atomic)."""
+"""The exporter command line: python -m export [budget] (export.cli, kiloforge.io)."""
 from __future__ import annotations
 
 import importlib.util
@@ -11,16 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.artifact import save_policy
-from export.atomic import write_files_atomic
-from export.cli import main
-from export.errors import OutputError
-from export.make_placeholder import init_policy
+from export.cli.main import main
+from fixtures import init_policy
+from kiloforge.errors import OutputError
+from kiloforge.io import write_files_atomic
+from kiloforge.policies import save_policy
 from sim.config import preset
 
 KB = preset("kilobot")
 ROOT = Path(__file__).resolve().parents[1]
-HAS_RENDER = (importlib.util.find_spec("export.render") is not None
+HAS_RENDER = (importlib.util.find_spec("export.codegen.render") is not None
               and (ROOT / "firmware_templates" / "kilobot_policy.c.j2").exists())
 HAS_ENV = importlib.util.find_spec("sim.env") is not None
 FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
@@ -160,7 +160,7 @@ def test_bad_arguments(capsys):
     assert rc == 2 and "frobnicate" in one_error_line(err)
 
 
-@pytest.mark.skipif(not (HAS_RENDER and HAS_ENV), reason="needs export.render (render_firmware), its templates and sim.env")
+@pytest.mark.skipif(not (HAS_RENDER and HAS_ENV), reason="needs export.codegen.render, its templates and sim.env")
 def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     """The shipped default policy exports: C, kilobot_target.c and a manifest with hash and format."""
     out = tmp_path / "kilobot_policy.c"
@@ -170,7 +170,7 @@ def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     manifest = tmp_path / "kilobot_policy.c.manifest.json"
     assert out.exists() and target.exists() and manifest.exists()
     m = json.loads(manifest.read_text())
-    from export import numfmt
+    from kiloforge import numfmt
     assert m["number_format"] == numfmt.FORMAT_NAME and m["rounding"] == numfmt.ROUNDING
     assert len(m["policy_hash"]) == 64 and m["policy_hash"][:16] in stdout
     assert m["budget"]["fits"] is True and m["options"]["target_uids"] == [0, 5]
@@ -199,9 +199,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     def render_firmware(qp, target_uids=(0,), generator_version=None):
         seen["qp"], seen["uids"], seen["ver"] = qp, target_uids, generator_version
         return {"kilobot_policy.c": f"/* policy {qp.policy_hash} */\n", "kilobot_target.c": "/* target */\n"}
-    fake = types.ModuleType("export.render")
-    fake.render_firmware = render_firmware
-    monkeypatch.setitem(sys.modules, "export.render", fake)
+    monkeypatch.setattr("export.cli.firmware.render_firmware", render_firmware)
     out = tmp_path / "robot.c"
     rc, stdout, err = run(["--out", str(out), "--target-uids", "7", "--no-avr"] + FAST, capsys)
     assert rc == 0, err
@@ -214,7 +212,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
 
     def verify_host(qp, files):
         return types.SimpleNamespace(ok=False, __str__=lambda self: "mismatch")
-    fake.verify_host = verify_host
+    monkeypatch.setattr("export.cli.firmware.verify_host", verify_host)
     out2 = tmp_path / "sub"
     out2.mkdir()
     rc, _, err = run(["--out", str(out2 / "k.c"), "--verify", "host", "--no-avr"] + FAST, capsys)
@@ -224,10 +222,10 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.skipif(not (HAS_ENV and importlib.util.find_spec("onnx") is not None
                          and importlib.util.find_spec("learn.onnx_export") is not None
-                         and importlib.util.find_spec("export.onnx_import") is not None),
-                    reason="needs onnx, learn.onnx_export, export.onnx_import and sim.env")
+                         and importlib.util.find_spec("export.interop.onnx_import") is not None),
+                    reason="needs onnx, learn.onnx_export, export.interop.onnx_import and sim.env")
 def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
-    """--onnx reads an ONNX actor (via export.onnx_import) and quantises the same weights."""
+    """--onnx reads an ONNX actor (via export.interop.onnx_import) and quantises the same weights."""
     import types
 
     from learn.onnx_export import export_onnx
@@ -235,12 +233,10 @@ def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     export_onnx(p, tmp_path / "actor.onnx")
     seen = {}
 
-    def render_firmware(qp, target_uids=(0,)):
+    def render_firmware(qp, target_uids=(0,), generator_version=None):
         seen["qp"] = qp
         return {"kilobot_policy.c": "a", "kilobot_target.c": "b"}
-    fake = types.ModuleType("export.render")
-    fake.render_firmware = render_firmware
-    monkeypatch.setitem(sys.modules, "export.render", fake)
+    monkeypatch.setattr("export.cli.firmware.render_firmware", render_firmware)
     rc, _, err = run(["--onnx", str(tmp_path / "actor.onnx"), "--out", str(tmp_path / "k.c"), "--no-avr"] + FAST, capsys)
     assert rc == 0, err
     assert seen["qp"].layer_sizes == p.layer_sizes and seen["qp"].t_prev == 3

@@ -8,7 +8,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from export.atomic import new_file_mode, write_bytes_atomic, write_files_atomic
+from kiloforge.io import atomic_path, new_file_mode, write_atomic, write_files_atomic
 
 
 @contextmanager
@@ -26,26 +26,31 @@ def mode(path) -> int:
 
 @pytest.mark.parametrize("mask", (0o022, 0o002, 0o077))
 def test_export_writes_follow_the_umask(tmp_path, mask):
-    """write_files_atomic / write_bytes_atomic give 0o666 & ~umask, like a plain open() (e.g. matplotlib's plots)."""
+    """write_files_atomic / write_atomic / atomic_path give 0o666 & ~umask, like a plain open()."""
     with umask(mask):
         assert new_file_mode() == 0o666 & ~mask
         write_files_atomic({tmp_path / "a.c": "int x;\n", tmp_path / "b.json": b"{}"})
-        write_bytes_atomic(tmp_path / "a.c", "int y;\n")  # replacing an existing file
+        write_atomic(tmp_path / "a.c", "int y;\n")  # replacing an existing file
+        with atomic_path(tmp_path / "plot.png") as tmp:
+            tmp.write_bytes(b"png")
+        with atomic_path(tmp_path / "prog", executable=True) as tmp:
+            tmp.write_bytes(b"exe")
         (tmp_path / "plain.txt").write_text("x")
         assert os.umask(mask) == mask  # reading the mode left the umask as it was
-    for name in ("a.c", "b.json", "plain.txt"):
+    for name in ("a.c", "b.json", "plain.txt", "plot.png"):
         assert mode(tmp_path / name) == 0o666 & ~mask, name
+    assert mode(tmp_path / "prog") == 0o777 & ~mask
 
 
 @pytest.mark.parametrize("mask", (0o022, 0o077))
 def test_run_files_follow_the_umask(tmp_path, mask):
     """A trainer's checkpoint and its JSON/CSV files are as readable as its plots."""
     pytest.importorskip("torch")
-    from learn.checkpoint import load_checkpoint, save_checkpoint, write_text_atomic
+    from learn.checkpoint import load_checkpoint, save_checkpoint
 
     with umask(mask):
         save_checkpoint({"w": np.arange(3)}, tmp_path / "checkpoint.pt")
-        write_text_atomic(tmp_path / "config.json", "{}\n")
+        write_atomic(tmp_path / "config.json", "{}\n")
     assert mode(tmp_path / "checkpoint.pt") == 0o666 & ~mask
     assert mode(tmp_path / "config.json") == 0o666 & ~mask
     np.testing.assert_array_equal(load_checkpoint(tmp_path / "checkpoint.pt")["w"], np.arange(3))

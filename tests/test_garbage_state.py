@@ -12,13 +12,14 @@ import functools
 import numpy as np
 import pytest
 
-from export import fwspec
-from export.emulator import FirmwareEmulator
-from export.gru import random_gru_policy
-from export.gru_quantize import calibrate_gru, quantize_gru
-from export.hostbuild import HostBuildError, StreamSpec, build_host, compare, compiler, random_inputs, run_host
-from export.render import POLICY_FILE, TARGET_FILE, render_firmware
-from export.synthetic import synthetic_qpolicy
+from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.contract import firmware as fwspec
+from export.quantize import calibrate, quantize_policy
+from export.verify.emulator import FirmwareEmulator
+from export.verify.hostbuild import HostBuildError, StreamSpec, build_host, compare, compiler, random_inputs, run_host
+from fixtures import synthetic_qpolicy
+from kiloforge.actors.gru import random_gru_policy
+from kiloforge.actors.lstm import random_lstm_policy
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -28,17 +29,20 @@ TARGETS = (0, 77)
 WORLD = preset("kilobot")
 
 
+RECURRENT = {"gru": random_gru_policy, "lstm": random_lstm_policy}  #: program kind -> its random float policy
+
+
 @functools.lru_cache(maxsize=None)
 def policy(kind: str):
     """The quantised policy behind each program kind (the beacon program uses the MLP's)."""
-    if kind == "gru":
-        p = random_gru_policy(WORLD, 16, seed=4, scale=3.0)
-        return quantize_gru(p, calibrate_gru(p, episodes=1, n_robots=(4,), seed=4, steps=40))
+    if kind in RECURRENT:
+        p = RECURRENT[kind](WORLD, 16, seed=4, scale=3.0)
+        return quantize_policy(p, calibrate(p, episodes=1, n_robots=(4,), seed=4, steps=40))
     return synthetic_qpolicy(WORLD, 10, (32, 32), ("elu", "elu"), seed=5)
 
 
 def program(kind: str) -> str:
-    """The rendered C of one kind: the MLP or GRU policy program, or the beacon-only program."""
+    """The rendered C of one kind: the MLP, GRU or LSTM policy program, or the beacon-only program."""
     files = render_firmware(policy(kind), target_uids=TARGETS, generator_version="test")
     return files[TARGET_FILE if kind == "beacon" else POLICY_FILE]
 
@@ -63,7 +67,7 @@ def builds(tmp_path_factory):
 
 
 @pytest.mark.parametrize("fill", FILLS)
-@pytest.mark.parametrize("kind", ("mlp", "gru", "beacon"))
+@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "beacon"))
 def test_sanitized_program_on_garbage_state_equals_emulator(kind, fill, builds):
     """ASan/UBSan build, state garbage before setup() and callbacks called before it: 0 findings, bit-exact."""
     exe = build_host(program(kind), builds, name=f"{kind}-asan", sanitize=True)
@@ -80,7 +84,7 @@ def test_sanitized_program_on_garbage_state_equals_emulator(kind, fill, builds):
         assert np.unique(want.commands[~beacon]).size > 16, "commands barely vary"
 
 
-@pytest.mark.parametrize("kind", ("mlp", "gru", "beacon"))
+@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "beacon"))
 def test_a_program_relying_on_zeroed_state_is_caught(kind, builds):
     """With setup()'s clearing loop removed a program still passes on zeroed state but not on garbage."""
     loop = "    for (i = 0u; i < (uint16_t)sizeof(kf_state_t); ++i) {\n        p[i] = 0u;\n    }\n"

@@ -7,15 +7,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export import budget as bud
-from export import numfmt
-from export.artifact import PolicyError, load_policy, save_policy
-from export.emulator import FirmwareEmulator
-from export.gru import ARRAYS, GRUPolicy, GRUSwarmPolicy, random_gru_policy
-from export.gru_quantize import (QuantizedGRU, calibrate_gru, calibration_from_sequences, gru_error_report,
-                                 quantize_gru)
-from export.hostbuild import StreamSpec, random_inputs
+from export.codegen import budget as bud
 from export.quantize import calibrate, error_report, quantize_policy
+from export.verify.emulator import FirmwareEmulator
+from export.verify.hostbuild import StreamSpec, random_inputs
+from kiloforge import numfmt
+from kiloforge.actors.base import HiddenArch, StatefulActor
+from kiloforge.actors.gru import (GRU, GRUPolicy, QuantGRUCell, QuantizedGRU, gru_error_report, quantize_gru,
+                                  random_gru_policy)
+from kiloforge.actors.recurrent import ARRAYS, calibration_from_sequences
+from kiloforge.errors import PolicyError
+from kiloforge.policies import load_policy, save_policy
 from sim.config import preset
 
 WORLD = preset("kilobot")
@@ -102,7 +104,7 @@ def test_float_step_matches_the_gru_equations():
 
 
 # --- the int8 cell --------------------------------------------------------------------------
-def _cell_reference(cell: numfmt.QuantGRUCell, x: list[int], h: list[int]) -> list[int]:
+def _cell_reference(cell: QuantGRUCell, x: list[int], h: list[int]) -> list[int]:
     """The module doc's GRU semantics with Python integers, one unit at a time."""
     def dense(layer, v):
         out = []
@@ -191,14 +193,14 @@ def test_calibrate_rolls_out_the_float_policy_and_dispatches():
     cal = calibrate(p, episodes=1, n_robots=(3,), seed=2, steps=12)
     assert cal.seqs.shape == (3, 12, WORLD.tuple_dim) and cal.n == 36
     np.testing.assert_array_equal(cal.seqs[:, 0, :2], 0)  # a_0 = 0 (Algorithm 5)
-    again = calibrate_gru(p, episodes=1, n_robots=(3,), seed=2, steps=12)
+    again = calibrate(p, episodes=1, n_robots=(3,), seed=2, steps=12)
     np.testing.assert_array_equal(again.seqs, cal.seqs)
     u = cal.values["u"].reshape(3, 12, 2)
     np.testing.assert_allclose(cal.seqs[:, 1:, :2], u[:, :-1], atol=1e-6)  # the next input holds this action
     qp = quantize_policy(p, cal)
     assert isinstance(qp, QuantizedGRU)
     assert error_report(p, qp, cal).n_samples == 36
-    assert bud.for_policy(p).kind == "gru" and bud.for_quantized(qp).layer_sizes == (16, 8, 2)
+    assert bud.for_policy(p).kind is GRU and bud.for_quantized(qp).layer_sizes == (16, 8, 2)
 
 
 # --- emulator -----------------------------------------------------------------------------
@@ -220,14 +222,14 @@ def test_emulator_carries_the_hidden_state():
 
 
 def test_swarm_policy_feeds_back_its_actions():
-    """GRUSwarmPolicy passes [previous action, obs] and restarts from zero state and zero action on reset."""
+    """StatefulActor passes [previous action, obs] and restarts from zero state and zero action on reset."""
     seen = []
 
     def step(x, state):
         seen.append(x.copy())
         return np.full((x.shape[0], 2), 0.25 + state), state + 0.5
 
-    pol = GRUSwarmPolicy(step, lambda R: 0.0, WORLD)
+    pol = StatefulActor(step, lambda R: 0.0, WORLD)
     pol.reset(2, 3)
     obs = np.ones((2, 3, WORLD.obs_dim), np.float32)
     a1, a2 = pol.act(obs), pol.act(obs)
@@ -241,14 +243,14 @@ def test_swarm_policy_feeds_back_its_actions():
 
 # --- budget -------------------------------------------------------------------------------
 def test_gru_budget_items_and_suggestion():
-    """estimate_gru counts the five layers' weights, rows, gate tables and the hidden state; too big says what fits."""
-    b = bud.estimate_gru(WORLD, 32)
+    """The GRU budget counts the five layers' weights, rows, gate tables and the hidden state; too big says what fits."""
+    b = bud.estimate(GRU, WORLD, HiddenArch(32))
     items = {i.name: i.bytes for i in b.items}
     D, H = WORLD.tuple_dim, 32
     assert items["weights int8"] == 2 * H * (D + H) + H * D + H * H + 2 * H
     assert items["biases int32"] == 4 * (4 * H + 2) and items["gate tables"] == 768
     assert items["hidden state + input"] == H + D and b.ok and "GRU actor" in b.table()
-    big = bud.estimate_gru(WORLD, 120)
-    best = bud.largest_gru_hidden(WORLD)
+    big = bud.estimate(GRU, WORLD, HiddenArch(120))
+    best = bud.largest(GRU, WORLD, GRU.resizes(WORLD, HiddenArch(120))[0])
     assert not big.ok and 32 <= best < 120 and big.suggest() == [f"a GRU of <= {best} hidden units"]
-    assert bud.estimate_gru(WORLD, best).ok and not bud.estimate_gru(WORLD, best + 1).ok
+    assert bud.estimate(GRU, WORLD, HiddenArch(best)).ok and not bud.estimate(GRU, WORLD, HiddenArch(best + 1)).ok

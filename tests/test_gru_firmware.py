@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 
 from avr_tools import require_avr
-from export import avr, fwspec, numfmt
-from export.budget import estimate_gru
-from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
-from export.gru import random_gru_policy
-from export.gru_quantize import calibrate_gru, quantize_gru
-from export.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host, verify_host
-from export.render import POLICY_FILE, render_firmware
+from export.codegen.budget import estimate
+from export.codegen.render import POLICY_FILE, render_firmware
+from export.contract import firmware as fwspec
+from export.quantize import calibrate
+from export.verify import avr
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host, verify_host
+from kiloforge import numfmt
+from kiloforge.actors.base import HiddenArch
+from kiloforge.actors.gru import GRU, quantize_gru, random_gru_policy
 from sim.config import preset
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -25,7 +28,7 @@ def qgru(world, hidden: int, seed: int, scale: float = 2.0, out_scale: float = 1
     """A quantised random GRU calibrated on short rollouts of itself (``quant``: quantize_gru options;
     ``nx_shift`` forces the candidate's input shift, moving the tanh table to a finer exponent)."""
     p = random_gru_policy(world, hidden, seed=seed, scale=scale, out_scale=out_scale)
-    cal = calibrate_gru(p, episodes=1, n_robots=(4,), seed=seed, steps=min(40, world.episode_steps))
+    cal = calibrate(p, episodes=1, n_robots=(4,), seed=seed, steps=min(40, world.episode_steps))
     qp = quantize_gru(p, cal, **quant)
     if nx_shift is not None:
         c = qp.cell
@@ -125,7 +128,7 @@ def test_a_different_cell_is_detected(builds):
 
     class Forgetful(FirmwareEmulator):
         def control_step(self, light):
-            self.hidden = self.qp.initial_state(self.R)
+            self.state = self.qp.initial_state(self.R)
             return super().control_step(light)
 
     assert compare(Forgetful(qp, inputs.uids, inputs.calib).run(inputs), got) != ""
@@ -185,7 +188,7 @@ def test_gru_is_bit_exact_in_simavr_and_fits():
     assert check.control_steps >= 200 and check.cycles_step.size > 0
     assert check.cycles_step_max < 8_000_000 * 0.05, str(check)  # far below one control period (~1 s)
     exact = avr.exact_budget(files)
-    b = estimate_gru(world, 32).with_exact(exact)
+    b = estimate(GRU, world, HiddenArch(32)).with_exact(exact)
     assert b.ok and exact["flash"] < 28_160, b.table()
 
 
@@ -202,8 +205,8 @@ def test_export_cli_writes_a_gru_program(tmp_path, capsys):
     """`python -m export --policy gru.npz` calibrates, quantises, checks the budget and writes C + manifest."""
     import json
 
-    from export.artifact import save_policy
-    from export.cli import main
+    from kiloforge.policies import save_policy
+    from export.cli.main import main
 
     p = random_gru_policy(preset("kilobot"), 10, seed=6, scale=2.0)
     path = save_policy(p, tmp_path / "gru.npz")

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export import fwspec, numfmt
-from export.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
-from export.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
-                              random_inputs, rendered_params, run_host, verify_host)
-from export.render import POLICY_FILE, TARGET_FILE, render_firmware
-from export.synthetic import synthetic_qpolicy
+from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.contract import firmware as fwspec
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.verify.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
+                                     random_inputs, rendered_params, run_host, runtime_flags, verify_host)
+from fixtures import synthetic_qpolicy
+from kiloforge import numfmt
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -81,9 +82,10 @@ def builds(tmp_path_factory):
 
 
 def test_runtime_c_unit_tests(tmp_path):
-    """tests/c/test_runtime.c passes, and its rounding shift equals numfmt.rshift_round on a grid."""
+    """tests/c/test_runtime.c passes (the CRC with export/contract/crc.py's constants), and its rounding shift
+    equals numfmt.rshift_round on a grid."""
     exe = tmp_path / "test_runtime"
-    res = subprocess.run([compiler(), *HOST_CFLAGS, "-I", str(TEMPLATES), "-o", str(exe),
+    res = subprocess.run([compiler(), *HOST_CFLAGS, *runtime_flags(), "-I", str(TEMPLATES), "-o", str(exe),
                           str(TESTS / "c" / "test_runtime.c")], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     run = subprocess.run([str(exe), "grid"], capture_output=True, text=True)

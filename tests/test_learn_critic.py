@@ -77,7 +77,7 @@ def test_several_swarm_sizes_train_one_actor_and_one_critic(tmp_path):
     for M in (2, 5):
         assert 0.0 <= row[f"eval_final_coverage_m{M}"] <= 1.0
     assert row["eval_return"] == pytest.approx((row["eval_return_m2"] + row["eval_return_m5"]) / 2)
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
     p = load_policy(tmp_path / "mix" / "policy_last.npz")
     assert p.provenance["trained_robots"] == [2, 5] and p.provenance["config"]["n_robots"] == [2, 5]
     assert train(cfg, tmp_path / "mix", resume=True, progress=False, log=lambda m: None).counters.updates == \

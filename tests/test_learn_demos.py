@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from export.artifact import load_policy
-from export.gru import GRUPolicy
+from kiloforge.policies import load_policy
+from kiloforge.actors.gru import GRUPolicy
 from learn.cli import main_train_recurrent
 from learn.config import RecurrentConfig
 from learn.demos import bc_pretrain, collect_demos, demonstrator
@@ -176,7 +176,7 @@ def test_guided_cli_clones_then_learns_and_keeps_the_cloned_actor(tmp_path, caps
 @pytest.mark.slow
 def test_guided_run_reaches_the_hand_written_searcher(tmp_path):
     """A short guided run (2 robots, thesis world): its best GRU matches the hand-written searcher on fresh episodes."""
-    from export.gru import swarm_policy
+    from kiloforge.policies import swarm_policy
     from sim.baselines import make_policy
     out = tmp_path / "guided"
     assert main_train_recurrent(["--preset", "guided", "--robots", "2", "--out", str(out), "--quiet",
@@ -232,7 +232,7 @@ def test_clip_action_gradient_leaves_saturated_commands_alone():
 def test_guided_mlp_cloning_reaches_the_demonstrator(tmp_path):
     """MLP behaviour cloning on T_prev histories (as the firmware builds them): on fresh episodes the clone
     (policy_bc.npz, run by sim's HistoryActor) reaches 90 % of the left-turning searcher's final coverage."""
-    from export.gru import swarm_policy
+    from kiloforge.policies import swarm_policy
     from learn.config import TrainConfig
     from learn.train import train
     from sim.baselines import make_policy

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from export.artifact import load_policy
-from export.gru import GRUPolicy, GRUSwarmPolicy
+from kiloforge.policies import load_policy
+from kiloforge.actors.gru import GRU, GRUPolicy
 from learn.cli import main_train_recurrent
 from learn.config import RecurrentConfig
 from learn.evaluate import LearnerPolicy
@@ -39,7 +39,7 @@ def filled_replay(T: int = 30, M: int = 2, episodes: int = 3, seed: int = 0) -> 
 
 
 def test_actor_is_pytorch_gru_and_exports_the_same_numbers():
-    """GRUActor's artifact (export.gru.GRUPolicy) computes the torch actor's clipped actions step by step."""
+    """GRUActor's artifact (kiloforge.actors.gru.GRUPolicy) computes the torch actor's clipped actions step by step."""
     torch.manual_seed(0)
     actor = GRUActor(WORLD.tuple_dim, 12)
     with torch.no_grad():
@@ -153,7 +153,7 @@ def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
     assert p.provenance["updates"] > 0
     # the artifact is the actor: same evaluation episodes, same rewards
     env = SwarmEnv(p.world, 2, 2, seed=0)
-    float_run = rollout(env, GRUSwarmPolicy.float_policy(p), 2, seed=5)
+    float_run = rollout(env, GRU.swarm_policy(p), 2, seed=5)
     agent = MAGRDPG(p.in_dim, p.world.state_dim(2), 2, 6, (16,), 0.9, 0.1, 1e-3, 1e-3)
     g = agent.actor.gru
     with torch.no_grad():
@@ -189,12 +189,14 @@ def test_learns_the_two_robot_task(tmp_path):
     assert best > 300.0, best
 
 
-def test_one_loop_resumes_recurrent_runs_exactly(tmp_path):
-    """learn.train.train runs MAGRDPG too: stopping after 2 learning episodes and resuming to 4 equals one run."""
+@pytest.mark.parametrize("cell", ["gru", "lstm"])
+def test_one_loop_resumes_recurrent_runs_exactly(tmp_path, cell):
+    """learn.train.train runs MAGRDPG (GRU and LSTM): stopping after 2 learning episodes and resuming to 4
+    equals one run; the artifact is of the cell's kind."""
     from learn.checkpoint import load_checkpoint
     from learn.train import train
     tiny = dict(n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=4, eval_every=40, eval_episodes=2,
-                replay_size=400, batch_windows=4, unroll=4, burn_in=3, hidden=6, critic_hidden=(16,), seed=4)
+                replay_size=400, batch_windows=4, unroll=4, burn_in=3, hidden=6, critic_hidden=(16,), seed=4, cell=cell)
     quiet = lambda m: None  # noqa: E731
     full = train(RecurrentConfig(**tiny), tmp_path / "full", progress=False, log=quiet)
     train(RecurrentConfig(**{**tiny, "episodes": 2}), tmp_path / "split", progress=False, log=quiet)
@@ -206,3 +208,4 @@ def test_one_loop_resumes_recurrent_runs_exactly(tmp_path):
             torch.testing.assert_close(a["agent"][part][k], b["agent"][part][k], rtol=0, atol=0)
     np.testing.assert_array_equal(a["replay"][0]["tuples"], b["replay"][0]["tuples"])
     assert a["rng"]["replay"] == b["rng"]["replay"] and a["rng"]["noise"] == b["rng"]["noise"]
+    assert load_policy(tmp_path / "split" / "policy_last.npz").kind == cell

@@ -4,7 +4,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from export.artifact import load_policy  # noqa: E402
+from kiloforge.policies import load_policy  # noqa: E402
 from learn.config import from_preset  # noqa: E402
 from learn.train import train  # noqa: E402
 from sim.baselines import make_policy  # noqa: E402

@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from export.artifact import load_policy  # noqa: E402
+from kiloforge.policies import load_policy  # noqa: E402
 from learn.__main__ import main  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 from learn.config import ConfigError, TrainConfig, from_preset  # noqa: E402

@@ -12,8 +12,8 @@ import pytest
 onnx = pytest.importorskip("onnx")
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
-from export.errors import PolicyError  # noqa: E402
-from export.onnx_import import OnnxImportError, load_onnx_policy  # noqa: E402
+from kiloforge.errors import PolicyError  # noqa: E402
+from export.interop.onnx_import import OnnxImportError, load_onnx_policy  # noqa: E402
 from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,15 +51,15 @@ def _torch_actor(world, t_prev: int, hidden=(32, 24), seed: int = 0):
 
 
 def _policy_from_layers(layers, world, t_prev):
-    from export.artifact import Policy
+    from kiloforge.actors.mlp import MLPPolicy
 
-    return Policy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
-                  activations=[a for _, _, a in layers], t_prev=t_prev, world=world,
-                  provenance={"source": "test"}, kind="mlp")
+    return MLPPolicy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
+                     activations=[a for _, _, a in layers], t_prev=t_prev, world=world, provenance={"source": "test"})
 
 
 def _quantise(policy, calib_inputs: np.ndarray):
-    from export.quantize import calibration_from_inputs, quantize_policy
+    from export.quantize import quantize_policy
+    from kiloforge.actors.mlp import calibration_from_inputs
 
     return quantize_policy(policy, calibration_from_inputs(policy, calib_inputs))
 
@@ -72,8 +72,8 @@ def _firmware_commands(policy, calib_inputs: np.ndarray, test_inputs: np.ndarray
 
 def _emulate(qp, seed: int = 21, n_robots: int = 5, n_steps: int = 12):
     """Run the firmware emulator on a random message stream (same stream for every qp): FirmwareOutputs."""
-    from export import fwspec
-    from export.emulator import FirmwareEmulator, FirmwareInputs
+    from export.contract import firmware as fwspec
+    from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 
     rng = _rng(seed)
     P = qp.world.period_ticks
@@ -150,7 +150,7 @@ def test_torch_onnx_import_quantise_is_bit_exact_with_artifact_path(tmp_path):
 
 def test_onnx_and_torch_paths_give_the_same_firmware_in_the_emulator(tmp_path):
     """The emulated firmware (every tick's motors, LED, message bytes) is identical for the ONNX and the torch path."""
-    pytest.importorskip("export.emulator")
+    pytest.importorskip("export.verify.emulator")
     from learn.onnx_export import export_onnx
 
     world = preset("kilobot")
@@ -211,7 +211,7 @@ def test_sequential_with_all_activations_roundtrips(tmp_path):
 
 def test_export_from_artifact_cli_and_back(tmp_path):
     """`python -m learn.onnx_export --policy P --out actor.onnx` writes a model that imports to the same policy."""
-    from export.artifact import save_policy
+    from kiloforge.policies import save_policy
 
     world = preset("kilobot")
     rng = _rng(6)
@@ -519,7 +519,7 @@ def test_cli_errors_are_one_line(tmp_path):
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"not an onnx file at all")
     for cmd in (["-m", "learn.onnx_export", "--policy", str(tmp_path / "nope.npz"), "--out", str(tmp_path / "o.onnx")],
-                ["-m", "export.onnx_import", str(bad), "--out", str(tmp_path / "p.npz")]):
+                ["-m", "export.interop.onnx_import", str(bad), "--out", str(tmp_path / "p.npz")]):
         r = subprocess.run([sys.executable, *cmd], cwd=REPO, capture_output=True, text=True)
         assert r.returncode == 2, (cmd, r.stdout, r.stderr)
         lines = r.stderr.strip().splitlines()
@@ -532,7 +532,7 @@ def test_learn_cli_export_onnx_subcommand(tmp_path):
     help_text = subprocess.run([sys.executable, "-m", "learn", "--help"], cwd=REPO, capture_output=True, text=True)
     if "export-onnx" not in help_text.stdout:
         pytest.skip("learn/__main__.py has no export-onnx sub-command yet (wire learn.onnx_export.main_export_onnx)")
-    from export.artifact import save_policy
+    from kiloforge.policies import save_policy
 
     world = preset("thesis")
     rng = _rng(14)
@@ -546,13 +546,13 @@ def test_learn_cli_export_onnx_subcommand(tmp_path):
 
 
 def test_onnx_import_cli_writes_policy_artifact(tmp_path):
-    """`python -m export.onnx_import M.onnx --world-json W --out P.npz` writes an artifact load_policy accepts."""
-    from export.artifact import load_policy
+    """`python -m export.interop.onnx_import M.onnx --world-json W --out P.npz` writes an artifact load_policy accepts."""
+    from kiloforge.policies import load_policy
 
     world = preset("kilobot")
     p = _save(_good_model(world, meta=False), tmp_path / "m.onnx")
     wj = _world_json(tmp_path, {"world": "kilobot", "t_prev": 2})
-    r = subprocess.run([sys.executable, "-m", "export.onnx_import", str(p), "--world-json", str(wj), "--out",
+    r = subprocess.run([sys.executable, "-m", "export.interop.onnx_import", str(p), "--world-json", str(wj), "--out",
                         str(tmp_path / "p.npz")], cwd=REPO, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     pol = load_policy(tmp_path / "p.npz")
@@ -561,16 +561,6 @@ def test_onnx_import_cli_writes_policy_artifact(tmp_path):
 
 def test_export_cli_renders_c_from_onnx(tmp_path):
     """`python -m export --onnx actor.onnx [--world-json W] --out DIR/kilobot_policy.c` renders firmware from ONNX."""
-    import importlib.util
-
-    if importlib.util.find_spec("export.cli") is None:
-        pytest.skip("the export CLI (export/cli.py) is not written yet")
-    if importlib.util.find_spec("export.render") is None:
-        pytest.skip("the firmware renderer (export/render.py) is not written yet")
-    help_text = subprocess.run([sys.executable, "-m", "export", "--help"], cwd=REPO, capture_output=True,
-                               text=True).stdout
-    if "--onnx" not in help_text:
-        pytest.skip("the export CLI does not accept --onnx yet")
     world = preset("kilobot")
     fast = ["--robots-calib", "4", "--calib-steps", "20", "--no-progress"]
     with_meta = _save(_good_model(world), tmp_path / "actor.onnx")

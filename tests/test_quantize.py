@@ -1,4 +1,4 @@
-"""Calibration and quantisation of a float policy into the int8 format (export.quantize)."""
+"""Calibration and quantisation of an MLP policy into the int8 format (export.quantize, kiloforge.actors.mlp)."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,12 +7,11 @@ import importlib.util
 import numpy as np
 import pytest
 
-from export import numfmt
-from export.artifact import Policy
-from export.errors import ExportError, QuantizeError
-from export.make_placeholder import init_policy
-from export.quantize import (QuantizedPolicy, calibrate, calibration_from_inputs, error_report,
-                             quantize_policy)
+from export.quantize import calibrate, error_report, quantize_policy
+from fixtures import init_policy
+from kiloforge import numfmt
+from kiloforge.actors.mlp import MLPPolicy, calibration_from_inputs
+from kiloforge.errors import KiloforgeError, QuantizeError
 from sim.config import preset
 from sim.motion import action_to_u8
 
@@ -24,7 +23,7 @@ def rng(seed: int = 0) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed))
 
 
-def random_inputs(p: Policy, n: int, seed: int = 0, scale: float = 1.0) -> np.ndarray:
+def random_inputs(p: MLPPolicy, n: int, seed: int = 0, scale: float = 1.0) -> np.ndarray:
     return rng(seed).uniform(-scale, scale, size=(n, p.in_dim))
 
 
@@ -82,7 +81,7 @@ def test_lossless_case_matches_float_actor():
     c = r.integers(-3, 4, size=(2, 4))
     w1 = (c / 255.0).astype(np.float32)  # 255 * w1 is an integer
     b1 = (r.integers(60, 200, size=2) / 255.0).astype(np.float32)
-    p = Policy([w0.astype(np.float32), w1], [b0.astype(np.float32), b1], ["relu", "identity"], 1, world)
+    p = MLPPolicy([w0.astype(np.float32), w1], [b0.astype(np.float32), b1], ["relu", "identity"], 1, world)
     x = r.integers(-20, 21, size=(3000, n_in)) / 64.0  # on the e_in = 6 grid, |x| < 1/3
     calib = calibration_from_inputs(p, x)
     qp = quantize_policy(p, calib)
@@ -125,7 +124,7 @@ def test_overflow_refused():
     p = dataclasses.replace(p, biases=b)
     with pytest.raises(QuantizeError, match=r"layer 1 row 1: the int32 accumulator could overflow") as ei:
         quantize_policy(p, calibration_from_inputs(p, random_inputs(p, 50)))
-    assert isinstance(ei.value, ExportError) and "\n" not in str(ei.value)
+    assert isinstance(ei.value, KiloforgeError) and "\n" not in str(ei.value)
 
 
 def test_overflow_avoided_by_lowering_row_exponent():
@@ -139,10 +138,12 @@ def test_overflow_avoided_by_lowering_row_exponent():
     qp = quantize_policy(p, calibration_from_inputs(p, random_inputs(p, 100)))
     l0 = qp.layers[0]
     s = l0.shift.astype(np.int64)
-    bound = numfmt.acc_bound(l0.w, l0.b) + np.where(s > 0, 2 ** np.maximum(s - 1, 0), 0)
-    assert np.all(bound < 2 ** 31) and qp.acc_max[0] == int(bound.max())
+    x = rng(3).integers(-128, 128, size=(2000, l0.w.shape[1]))  # the bound holds for actual inputs too
+    acc = x @ l0.w.astype(np.int64).T + l0.b.astype(np.int64) + numfmt.half_up_constant(s)
+    bound = numfmt.acc_bound(l0.w, l0.b, s)
+    assert np.all(np.abs(acc) <= bound) and np.all(bound < 2 ** 31) and qp.acc_max[0] == int(bound.max())
     assert bound[2] > 2 ** 29  # the large-bias row sits near the limit: its exponent was lowered
-    assert qp.acc24_safe == tuple(numfmt.fits_acc24(l.w, l.b) for l in qp.layers)
+    assert qp.acc24_safe == tuple(bool(np.all(numfmt.acc_bound(l.w, l.b, l.shift) < 2 ** 23)) for l in qp.layers)
 
 
 def test_sigmoid_output_refused():

@@ -7,12 +7,16 @@ import re
 import numpy as np
 import pytest
 
-from export import fwspec, numfmt
-from export.cformat import c_comment, clamp_index_table, nonzero_windows
+from export.codegen.cformat import c_comment, clamp_index_table, nonzero_windows
+from export.codegen.render import POLICY_FILE, render_firmware
+from export.codegen.templates import TEMPLATE_DIR, templates_loaded
+from export.contract import firmware as fwspec
 from export.errors import ExportError
-from export.render import POLICY_FILE, TARGET_FILE, TEMPLATE_DIR, render_firmware, templates_loaded
-from export.synthetic import synthetic_qpolicy
-from regen_golden import GOLDEN_DIR, GOLDEN_VERSION, golden_files, golden_policy
+from fixtures import synthetic_qpolicy
+from kiloforge import numfmt
+from kiloforge.actors.gru import quantize_gru, random_gru_policy
+from kiloforge.actors.recurrent import calibration_from_sequences
+from regen_golden import GOLDEN_DIR, GOLDEN_VERSION, TARGET_GOLDEN, golden_files, golden_mlp, golden_policies, render
 from sim.config import preset
 from sim.motion import schedule_constants
 
@@ -31,9 +35,12 @@ def _code_only(c: str) -> str:
 
 
 def test_golden_files_match_byte_for_byte():
-    """The fixed golden policy renders exactly to the committed tests/golden/*.c."""
+    """Each kind's fixed golden policy renders, hand-written C aside, exactly to the committed tests/golden/<kind>.c."""
+    from kiloforge.actors.registry import KINDS
+
     files = golden_files()
-    assert set(files) == {POLICY_FILE, TARGET_FILE}
+    assert set(files) == {f"{k}.c" for k in KINDS} | {TARGET_GOLDEN}
+    assert {p.name for p in GOLDEN_DIR.iterdir()} == set(files), "stale or missing golden files"
     for name, text in files.items():
         want = (GOLDEN_DIR / name).read_text(encoding="utf-8")
         assert text == want, (f"{name} differs from tests/golden/{name}; if the change is intended run "
@@ -42,10 +49,8 @@ def test_golden_files_match_byte_for_byte():
 
 def test_every_template_is_rendered():
     """Every *.j2 in firmware_templates/ is loaded by some render (here: the golden and a wide policy)."""
-    golden_files()
+    golden_files()  # every kind's partial
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
-    from export.gru import random_gru_policy  # the recurrent program (kilobot_policy_gru.c.j2)
-    from export.gru_quantize import calibration_from_sequences, quantize_gru
     gru = random_gru_policy(preset("kilobot"), 4)
     render_firmware(quantize_gru(gru, calibration_from_sequences(gru, np.zeros((1, 2, gru.in_dim)))),
                     generator_version="t")
@@ -56,21 +61,21 @@ def test_every_template_is_rendered():
 
 def test_render_is_deterministic_and_pure():
     """Rendering twice gives identical text; the policy object is not modified."""
-    qp = golden_policy()
+    qp = golden_mlp()
     w0 = qp.layers[0].w.copy()
-    assert golden_files() == golden_files()
+    assert render(qp) == render(qp)
     np.testing.assert_array_equal(qp.layers[0].w, w0)
 
 
 def test_banner_names_version_hash_and_format():
     """The do-not-edit banner carries the generator version, the policy hash and the number format."""
-    files = golden_files()
-    for text in files.values():
-        head = text.split("*/", 1)[0]
-        assert "DO NOT EDIT" in head
-        assert f"kiloforge {GOLDEN_VERSION}" in head
-        assert golden_policy().policy_hash in head
-        assert numfmt.FORMAT_NAME in head and numfmt.ROUNDING in head
+    for qp in golden_policies().values():
+        for text in render(qp).values():
+            head = text.split("*/", 1)[0]
+            assert "DO NOT EDIT" in head
+            assert f"kiloforge {GOLDEN_VERSION}" in head
+            assert qp.policy_hash in head
+            assert numfmt.FORMAT_NAME in head and numfmt.ROUNDING in head
 
 
 def test_world_name_is_comment_safe():
@@ -104,7 +109,7 @@ def test_defines_follow_config_and_motion():
 
 def test_generated_c_has_no_float_or_division_in_code():
     """Outside comments the programs use no float types, no float literals and no division."""
-    for text in golden_files().values():
+    for text in (t for qp in golden_policies().values() for t in render(qp).values()):
         code = _code_only(text)
         assert not re.search(r"\b(float|double)\b", code)
         assert not re.search(r"\d\.\d", code), "a float literal reached the C"
@@ -140,20 +145,20 @@ def test_trimmed_tables_are_exact():
 def test_bad_arguments_give_one_line_errors(kwargs, match):
     """Bad message types and target uids raise ExportError with a one-line message."""
     with pytest.raises(ExportError, match=match) as err:
-        render_firmware(golden_policy(), generator_version="t", **kwargs)
+        render_firmware(golden_mlp(), generator_version="t", **kwargs)
     assert "\n" not in str(err.value)
 
 
 def test_bad_policy_hash_is_rejected():
     """A policy hash that is not hex never reaches the banner."""
-    qp = dataclasses.replace(golden_policy(), policy_hash="abc */ x")
+    qp = dataclasses.replace(golden_mlp(), policy_hash="abc */ x")
     with pytest.raises(ExportError, match="hex"):
         render_firmware(qp, generator_version="t")
 
 
 def test_target_uids_reach_the_table():
     """The configured target uids are the entries of KF_TARGET_UIDS (duplicates dropped)."""
-    text = render_firmware(golden_policy(), target_uids=(5, 300, 5), generator_version="t")[POLICY_FILE]
+    text = render_firmware(golden_mlp(), target_uids=(5, 300, 5), generator_version="t")[POLICY_FILE]
     m = re.search(r"KF_TARGET_UIDS\[(\d+)\] PROGMEM = \{\s*([^}]*)\}", text)
     assert m and m.group(1) == "2"
     assert [v.strip() for v in m.group(2).split(",")] == ["5u", "300u"]
@@ -170,7 +175,10 @@ def test_doctests_of_the_firmware_helpers():
     """The doctests of the C formatting, CRC, firmware-constant and emulator modules pass."""
     import doctest
 
-    from export import cformat, crc, emulator, fwspec as fw
+    from export.codegen import cformat
+    from export.contract import crc
+    from export.contract import firmware as fw
+    from export.verify import emulator
 
     for mod in (cformat, crc, fw, emulator):
         res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS)

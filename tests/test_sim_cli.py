@@ -90,32 +90,33 @@ def test_cli_unwritable_out_exit_2(tmp_path, capsys):
 
 
 def test_cli_runs_a_policy_artifact_in_its_own_world(tmp_path, capsys):
-    """An artifact runs through HistoryActor in its own world; a different --preset gives a note."""
-    artifact = pytest.importorskip("export.artifact")
+    """An artifact runs through its kind's float actor in its own world; a different --preset gives a note."""
+    from kiloforge.actors.mlp import MLPPolicy
+    from kiloforge.policies import save_policy
     from sim.config import preset
 
     world = preset("thesis", episode_steps=50)
     rng = np.random.default_rng(0)
     t_prev = 2
     d = world.history_dim(t_prev)
-    pol = artifact.Policy(weights=[rng.normal(0, 0.1, (8, d)).astype(np.float32), np.zeros((2, 8), np.float32)],
-                          biases=[np.zeros(8, np.float32), np.full(2, 0.6, np.float32)],
-                          activations=["elu", "identity"], t_prev=t_prev, world=world)
+    pol = MLPPolicy(weights=[rng.normal(0, 0.1, (8, d)).astype(np.float32), np.zeros((2, 8), np.float32)],
+                    biases=[np.zeros(8, np.float32), np.full(2, 0.6, np.float32)],
+                    activations=["elu", "identity"], t_prev=t_prev, world=world)
     path = tmp_path / "p.npz"
-    artifact.save_policy(pol, path)
+    save_policy(pol, path)
     out = tmp_path / "o"
     assert main(["--policy", str(path), "--preset", "kilobot", "--out", str(out), "--robots", "2",
                  "--episodes", "1", "--quiet"]) == 0
     err = capsys.readouterr().err
     assert "differs from preset 'kilobot'" in err
     m = json.loads((out / "metrics.json").read_text())
-    assert m["policy"]["kind"] == "artifact" and m["policy"]["t_prev"] == t_prev
+    assert m["policy"]["kind"] == "artifact" and m["policy"]["actor"] == "mlp"
+    assert m["policy"]["architecture"].startswith(f"t_prev {t_prev},")
     assert m["world"]["name"] == "thesis" and m["world"]["episode_steps"] == 50
 
 
 def test_cli_corrupt_artifact_exit_2(tmp_path, capsys):
     """A file that is not a policy artifact is a one-line error with exit 2."""
-    pytest.importorskip("export.artifact")
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip file")
     assert main(["--policy", str(bad), "--out", str(tmp_path / "o")] + TINY) == 2
@@ -134,3 +135,35 @@ def test_python_dash_m_sim_subprocess(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "Traceback" not in bad.stderr
+
+
+SUITE = ["--suite", "robustness", "--robots", "2", "3", "--episodes", "2", "--steps", "10", "--quiet"]
+
+
+@pytest.mark.parametrize("policy", ["baseline", str(ROOT / "export" / "data" / "default_policy.npz")])
+def test_cli_robustness_suite(tmp_path, capsys, policy):
+    """--suite robustness runs a baseline or an .npz policy in every variant at each robot count and
+    writes robustness.json and robustness.md (nothing else)."""
+    out = tmp_path / "rob"
+    assert main(["--policy", policy, "--out", str(out)] + SUITE) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["robustness.json", "robustness.md"]
+    rep = json.loads((out / "robustness.json").read_text())
+    cov = rep["final_coverage"]
+    assert "nominal" in cov and "graded motors" in cov and set(cov["nominal"]) == {"2", "3"}
+    nominal = cov["nominal"]["2"]
+    assert nominal["fraction_of_nominal"] == (1.0 if nominal["mean"] > 0 else None) and rep["robots"] == [2, 3]
+    assert rep["world"]["name"] == "kilobot" and set(rep["variants"]) == set(cov)
+    assert "msg period 15" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--robots", "2", "3"], "one count"),
+    (SUITE + ["--preset", "thesis"], "tick-level"),
+    (SUITE + ["--robots", "400"], "400 robots"),
+])
+def test_cli_suite_bad_input_exit_2(tmp_path, capsys, args, needle):
+    """Several robot counts without --suite, a suite in the thesis world, too many discs: exit 2, one line."""
+    out = tmp_path / "out"
+    assert main(["--out", str(out), "--quiet"] + args) == 2
+    assert needle in _one_line_error(capsys)
+    assert not out.exists()

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from avr_tools import require_avr
-from export import avr, fwspec
-from export.hostbuild import StreamSpec, random_inputs
-from export.render import render_firmware
-from export.synthetic import synthetic_qpolicy
+from export.contract import firmware as fwspec
+from export.verify import avr
+from export.verify.hostbuild import StreamSpec, random_inputs
+from export.codegen.render import render_firmware
+from fixtures import synthetic_qpolicy
 from sim.config import preset
 
 pytestmark = pytest.mark.avr
@@ -96,9 +98,9 @@ def test_verify_simavr_catches_a_wrong_firmware(qp):
 def test_default_policy_bit_exact_over_2000_control_steps():
     """The shipped default policy, quantised, is bit-exact in simavr over more than 2,000 control steps."""
     require_avr(simulate=True)
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
     from export.quantize import calibrate, quantize_policy
-    p = load_policy(avr.ROOT / "export" / "data" / "default_policy.npz")
+    p = load_policy(Path(__file__).resolve().parents[1] / "export" / "data" / "default_policy.npz")
     q = quantize_policy(p, calibrate(p, episodes=1, n_robots=(4,), seed=0))
     check = avr.verify_simavr(q, render_firmware(q), n_robots=60, n_steps=40, seed=1)
     assert check.ok, check.detail
@@ -110,8 +112,8 @@ def test_stack_paint_point_has_no_frame(tmp_path):
     require_avr()
     import subprocess
     obj = tmp_path / "io.o"
-    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, "-I", str(avr.STANDIN_DIR), "-c", "-o", str(obj),
-                    str(avr.STANDIN_DIR / "kf_avr_io.c")], check=True)
+    subprocess.run(["avr-gcc", *avr.KILOLIB_CFLAGS, *(f"-D{d}" for d in avr.MARK_DEFINES), "-I", str(avr.STANDIN_DIR),
+                    "-c", "-o", str(obj), str(avr.STANDIN_DIR / "kf_avr_io.c")], check=True)
     dis = subprocess.run(["avr-objdump", "-d", str(obj)], capture_output=True, text=True, check=True).stdout
     body = dis.split("<kf_io_read>:")[1].split("\n\n")[0]
     assert "ret" in body and "push" not in body and "rcall" not in body

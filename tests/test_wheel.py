@@ -103,7 +103,7 @@ def test_wheel_holds_every_runtime_file(installed):
     names = set(zipfile.ZipFile(installed.wheel).namelist())
     want = {p.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("*")
             if p.is_file() and p.suffix not in (".py", ".pyc") and "__pycache__" not in p.parts}
-    assert {"export/simavr_run.c", "export/data/default_policy.npz", "kiloforge/py.typed"} <= want
+    assert {"export/verify/simavr_run.c", "export/data/default_policy.npz", "kiloforge/py.typed"} <= want
     assert want - names == set(), f"missing from the wheel: {sorted(want - names)}"
     meta = zipfile.ZipFile(installed.wheel).read(f"kiloforge-{__version__}.dist-info/METADATA").decode()
     assert f"Version: {__version__}" in meta and "License-Expression: MIT" in meta and "Project-URL: Homepage" in meta

@@ -2,21 +2,21 @@
  *
  * Part of kiloforge (MIT). Compiled with -DKF_HARNESS_CUSTOM_IO next to host/kilolib_host.c and
  * host/harness.c: the event stream comes in through GPIOR2, the output records go out through
- * GPIOR1 (export/simavr_run.c). Control steps are measured without touching the harness: the
+ * GPIOR1 (export/verify/simavr_run.c). Control steps are measured without touching the harness: the
  * harness reads the 2-byte light value right before calling loop() at a control tick and writes
  * the 16-byte tick record right after it, so
  *   - the light read repaints the free stack (0xFE) and marks KF_MARK_STEP_BEGIN,
  *   - the next record write marks KF_MARK_STEP_END and scans the stack (0xFD).
  * kf_io_read uses only call-clobbered registers (no pushes), so SP at the paint is the harness's
- * SP minus the 2-byte return address: export/avr.py adds those bytes back.
+ * SP minus the 2-byte return address: export/verify/avr.py adds those bytes back.
  */
 #include <stdint.h>
 
 #include "kf_sim_io.h"
 
-#define KF_MARK_STEP_BEGIN 10u
-#define KF_MARK_STEP_END 11u
-#define KF_MARK_FAIL 12u
+#if !defined(KF_MARK_STEP_BEGIN) || !defined(KF_MARK_STEP_END) || !defined(KF_MARK_FAIL)
+#error "export/verify/avr.py defines the marks (KF_MARK_STEP_BEGIN, KF_MARK_STEP_END, KF_MARK_FAIL)"
+#endif
 
 static uint8_t kf_in_step;
 

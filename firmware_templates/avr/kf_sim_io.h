@@ -1,4 +1,4 @@
-/* kf_sim_io.h -- the AVR side of export/simavr_run.c's protocol (simavr only; never on a robot).
+/* kf_sim_io.h -- the AVR side of export/verify/simavr_run.c's protocol (simavr only; never on a robot).
  * Part of kiloforge (MIT).
  *   kf_sim_in()      next byte of the runner's input file      (reads GPIOR2)
  *   kf_sim_out(b)    append a byte to the runner's output file (writes GPIOR1)

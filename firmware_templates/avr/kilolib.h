@@ -2,7 +2,7 @@
  *
  * Part of kiloforge (MIT). kilolib itself has no licence: nothing here is copied from it. The
  * declarations follow kilolib's documented API (shared/reference/kilobot-platform.md); the code in
- * kilolib_avr.c is ours and deliberately minimal. export/avr.py builds a generated program against
+ * kilolib_avr.c is ours and deliberately minimal. export/verify/avr.py builds a generated program against
  * this stand-in, measures it with avr-size, and replaces the stand-in's own size (measured as a
  * program with empty setup/loop) by kilolib's (7,028 B flash, 110 B SRAM with empty setup/loop).
  * To build for a robot, use the real kilolib (python -m export ... --kilolib DIR).

@@ -1,5 +1,5 @@
 /* kilolib_avr.c -- kiloforge's minimal AVR stand-in for kilolib (see kilolib.h). Part of kiloforge
- * (MIT); our own code. It only has to link and behave plausibly: export/avr.py subtracts its size
+ * (MIT); our own code. It only has to link and behave plausibly: export/verify/avr.py subtracts its size
  * (an empty-setup/loop program built with it) and adds kilolib's measured size instead.
  * Timer0 overflow advances kilo_ticks (8 MHz / 1024 / 256 = 30.52 Hz, as on a Kilobot).
  */

@@ -1,9 +1,9 @@
 /*
  * harness.c: kilo_start() of kiloforge's kilolib stand-in: replays a binary event stream through a
  * generated Kilobot program, one robot after another, and writes every per-tick output byte.
- * Part of kiloforge (MIT). The stream formats are written and read by export/hostbuild.py.
+ * Part of kiloforge (MIT). The stream formats are written and read by export/verify/hostbuild.py.
  *
- * Tick model (export/emulator.py models exactly this): for robot r, setup() once, then for every
+ * Tick model (export/verify/emulator.py models exactly this): for robot r, setup() once, then for every
  * global tick T = 0 .. n_ticks-1 (control ticks are T = k * period, k >= 1: the program listens
  * during its first period):
  *   0. (host build only, before setup()) the robot's state is fresh garbage (KF_HOST_FILL: a byte,

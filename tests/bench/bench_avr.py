@@ -17,21 +17,24 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from export import avr, kernel, numfmt  # noqa: E402
-from export.artifact import load_policy  # noqa: E402
-from export.budget import FLASH_LIMIT_B  # noqa: E402
-from export.make_placeholder import init_policy  # noqa: E402
+from export.codegen import kernel  # noqa: E402
+from export.codegen.budget import FLASH_LIMIT_B  # noqa: E402
+from export.codegen.render import render_firmware  # noqa: E402
 from export.quantize import calibrate, quantize_policy  # noqa: E402
-from export.render import render_firmware  # noqa: E402
+from export.verify import avr  # noqa: E402
+from fixtures import init_policy  # noqa: E402
+from kiloforge import numfmt  # noqa: E402
+from kiloforge.policies import load_policy  # noqa: E402
 from sim.config import preset  # noqa: E402
 
 
 def networks():
     """(name, QuantizedPolicy) of the benchmark networks."""
     world = preset("kilobot")
-    default = load_policy(avr.ROOT / "export" / "data" / "default_policy.npz")
+    default = load_policy(ROOT / "export" / "data" / "default_policy.npz")
     out = [("default " + "-".join(map(str, [default.in_dim, *[w.shape[0] for w in default.weights]])), default)]
     for t_prev, hidden in ((20, (64, 32)), (2, (32, 32))):
         p = init_policy(world, t_prev, hidden, "elu", seed=7)

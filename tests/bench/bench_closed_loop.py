@@ -21,9 +21,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from export.artifact import load_policy  # noqa: E402
-from export.closed_loop import compare, run_firmware  # noqa: E402
 from export.quantize import calibrate, error_report, quantize_policy  # noqa: E402
+from export.verify.closed_loop import compare, run_firmware  # noqa: E402
+from kiloforge.policies import load_policy  # noqa: E402
 
 
 def main() -> int:
@@ -46,8 +46,8 @@ def main() -> int:
     qp = quantize_policy(policy, calib)
     rep = error_report(policy, qp, calib)
     T = args.steps or policy.world.episode_steps
-    print(f"policy {source} ({policy.hash[:12]}, world '{policy.world.name}', t_prev {policy.t_prev}, "
-          f"{' -> '.join(map(str, policy.layer_sizes))}); {policy.provenance.get('notes', '')}")
+    print(f"policy {source} ({policy.hash[:12]}, world '{policy.world.name}', {policy.describe()}); "
+          f"{policy.provenance.get('notes', '')}")
     print(f"quantised: e_in {qp.e_in}, mean |du| {rep.du_mean:.4f}, same uint8 command {100 * rep.same_command:.1f}%; "
           f"{args.episodes} episodes x {T} steps per robot count, seed {args.seed}")
     head = (f"{'robots':>6} {'final cov float':>16} {'final cov int8':>16} {'int8-float':>15} {'ratio [95% CI]':>22} "

@@ -24,8 +24,8 @@ from bench_train_speed import ROOT, checkout
 
 EVAL = """
 import json, sys
-from export.artifact import load_policy
-from export.gru import swarm_policy
+from kiloforge.policies import load_policy
+from kiloforge.policies import swarm_policy
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 p = load_policy(sys.argv[1])

@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+ROOT = Path(__file__).resolve().parents[2]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from export.emulator import FirmwareEmulator  # noqa: E402
-from export.hostbuild import StreamSpec, build_host, compare, random_inputs, run_host  # noqa: E402
-from export.render import POLICY_FILE, render_firmware  # noqa: E402
-from export.synthetic import synthetic_qpolicy  # noqa: E402
+from export.codegen.render import POLICY_FILE, render_firmware  # noqa: E402
+from export.verify.emulator import FirmwareEmulator  # noqa: E402
+from export.verify.hostbuild import StreamSpec, build_host, compare, random_inputs, run_host  # noqa: E402
+from fixtures import synthetic_qpolicy  # noqa: E402
 from sim.config import preset  # noqa: E402
 
 ROWS = [  # (world, t_prev, hidden, activations, robots, control steps)

@@ -58,7 +58,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from export.errors import ExportError, one_line  # noqa: E402
+from export.errors import ExportError  # noqa: E402
+from kiloforge.errors import KiloforgeError, one_line  # noqa: E402
 from sim.config import KILO_TICK_HZ, WorldConfig  # noqa: E402
 from sim.metrics import episode_metrics, summarise, time_to_find  # noqa: E402
 
@@ -188,10 +189,10 @@ def build(prefix: Path, sources: list[Path], out: Path) -> Path:
 
 
 class Episodes:
-    """The closed loop's episodes: start states and the env batching (``export.closed_loop``)."""
+    """The closed loop's episodes: start states and the env batching (``export.verify.closed_loop``)."""
 
     def __init__(self, cfg: WorldConfig, n_robots: int, episodes: int, seed: int) -> None:
-        from export.closed_loop import batch_env_seeds, default_n_envs
+        from export.verify.closed_loop import batch_env_seeds, default_n_envs
         from sim.env import SwarmEnv
 
         self.B = default_n_envs(episodes, n_robots)
@@ -231,7 +232,7 @@ def run_kilombo(binary: Path, cfg: WorldConfig, eps: Episodes, steps: int, seed:
 def run_ours_firmware(qp, world: WorldConfig, n_robots: int, episodes: int, seed: int, steps: int,
                       label: str, base: str | None, note: str) -> Row:
     """Our closed loop (int8 firmware emulator) in ``world``."""
-    from export.closed_loop import run_firmware
+    from export.verify.closed_loop import run_firmware
 
     t0 = time.perf_counter()
     res = run_firmware(dataclasses.replace(qp, world=world), n_robots, episodes, seed, steps=steps)
@@ -248,7 +249,7 @@ def _spawn_key(w: WorldConfig) -> tuple:
 def run_ours_baseline(name: str, world: WorldConfig, n_robots: int, episodes: int, seed: int, steps: int,
                       label: str) -> Row:
     """A baseline of sim/baselines.py in our simulator on the same episodes (same env seeds)."""
-    from export.closed_loop import default_n_envs
+    from export.verify.closed_loop import default_n_envs
     from sim.baselines import make_policy
     from sim.env import SwarmEnv
     from sim.rollout import rollout
@@ -294,7 +295,7 @@ def _kilombo_variants(w: WorldConfig) -> list[tuple[str, dict[str, Any], str]]:
 
 
 def _fmt_ratio(num: np.ndarray, den: np.ndarray, paired: bool, seed: int) -> str:
-    from export.closed_loop import ratio_ci
+    from export.verify.closed_loop import ratio_ci
 
     if den.mean() <= 0:
         return "n/a"
@@ -370,19 +371,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.robots < 1 or args.episodes < 1 or args.steps < 1:
             raise ExportError("--robots, --episodes and --steps must be >= 1")
         if args.json is not None:
-            from export.atomic import check_writable
+            from kiloforge.io import check_writable
 
             check_writable([args.json])
         return _bench(args, prefix, extra, sets)
-    except ExportError as e:
+    except KiloforgeError as e:
         _die(str(e))
     return 2
 
 
 def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, Any]) -> int:
+    from export.cli.common import load as load_policy_or_default  # what export verify loads
+    from export.codegen.render import render_firmware
     from export.quantize import calibrate, quantize_policy
-    from export.render import render_firmware
-    from export.verify_cli import _load as load_policy_or_default  # what export verify loads
 
     policy = load_policy_or_default(args.policy)
     source = str(args.policy or "export/data/default_policy.npz")
@@ -438,14 +439,14 @@ def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, An
     print(f"\nKilombo / our closed loop, final coverage: {k.final.mean() / ref.final.mean():.3f} "
           f"(issue 16 asks >= 0.90)")
     if args.json is not None:
-        from export.atomic import write_bytes_atomic
+        from kiloforge.io import write_atomic
 
         doc = {"policy": source, "policy_hash": policy.hash, "robots": M, "episodes": E, "steps": T, "seed": seed,
                "kilombo": str(prefix), "set": sets,
                "rows": [{"label": r.label, "sim": r.sim, "base": r.base, "note": r.note, "wall_s": r.wall_s,
                          "paired": r.paired, "final_coverage": r.final.tolist(), "time_to_find": r.t_find.tolist(),
                          "beacon_moved_mm": None if r.beacon_mm is None else r.beacon_mm.tolist()} for r in rows]}
-        write_bytes_atomic(args.json, json.dumps(doc, indent=1))
+        write_atomic(args.json, json.dumps(doc, indent=1))
         print(f"wrote {args.json}")
     return 0
 

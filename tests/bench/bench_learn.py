@@ -107,7 +107,7 @@ def train_goals(seeds: list[int], out: Path) -> list[Path]:
 
 def report(runs: list[Path], episodes: int = 200, big_episodes: int = 100) -> None:
     """Per run: when the periodic evaluation first reached the goal; fresh-episode checks of the policies."""
-    from export.artifact import load_policy
+    from kiloforge.policies import load_policy
     from learn.train import read_metrics
     from sim.baselines import make_policy
     from sim.env import SwarmEnv

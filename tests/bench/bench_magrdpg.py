@@ -96,14 +96,12 @@ def plot_curves(runs: dict[str, list[dict]], path: Path) -> None:
 
 def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: list[int],
            guided_run: Path | None = None) -> dict:
-    from export import avr, closed_loop
-    from export import budget as bud
-    from export.artifact import load_policy
-    from export.gru import swarm_policy
-    from export.gru_quantize import calibrate_gru, gru_error_report, quantize_gru
-    from export.hostbuild import StreamSpec, verify_host
-    from export.quantize import calibrate, quantize_policy
-    from export.render import render_firmware
+    from export.codegen import budget as bud
+    from export.codegen.render import render_firmware
+    from export.quantize import calibrate, error_report, quantize_policy
+    from export.verify import avr, closed_loop
+    from export.verify.hostbuild import StreamSpec, verify_host
+    from kiloforge.policies import load_policy, swarm_policy
     from sim.baselines import make_policy
     from sim.env import SwarmEnv
     from sim.metrics import compare
@@ -150,9 +148,9 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
     gp = pols["MAGRDPG GRU-32 guided" if guided_run is not None else "MAGRDPG GRU-32"]
     print("policy:", "guided run" if guided_run is not None else "MAGRDPG run", "(best)")
     t0 = time.perf_counter()
-    cal = calibrate_gru(gp, episodes=2, n_robots=(2, 4, 16), seed=0)
-    qp = quantize_gru(gp, cal)
-    rep = gru_error_report(gp, qp, cal)
+    cal = calibrate(gp, episodes=2, n_robots=(2, 4, 16), seed=0)
+    qp = quantize_policy(gp, cal)
+    rep = error_report(gp, qp, cal)
     print(f"calibration + quantisation {time.perf_counter() - t0:.1f} s")
     print(rep.table())
     files = render_firmware(qp)

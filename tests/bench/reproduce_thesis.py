@@ -109,7 +109,7 @@ def ship(args) -> None:
     import datetime
 
     sys.path.insert(0, str(ROOT))
-    from export.artifact import load_policy, save_policy
+    from kiloforge.policies import load_policy, save_policy
 
     cands = [RUNS / name / f for name, *_ in KILOBOT_RUNS for f in ("policy_best.npz", "policy_last.npz")
              if (RUNS / name / f).exists() or args.dry_run]
@@ -136,7 +136,7 @@ def ship(args) -> None:
         "eval_16_robots": res[best_key]["summary"],
     })
     shipped = type(p)(weights=list(p.weights), biases=list(p.biases), activations=list(p.activations),
-                      t_prev=p.t_prev, world=p.world, provenance=prov, kind=p.kind)
+                      t_prev=p.t_prev, world=p.world, provenance=prov)
     save_policy(shipped, SHIPPED)
     print(f"shipped {path} -> {SHIPPED} ({SHIPPED.stat().st_size} B), hash {shipped.hash[:16]}")
 

@@ -2,7 +2,7 @@
  * Unit tests of the hand-written C of kiloforge firmware (firmware_templates/kf_runtime.h).
  * Run by tests/test_host_build.py: exit status 0 when every check passes. With the argument
  * "grid" it also prints "a s kf_rshift_round(a, s)" lines that the test compares with
- * export/numfmt.py's rshift_round.
+ * kiloforge/numfmt.py's rshift_round.
  */
 #include <stdio.h>
 #include <string.h>

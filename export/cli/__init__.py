@@ -1,0 +1,1 @@
+"""``python -m export``: the exporter's command-line interface (one module per sub-command)."""

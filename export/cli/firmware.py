@@ -1,0 +1,160 @@
+"""``python -m export`` (the default command): policy artifact -> int8 Kilobot firmware (C).
+
+    python -m export --out kilobot_policy.c [--policy PATH | --onnx PATH [--world-json FILE]]
+                     [--robots-calib 4 16] [--calib-episodes 1] [--calib-steps N] [--seed 0]
+                     [--target-uids 0,5] [--verify host|avr] [--kilolib DIR]
+
+loads the policy (default: the shipped reference policy ``export/data/default_policy.npz``), checks
+the analytic flash/SRAM budget (refusing an architecture that does not fit, and saying what would),
+calibrates on simulator rollouts of the policy itself, quantises, prints the error report and the
+budget, renders the firmware and writes ``<out>``, ``kilobot_target.c`` beside it and
+``<out>.manifest.json``, all-or-nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+from kiloforge.actors.base import QuantizedActor
+from kiloforge.io import check_writable, write_files_atomic
+from kiloforge.errors import OutputError
+
+from ..codegen import budget as bud
+from ..codegen.manifest import build_manifest, generator_version, manifest_json
+from ..codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from ..errors import BudgetError, ExportError, VerifyError
+from ..quantize import calibrate, error_report, quantize_policy
+from ..verify import avr
+from ..verify.hostbuild import verify_host
+from .common import EXIT_OK, Parser, describe, load, positive
+
+
+def _uids(text: str) -> tuple[int, ...]:
+    try:
+        uids = tuple(int(t) for t in text.split(",") if t.strip() != "")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got '{text}'") from None
+    if not uids or any(not 0 <= u <= 0xFFFF for u in uids):
+        raise argparse.ArgumentTypeError(f"target uids must be uint16 values, got '{text}'")
+    return uids
+
+
+def export_parser() -> argparse.ArgumentParser:
+    ap = Parser(prog="python -m export",
+                description="Quantise a policy to int8 and render the Kilobot firmware "
+                            "(sub-command 'budget': will an architecture fit?; 'verify --closed-loop': "
+                            "float actor vs int8 firmware in the simulator).")
+    ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
+                    help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
+    src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
+    ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
+    ap.add_argument("--robots-calib", type=positive, nargs="+", default=[4, 16], metavar="N",
+                    help="robot counts of the calibration rollouts (default 4 16)")
+    ap.add_argument("--calib-episodes", type=positive, default=1, help="episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=positive, default=None,
+                    help="control periods per calibration episode (default: the world's episode length)")
+    ap.add_argument("--seed", type=int, default=0, help="calibration seed (default 0)")
+    ap.add_argument("--percentile", type=float, default=100.0,
+                    help="range percentile for exponent choice (default 100: the largest value seen)")
+    ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS",
+                    help="comma-separated kilo_uids that run as the target beacon (default: the world's target_uid)")
+    ap.add_argument("--kilolib", type=Path, default=None, metavar="DIR",
+                    help="a built kilolib checkout: also write .elf/.hex images for KiloGUI beside the C files")
+    ap.add_argument("--no-avr", action="store_true",
+                    help="skip the exact avr-gcc budget even when the AVR toolchain is installed")
+    ap.add_argument("--verify", choices=["host", "avr"], default=None,
+                    help="host: build the C with the host compiler and check it against the emulator before writing")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return ap
+
+
+def _exact_budget(budget: bud.Budget, qp: QuantizedActor, files: dict[str, str], *, skip: bool) -> bud.Budget:
+    """Merge the exact avr-gcc figures (and the simavr-measured stack) into the budget, when possible."""
+    why = "--no-avr" if skip else avr.missing_tools()
+    if why is not None:
+        print(f"exact AVR budget skipped: {why}; the figures below are analytic estimates")
+        return budget
+    budget = budget.with_exact(avr.exact_budget(files, qp))
+    if not budget.ok:
+        print(budget.table())
+        raise BudgetError(f"the avr-gcc build does not fit ({budget.summary()}); would fit: "
+                          + "; ".join(budget.suggest()))
+    return budget
+
+
+def _verify_host(qp: QuantizedActor, files: dict[str, str]) -> str:
+    """Build the rendered C on the host and compare with the emulator (rung 2)."""
+    result = verify_host(qp, files)
+    if not result.ok:
+        raise VerifyError(f"host verification failed: {result}")
+    return f"host verification: {result}"
+
+
+def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
+    """Run the AVR build in simavr and compare every output byte with the emulator (rung 3)."""
+    why = avr.missing_tools(simulate=True)
+    if why:
+        raise ExportError(f"--verify avr needs avr-gcc and simavr: {why}")
+    check = avr.verify_simavr(qp, files)
+    if not check.ok:
+        raise VerifyError(f"AVR verification failed: {check}")
+    return str(check)
+
+
+def run_export(argv: Sequence[str]) -> int:
+    args = export_parser().parse_args(list(argv))
+    out: Path = args.out
+    if out.name in ("", ".", "..") or out.suffix != ".c":
+        raise OutputError(f"--out must name a .c file, got '{out}'")
+    target_path = out.with_name(TARGET_FILE)
+    if target_path == out:
+        raise OutputError(f"--out must not be named {TARGET_FILE} (that name is the beacon program's)")
+    manifest_path = out.with_name(out.name + ".manifest.json")
+    check_writable([out, target_path, manifest_path])  # fail before the slow part
+
+    policy = load(args.policy, args.onnx, args.world_json)
+    print(describe(policy))
+    budget = bud.for_policy(policy)
+    if not budget.ok:
+        print(budget.table())
+        raise BudgetError(f"policy does not fit on the Kilobot ({budget.summary()}); would fit: "
+                          + "; ".join(budget.suggest()))
+
+    calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.seed,
+                      steps=args.calib_steps, progress=not args.no_progress and sys.stderr.isatty())
+    qp = quantize_policy(policy, calib, percentile=args.percentile)
+    report = error_report(policy, qp, calib)
+    print(report.table())
+    budget = bud.for_quantized(qp)
+    if not budget.ok:  # pragma: no cover - same architecture as checked above
+        print(budget.table())
+        raise BudgetError(f"quantised policy does not fit ({budget.summary()})")
+
+    target_uids = args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
+    files = render_firmware(qp, target_uids=target_uids, generator_version=generator_version())
+    budget = _exact_budget(budget, qp, files, skip=args.no_avr)
+    print(budget.table())
+    if args.verify == "host":
+        print(_verify_host(qp, files))
+    elif args.verify == "avr":
+        print(_verify_avr(qp, files))
+    options = {"target_uids": list(target_uids), "robots_calib": list(args.robots_calib),
+               "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
+               "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
+               "source": str(args.onnx or args.policy or "default reference policy")}
+    contents: dict[Path, Any] = {out: files[POLICY_FILE], target_path: files[TARGET_FILE]}
+    if args.kilolib is not None:
+        images = avr.robot_images(files, args.kilolib)  # {"kilobot_policy.hex": bytes, ...}
+        stems = {Path(POLICY_FILE).stem: out, Path(TARGET_FILE).stem: target_path}
+        for name, data in images.items():
+            contents[stems[Path(name).stem].with_suffix(Path(name).suffix)] = data
+    manifest = build_manifest(policy, qp, budget, report, calib,
+                              {out.name: files[POLICY_FILE], TARGET_FILE: files[TARGET_FILE]}, options)
+    contents[manifest_path] = manifest_json(manifest)
+    write_files_atomic(contents)
+    print(f"wrote {out}, {target_path}, {manifest_path}")
+    return EXIT_OK

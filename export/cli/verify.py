@@ -1,0 +1,192 @@
+"""``python -m export verify --closed-loop``: float actor vs int8 firmware in the simulator, side by side.
+
+    python -m export verify --closed-loop [--policy P] [--robots 16 32] [--episodes 200] [--steps N]
+                            [--seed S] [--out DIR] [--robots-calib 4 16] [--calib-episodes 1]
+                            [--calib-steps N] [--calib-seed 0] [--percentile 100] [--goal 0.97]
+
+Quantises the policy exactly as ``python -m export`` does with the same calibration options, then
+for each robot count runs the same episodes (same env seeds) twice: with the float actor and with
+the firmware emulator in the loop (:mod:`export.verify.closed_loop`). Prints mean return, final coverage
+and time to find with 95 % confidence intervals, the paired int8 - float difference, the ratio of
+the int8 to the float final coverage (with a paired-bootstrap interval) and PASS / FAIL against
+the goal (ratio >= 0.97 by default). With ``--out DIR``: ``coverage.png`` (coverage over time,
+mean and 95 % band, float vs int8, one panel per robot count), ``returns_box.png`` and
+``closed_loop.json`` (every number, per-episode values included), written all-or-nothing.
+
+Exit status: 0 every robot count passes; 1 some robot count fails the goal; 2 bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+from kiloforge.errors import OutputError
+from kiloforge.io import check_writable, write_files_atomic
+from sim.env import SwarmEnv
+
+from ..errors import ExportError
+from ..quantize import calibrate, error_report, quantize_policy
+from ..verify.closed_loop import GOAL_RATIO, compare_many
+from .common import EXIT_FAIL, EXIT_OK, Parser, describe, load, positive
+
+COVERAGE_PNG = "coverage.png"
+RETURNS_PNG = "returns_box.png"
+RESULT_JSON = "closed_loop.json"
+
+
+def verify_parser() -> argparse.ArgumentParser:
+    ap = Parser(prog="python -m export verify",
+                 description="Closed-loop verification: the simulator driven by the int8 firmware emulator "
+                             "vs by the float actor, same episodes. Exit 0 pass, 1 fail, 2 bad input.")
+    ap.add_argument("--closed-loop", action="store_true", required=True,
+                    help="run the closed-loop comparison (the verification this command does)")
+    ap.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped default policy)")
+    ap.add_argument("--robots", type=positive, nargs="+", default=[16, 32], metavar="M",
+                    help="robot counts to compare at (default 16 32)")
+    ap.add_argument("--episodes", type=positive, default=200, help="episodes per robot count (default 200)")
+    ap.add_argument("--steps", type=positive, default=None,
+                    help="control periods per episode (default: the world's episode length)")
+    ap.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="directory for coverage.png, returns_box.png and closed_loop.json (created if missing)")
+    ap.add_argument("--goal", type=float, default=GOAL_RATIO,
+                    help=f"pass when int8 final coverage >= GOAL x float final coverage (default {GOAL_RATIO})")
+    ap.add_argument("--robots-calib", type=positive, nargs="+", default=[4, 16], metavar="N",
+                    help="robot counts of the calibration rollouts, as for export (default 4 16)")
+    ap.add_argument("--calib-episodes", type=positive, default=1, help="calibration episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=positive, default=None,
+                    help="control periods per calibration episode, as for export (default: the world's)")
+    ap.add_argument("--calib-seed", type=int, default=0, help="calibration seed, as export's --seed (default 0)")
+    ap.add_argument("--percentile", type=float, default=100.0,
+                    help="range percentile for exponent choice, as for export (default 100)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
+    return ap
+
+
+def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
+    """(coverage.png, returns_box.png) as bytes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    colours = {"float": "tab:blue", "int8": "tab:orange"}
+    n = len(comps)
+    fig, axes = plt.subplots(1, n, figsize=(5.0 * n, 3.6), squeeze=False, sharey=True)
+    for ax, c in zip(axes[0], comps):
+        for label, (mean, half) in c.curves().items():
+            t = np.arange(1, mean.size + 1)
+            name = "float actor" if label == "float" else "int8 firmware"
+            ax.plot(t, mean, color=colours[label], label=name, lw=1.5, ls="-" if label == "float" else "--")
+            ax.fill_between(t, np.clip(mean - half, 0, 1), np.clip(mean + half, 0, 1), color=colours[label],
+                            alpha=0.25, lw=0)
+        ratio = f"{c.ratio:.3f}" if np.isfinite(c.ratio) else "n/a"
+        ax.set_title(f"{c.n_robots} robots: int8/float final cov {ratio} "
+                     f"({'PASS' if c.passed else 'FAIL'})", fontsize=9)
+        ax.set_xlabel("control step")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("coverage (fraction within comm radius)")
+    axes[0][0].legend(loc="lower right", fontsize=8)
+    fig.suptitle(f"{title}: mean and 95% CI over {comps[0].episodes} episodes", fontsize=10)
+    fig.tight_layout()
+    cov = io.BytesIO()
+    fig.savefig(cov, format="png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * n), 3.6))
+    data, pos, cols = [], [], []
+    for i, c in enumerate(comps):
+        for j, run in enumerate((c.float_run, c.int8_run)):
+            data.append(run.metrics().returns)
+            pos.append(3 * i + j + 1)
+            cols.append(colours[run.label])
+    bp = ax.boxplot(data, positions=pos, widths=0.8, patch_artist=True, showfliers=True,
+                    medianprops={"color": "black"})
+    for patch, col in zip(bp["boxes"], cols):
+        patch.set_facecolor(col)
+        patch.set_alpha(0.6)
+    ax.set_xticks([3 * i + 1.5 for i in range(n)], [f"{c.n_robots} robots" for c in comps])
+    ax.set_ylabel("episode return")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=colours[k], alpha=0.6) for k in ("float", "int8")]
+    ax.legend(handles, ["float actor", "int8 firmware"], fontsize=8)
+    ax.set_title(f"{title}: returns over {comps[0].episodes} episodes", fontsize=10)
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    box = io.BytesIO()
+    fig.savefig(box, format="png", dpi=110)
+    plt.close(fig)
+    return cov.getvalue(), box.getvalue()
+
+
+def run_verify(argv: Sequence[str]) -> int:
+    """The ``verify`` sub-command; returns the exit status (raises ExportError on bad input)."""
+    args = verify_parser().parse_args(list(argv))
+    if not 0.0 < args.goal <= 1.5:
+        raise ExportError(f"--goal must be in (0, 1.5], got {args.goal}")
+    if not 0.0 < args.percentile <= 100.0:
+        raise ExportError(f"--percentile must be in (0, 100], got {args.percentile}")
+    out: Path | None = args.out
+    if out is not None:  # fail before the slow part
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"--out must be a directory, '{out}' is a file")
+        base = out.resolve()
+        while not base.exists():  # the nearest existing ancestor must let us create the rest
+            base = base.parent
+        if not base.is_dir():
+            raise OutputError(f"cannot create '{out}': '{base}' is not a directory")
+        check_writable([base / RESULT_JSON])
+    policy = load(args.policy)
+    print(describe(policy))
+    M_max = max(args.robots)
+    try:
+        SwarmEnv(policy.world, 1, M_max, seed=0)  # checks that this many robots fit the arena
+    except ValueError as e:
+        raise ExportError(f"--robots {M_max}: {e}") from None
+
+    progress = not args.no_progress and sys.stderr.isatty()
+    calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
+                      steps=args.calib_steps, progress=progress)
+    qp = quantize_policy(policy, calib, percentile=args.percentile)
+    report = error_report(policy, qp, calib)
+    print(f"quantised as python -m export would (calibration robots {args.robots_calib}, "
+          f"{args.calib_episodes} episode(s), seed {args.calib_seed}, percentile {args.percentile}): "
+          f"e_in {qp.e_in}, mean |du| {report.du_mean:.5f}, max |du| {report.du_max:.5f}, "
+          f"same uint8 command {100 * report.same_command:.1f}%")
+
+    comps = compare_many(policy, qp, args.robots, args.episodes, args.seed, steps=args.steps, goal=args.goal,
+                         progress=progress)
+    print()
+    for c in comps:
+        print(c.table())
+        print()
+    passed = all(c.passed for c in comps)
+    verdict = "PASS" if passed else "FAIL"
+    print(f"closed loop: {verdict} (goal: int8 final coverage >= {args.goal:.2f} x float at "
+          f"{', '.join(str(c.n_robots) for c in comps)} robots)")
+
+    if out is not None:
+        doc: dict[str, Any] = {
+            "policy_hash": policy.hash, "policy": str(args.policy or "default"), "world": policy.world.name,
+            "quantisation": {"e_in": qp.e_in, "robots_calib": list(args.robots_calib),
+                             "calib_episodes": args.calib_episodes, "calib_steps": args.calib_steps,
+                             "calib_seed": args.calib_seed,
+                             "percentile": args.percentile, "error_report": report.to_dict()},
+            "goal_ratio": args.goal, "passed": passed,
+            "comparisons": [c.to_dict() for c in comps],
+        }
+        title = f"policy {policy.hash[:8]} ({policy.world.name})"
+        cov, box = _plots(comps, title)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputError(f"cannot create '{out}': {e.strerror or e}") from None
+        files = {out / COVERAGE_PNG: cov, out / RETURNS_PNG: box,
+                 out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}
+        write_files_atomic(files)
+        print(f"wrote {', '.join(str(p) for p in files)}")
+    return EXIT_OK if passed else EXIT_FAIL

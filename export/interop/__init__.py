@@ -1,0 +1,1 @@
+"""Interoperability: policies from other frameworks (ONNX in)."""

@@ -1,0 +1,272 @@
+"""What the recurrent actor kinds (GRU, LSTM) share: PyTorch's cell arrays, their validation, calibration
+over recorded sequences, free-running integer replays and the kind's common answers.
+
+A recurrent actor reads one tuple ``x = [a_prev, obs]`` per control step (``world.tuple_dim`` wide)
+and carries a state between steps (zero at the start of an episode, Algorithm 5). Its artifact
+holds PyTorch's arrays, G gate blocks of H rows each::
+
+    w_ih (G H, D)   w_hh (G H, H)   b_ih (G H,)   b_hh (G H,)   w_out (2, H)   b_out (2,)
+
+(G = 3 for the GRU's r, z, n; 4 for the LSTM's i, f, g, o) and meta ``hidden``, ``input_dim``,
+``gate_order``, ``input "a_prev+obs"``.
+"""
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+from sim.config import ACTION_DIM, WorldConfig
+
+from ..artifact import plain_provenance
+from ..errors import PolicyError
+from ..numfmt import HIDDEN_EXP, QuantLayer
+from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world, float_arrays, invalid
+from .dense import is_output_layer
+
+ARRAYS = ("w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
+INPUT_LAYOUT = "a_prev+obs"  #: one sim.history tuple per step
+MAX_HIDDEN = 255  #: the firmware indexes hidden units with uint8
+
+
+@dataclass(frozen=True, eq=False)
+class RecurrentPolicy(FloatPolicy):
+    """A float recurrent actor as PyTorch's arrays (see the module doc); subclasses name the kind, its
+    gate count and order, and the cell's arithmetic (:meth:`gates`)."""
+
+    GATE_COUNT: ClassVar[int]
+    GATE_ORDER: ClassVar[str]
+    STATE_WIDTH: ClassVar[int]  #: state vector width in units of H (GRU: h; LSTM: [h, c])
+    w_ih: np.ndarray  #: (G H, D) float32, gate blocks in GATE_ORDER
+    w_hh: np.ndarray  #: (G H, H)
+    b_ih: np.ndarray  #: (G H,)
+    b_hh: np.ndarray  #: (G H,)
+    w_out: np.ndarray  #: (2, H)
+    b_out: np.ndarray  #: (2,)
+    world: WorldConfig
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_world(self.world)
+        arrs = float_arrays(self, ARRAYS)
+        G, w_hh = self.GATE_COUNT, arrs["w_hh"]
+        if w_hh.ndim != 2 or w_hh.shape[0] != G * w_hh.shape[1] or w_hh.shape[1] < 1:
+            invalid(f"w_hh must be ({G}H, H), got {w_hh.shape}")
+        H = w_hh.shape[1]
+        if H > MAX_HIDDEN:
+            invalid(f"hidden size {H} > {MAX_HIDDEN} (the firmware indexes hidden units with uint8)")
+        D = self.world.tuple_dim
+        want = {"w_ih": (G * H, D), "b_ih": (G * H,), "b_hh": (G * H,), "w_out": (ACTION_DIM, H),
+                "b_out": (ACTION_DIM,)}
+        for name, shape in want.items():
+            if arrs[name].shape != shape:
+                extra = (f" = ({G} x hidden {H}, tuple {D}: 2 actions + {self.world.obs_dim} observations of world "
+                         f"'{self.world.name}')") if name == "w_ih" else ""
+                invalid(f"'{name}' has shape {arrs[name].shape}, expected {shape}{extra}")
+        prov = plain_provenance(self.provenance)
+        for name, a in arrs.items():
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        object.__setattr__(self, "provenance", prov)
+
+    @property
+    def hidden_size(self) -> int:
+        return int(self.w_hh.shape[1])
+
+    @property
+    def in_dim(self) -> int:
+        """Input width per step: one tuple, ``world.tuple_dim``."""
+        return int(self.w_ih.shape[1])
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        """[input tuple, hidden, 2] (printing and manifests)."""
+        return [self.in_dim, self.hidden_size, ACTION_DIM]
+
+    def describe(self) -> str:
+        return (f"{self.kind.upper()}: input {self.in_dim} ([a_prev, obs]), {self.hidden_size} hidden units, "
+                f"linear output {ACTION_DIM}")
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in ARRAYS}
+
+    def kind_meta(self) -> dict[str, Any]:
+        return {"hidden": self.hidden_size, "input_dim": self.in_dim, "gate_order": self.GATE_ORDER,
+                "input": INPUT_LAYOUT}
+
+    def initial_state(self, n: int) -> np.ndarray:
+        """Zero states (n, STATE_WIDTH H) float64: the start of an episode."""
+        return np.zeros((int(n), self.STATE_WIDTH * self.hidden_size))
+
+    @abstractmethod
+    def gates(self, x: np.ndarray, state: np.ndarray) -> dict[str, np.ndarray]:
+        """Every intermediate of one step in float64; at least "state" (the new state) and "u"."""
+
+    def step(self, x: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step: tuples (..., D) and states (..., STATE_WIDTH H) -> (u (..., 2) in [0, 1], new states)."""
+        v = self.gates(x, state)
+        return v["u"], v["state"]
+
+
+def random_recurrent(cls: type[RecurrentPolicy], world: WorldConfig, hidden: int, seed: int = 0, scale: float = 1.0,
+                     out_bias: float = 0.5, out_scale: float = 1.0, provenance: dict | None = None) -> RecurrentPolicy:
+    """A deterministic untrained policy of ``cls`` (tests, benchmarks): cell weights U(±scale/√H), output
+    weights U(±out_scale/√H) and biases ``out_bias`` so that the commands spread over [0, 1]."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    D, H, G = world.tuple_dim, int(hidden), cls.GATE_COUNT
+    b = scale / np.sqrt(H)
+    u = lambda *shape, lim=b: rng.uniform(-lim, lim, size=shape).astype(np.float32)  # noqa: E731
+    return cls(w_ih=u(G * H, D), w_hh=u(G * H, H), b_ih=u(G * H), b_hh=u(G * H),
+               w_out=u(ACTION_DIM, H, lim=out_scale / np.sqrt(H)), b_out=np.full(ACTION_DIM, out_bias, np.float32),
+               world=world, provenance=dict(provenance or {"notes": f"random {cls.kind} policy seed {seed}"}))
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class QuantizedRecurrent(QuantizedActor):
+    """An int8 recurrent actor: the kind's cell (``.hidden``, ``.in_dim``, ``.layers``: its dense layers in
+    firmware order, the first reading ``[x, h]`` at ``e_in``) and the uint8 output layer on the new h."""
+
+    STATE_WIDTH: ClassVar[int]
+    cell: Any
+    out: QuantLayer  #: (2, H) on h' at HIDDEN_EXP -> uint8 motor commands
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        c, o = self.cell, self.out
+        assert c.in_dim == self.world.tuple_dim, f"cell input {c.in_dim} != tuple width {self.world.tuple_dim}"
+        assert c.layers[0].e_in == self.e_in, "the gates read x at e_in"
+        assert o.w.shape == (ACTION_DIM, c.hidden), f"output layer must be ({ACTION_DIM}, {c.hidden})"
+        assert is_output_layer(o) and o.e_in == HIDDEN_EXP, \
+            "output layer: h at HIDDEN_EXP -> uint8 commands (exponent 0, clamp 0..255)"
+
+    @property
+    def layers(self) -> list[QuantLayer]:
+        """Every dense layer in firmware order: the cell's, then the output."""
+        return [*self.cell.layers, self.out]
+
+    @property
+    def hidden_size(self) -> int:
+        return int(self.cell.hidden)
+
+    @property
+    def in_dim(self) -> int:
+        return self.world.tuple_dim
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        """[input tuple, hidden, 2]."""
+        return [self.in_dim, self.hidden_size, ACTION_DIM]
+
+    def initial_state(self, n: int) -> np.ndarray:
+        """Zero states (n, STATE_WIDTH H) int64: what setup() leaves."""
+        return np.zeros((int(n), self.STATE_WIDTH * self.hidden_size), np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class SequenceCalibration:
+    """What a float recurrent actor saw: input tuples and states per robot-episode, and every intermediate."""
+
+    seqs: np.ndarray  #: (S, T, D) float32 input tuples, one row per robot-episode
+    states: np.ndarray  #: (S, T, state width) float64 state before each step
+    values: dict[str, np.ndarray]  #: the policy's gates() over every (S*T) step, flattened (row s*T + t)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.seqs.shape[0] * self.seqs.shape[1])
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """(S*T, D) every input tuple."""
+        return self.seqs.reshape(-1, self.seqs.shape[-1])
+
+
+def calibration_from_sequences(policy: RecurrentPolicy, seqs: np.ndarray, info: dict | None = None) -> SequenceCalibration:
+    """Run the float actor over recorded input sequences (S, T, D) from zero states; keep everything."""
+    seqs = np.asarray(seqs, np.float32)
+    assert seqs.ndim == 3 and seqs.shape[-1] == policy.in_dim and seqs.shape[1] >= 1, \
+        f"sequences must be (S, T, {policy.in_dim}), got {seqs.shape}"
+    S, T, _ = seqs.shape
+    state = policy.initial_state(S)
+    states = np.empty((S, T, state.shape[-1]))
+    vals: dict[str, list[np.ndarray]] = {}
+    for t in range(T):
+        states[:, t] = state
+        v = policy.gates(seqs[:, t], state)
+        for k, a in v.items():
+            vals.setdefault(k, []).append(a)
+        state = v["state"]
+    values = {k: np.stack(v, 1).reshape(S * T, -1) for k, v in vals.items()}
+    return SequenceCalibration(seqs=seqs, states=states, values=values, info=dict(info or {}))
+
+
+def free_run(qp: QuantizedActor, seqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The integer actor over float input sequences (S, T, D) from its setup() state: (commands (S, T, 2)
+    int64, states after each step (S, T, state width) int64)."""
+    S, T, _ = seqs.shape
+    xs = qp.quantize_tuple(seqs)
+    state = qp.initial_state(S)
+    qs = np.empty((S, T, ACTION_DIM), np.int64)
+    ss = np.empty((S, T, state.shape[-1]), np.int64)
+    for t in range(T):
+        qs[:, t], state = qp.step_int(xs[:, t], state)
+        ss[:, t] = state
+    return qs, ss
+
+
+class RecurrentKind(ActorKind):
+    """The answers a recurrent kind shares: its artifact, calibration, size flag and resize."""
+
+    policy_type: ClassVar[type[RecurrentPolicy]]
+
+    @property
+    def budget_usage(self) -> str:  # type: ignore[override]
+        return f"--{self.name} H"
+
+    @property
+    def budget_options(self) -> tuple[BudgetOption, ...]:  # type: ignore[override]
+        """Its ``python -m export budget`` flag: ``--<kind> H``."""
+        return (BudgetOption(f"--{self.name}", f"a recurrent actor instead: one {self.name.upper()} layer of H units "
+                                               f"(learn train-recurrent --cell {self.name})", metavar="H"),)
+
+    def from_arrays(self, arrays: dict[str, np.ndarray], meta: dict[str, Any], world: WorldConfig,
+                    provenance: dict[str, Any]) -> RecurrentPolicy:
+        missing = [n for n in ARRAYS if n not in arrays]
+        if missing:
+            raise PolicyError(f"policy: lacks array(s) {', '.join(missing)} of a '{self.name}' policy")
+        extra = sorted(set(arrays) - set(ARRAYS))
+        if extra:
+            raise PolicyError(f"policy: has unexpected arrays: {', '.join(extra)}")
+        for key in ("hidden", "gate_order", "input"):
+            if key not in meta:
+                raise PolicyError(f"policy: 'meta' lacks '{key}'")
+        order = self.policy_type.GATE_ORDER
+        if meta["gate_order"] != order:
+            raise PolicyError(f"policy: gate order {meta['gate_order']!r} is not supported (only '{order}')")
+        if meta["input"] != INPUT_LAYOUT:
+            raise PolicyError(f"policy: input layout {meta['input']!r} is not supported (only '{INPUT_LAYOUT}')")
+        p = self.policy_type(**{n: arrays[n] for n in ARRAYS}, world=world, provenance=provenance)
+        if meta["hidden"] != p.hidden_size or meta.get("input_dim", p.in_dim) != p.in_dim:
+            raise PolicyError(f"policy: meta says hidden {meta['hidden']}, input {meta.get('input_dim')} but the "
+                              f"arrays have hidden {p.hidden_size}, input {p.in_dim}")
+        return p
+
+    def calibration(self, policy: RecurrentPolicy, seqs: np.ndarray, info: dict[str, Any]) -> SequenceCalibration:
+        return calibration_from_sequences(policy, seqs, info)
+
+    def arch_of(self, policy: RecurrentPolicy) -> HiddenArch:
+        return HiddenArch(policy.hidden_size)
+
+    def arch_of_quantized(self, qp: QuantizedActor) -> HiddenArch:
+        return HiddenArch(qp.hidden_size)  # type: ignore[attr-defined]
+
+    def resizes(self, world: WorldConfig, arch: HiddenArch) -> list[Resize]:
+        label = self.name.upper()
+        article = "an" if label[0] in "AEFHILMNORSX" else "a"
+        return [Resize(arch=HiddenArch, found=lambda n: f"{article} {label} of <= {n} hidden units",
+                       none=f"no {label} size fits", cap=MAX_HIDDEN)]
+
+    def budget_arch(self, values: Mapping[str, Any]) -> HiddenArch:
+        return HiddenArch(int(values[self.name]))
