@@ -111,6 +111,8 @@ def test_randomise_reaches_training_envs_only(tmp_path, monkeypatch):
     import types
 
     import learn.groups as groups
+    from sim.variants import RANDOMISATIONS
+    assert groups.randomisation("table") is RANDOMISATIONS["table"]  # the simulator's own named randomisations
     marker = object()
     monkeypatch.setitem(sys.modules, "sim.variants", types.SimpleNamespace(RANDOMISATIONS={"test": marker}))
     seen = []

@@ -130,6 +130,9 @@ def test_config_validation_and_presets():
     with pytest.raises(ConfigError, match="unknown"):
         RecurrentConfig.from_dict({"t_prev": 3})
     assert RecurrentConfig.from_dict(PRESETS["quick"]).max_minutes == 5.0
+    from learn.config import CELLS
+    from learn.recurrent import RECURRENT_ACTORS
+    assert set(CELLS) == set(RECURRENT_ACTORS)  # every cell the config accepts has an actor
 
 
 def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
