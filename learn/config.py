@@ -54,6 +54,7 @@ class ConfigError(ValueError):
 
 
 ACTION_GRADIENTS = ("invert", "clip")  #: values of ``action_gradient``
+ACTOR_OTHERS = ("policy", "replay")  #: values of ``actor_others``
 CRITICS = ("concat", "mean")  #: values of ``critic``
 CRITIC_POOLS = ("mean", "meanmax")  #: values of ``critic_pool``
 REWARDS = ("team", "linear", "potential")  #: values of ``reward`` (learn.rewards)
@@ -97,6 +98,9 @@ class ExperimentConfig:
     #: gradient of Q(s, clip(a)): zero beyond the bounds, so commands at 0 or 1 are not ratcheted inwards)
     action_gradient: str = "invert"
     actor_robots: int = 0  #: actor objective on this many random robots per sample, scaled to all (0 = every robot)
+    #: with actor_robots: the other robots' actions in Q come from the current actor without gradient (policy:
+    #: an unbiased estimate of the full gradient) or from the replay (replay: as MADDPG; cheaper, a different objective)
+    actor_others: str = "policy"
     replay_size: int = 500_000  #: replay capacity in transitions per swarm size (whole episodes)
     warmup_episodes: int = 500  #: episodes (summed over envs) run with the initial policy before learning
     episodes: int = 10_000  #: learning episodes (summed over envs and sizes) after the warm-up
@@ -175,6 +179,8 @@ class ExperimentConfig:
         need(self.action_gradient in ACTION_GRADIENTS,
              f"action_gradient must be one of {', '.join(ACTION_GRADIENTS)}, got '{self.action_gradient}'")
         need(0 <= self.actor_robots <= MAX_ROBOTS, f"actor_robots must be in 0..{MAX_ROBOTS}, got {self.actor_robots}")
+        need(self.actor_others in ACTOR_OTHERS,
+             f"actor_others must be one of {', '.join(ACTOR_OTHERS)}, got '{self.actor_others}'")
         need(self.warmup_episodes >= 0, f"warmup_episodes must be >= 0, got {self.warmup_episodes}")
         need(self.episodes >= 0, f"episodes must be >= 0, got {self.episodes}")
         need(self.update_every >= 1, f"update_every must be >= 1, got {self.update_every}")

@@ -10,8 +10,9 @@ changes: how a part becomes per-transition rows, and the target and online actor
 * Actor (thesis eqs. 3.1/3.2): ascend (1/N) Σ_j Σ_i g_j^i · μ(·_j^i), g = ∇_{a^i} Q(s_j, μ(·_j)) passed
   through ``invert`` (inverting gradients, thesis §4.3.1, Hausknecht & Stone 2016) or ``clip`` (the
   gradient of Q(s, clip(a)): zero beyond a bound). With ``actor_robots = K`` the sum over robots is
-  estimated from K random robots per sample, scaled by M / K (unbiased; the other robots' actions
-  still come from the current actor, without gradient).
+  estimated from K random robots per sample, scaled by M / K; the other robots' actions come from the
+  current actor without gradient (``actor_others="policy"``: an unbiased estimate) or from the replay
+  (``"replay"``: MADDPG's choice, cheaper: no forward pass of the other robots).
 * Demonstration parts add ``bc_weight`` × the squared error to the demonstrated commands where the
   critic rates the demonstrated joint action above the actor's own (the Q-filter, Nair et al. 2018).
 * Soft target updates θ' ← τ θ + (1 − τ) θ'.
@@ -77,11 +78,14 @@ class CentralisedDDPG:
 
     def __init__(self, actor: nn.Module, critic: nn.Module, gamma: float, tau: float, lr_actor: float,
                  lr_critic: float, reward_scale: float = 1.0, grad_clip: float = 0.0,
-                 action_gradient: str = "invert", actor_robots: int = 0, device: str | torch.device = "cpu") -> None:
+                 action_gradient: str = "invert", actor_robots: int = 0, device: str | torch.device = "cpu",
+                 actor_others: str = "policy") -> None:
         assert action_gradient in ACTION_GRADIENTS, f"unknown action_gradient {action_gradient!r}"
         self.device = torch.device(device)
         self.gamma, self.tau, self.reward_scale = float(gamma), float(tau), float(reward_scale)
         self.grad_clip, self.action_gradient, self.actor_robots = float(grad_clip), action_gradient, int(actor_robots)
+        assert actor_others in ("policy", "replay"), f"unknown actor_others {actor_others!r}"
+        self.actor_others = actor_others
         self.actor = actor.to(self.device)
         self.critic = critic.to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
@@ -100,9 +104,10 @@ class CentralisedDDPG:
         """Target actor's raw actions (N', M, 2) at the next states of the rows (no gradient)."""
         raise NotImplementedError
 
-    def policy_actions(self, part: Any, sel: torch.Tensor | None) -> torch.Tensor:
+    def policy_actions(self, part: Any, sel: torch.Tensor | None, others: torch.Tensor | None = None) -> torch.Tensor:
         """Online actor's raw actions (N', M, 2), with gradient to θ^μ for the robots ``sel`` (N, K) of
-        each sample (all robots when None)."""
+        each sample (all robots when None); the other robots' entries are ``others`` (N', M, 2) when given,
+        else the actor's own without gradient."""
         raise NotImplementedError
 
     # --- helpers --------------------------------------------------------------------------------
@@ -166,7 +171,8 @@ class CentralisedDDPG:
             m = self.n_robots_of(p)
             sel = self.robot_subset(len(p), m)
             scale = m / sel.shape[1] if sel is not None else 1.0
-            a_pol = self.policy_actions(p, sel)  # (N', M, 2), graph to θ^μ
+            others = r.a if sel is not None and self.actor_others == "replay" else None
+            a_pol = self.policy_actions(p, sel, others)  # (N', M, 2), graph to θ^μ
             a_in = a_pol.detach().requires_grad_(True)
             if self.action_gradient == "clip":
                 q_pol = self.q(self.critic, r.s, a_in.clamp(A_MIN, A_MAX), r.o)

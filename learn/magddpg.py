@@ -36,11 +36,11 @@ class MAGDDPG(CentralisedDDPG):
                  critic_hidden: tuple[int, ...], gamma: float, tau: float, lr_actor: float, lr_critic: float,
                  reward_scale: float = 1.0, grad_clip: float = 0.0, action_gradient: str = "invert",
                  actor_robots: int = 0, make_critic: Callable[[], torch.nn.Module] | None = None,
-                 t_prev: int | None = None, device: str | torch.device = "cpu") -> None:
+                 t_prev: int | None = None, device: str | torch.device = "cpu", actor_others: str = "policy") -> None:
         actor = Actor(history_dim, actor_hidden)  # drawn first, then the critic (the seeds of earlier runs)
         critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
         super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
-                         actor_robots, device)
+                         actor_robots, device, actor_others)
         self.t_prev = t_prev
 
     @classmethod
@@ -49,7 +49,8 @@ class MAGDDPG(CentralisedDDPG):
         M = cfg.n_robots[0]
         return cls(world.history_dim(cfg.t_prev), world.state_dim(M), M, cfg.actor_hidden, cfg.critic_hidden,
                    cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic, cfg.reward_scale, cfg.grad_clip,
-                   cfg.action_gradient, cfg.actor_robots, lambda: config_critic(cfg, world), cfg.t_prev, device)
+                   cfg.action_gradient, cfg.actor_robots, lambda: config_critic(cfg, world), cfg.t_prev, device,
+                   cfg.actor_others)
 
     # --- what the experiment loop asks ----------------------------------------------------------
     @property
@@ -95,13 +96,14 @@ class MAGDDPG(CentralisedDDPG):
     def target_actions(self, b: Batch) -> torch.Tensor:
         return self.actor_target(self.tensor(b.h2))
 
-    def policy_actions(self, b: Batch, sel: torch.Tensor | None) -> torch.Tensor:
+    def policy_actions(self, b: Batch, sel: torch.Tensor | None, others: torch.Tensor | None = None) -> torch.Tensor:
         h = self.tensor(b.h)
         if sel is None:
             return self.actor(h)
-        with torch.no_grad():
-            a = self.actor(h)
-        a = a.clone()  # a plain tensor, so the chosen robots' rows can be written with their graph
+        if others is None:
+            with torch.no_grad():
+                others = self.actor(h)
+        a = others.clone()  # a plain tensor, so the chosen robots' rows can be written with their graph
         idx = torch.arange(h.shape[0], device=h.device)[:, None]
         a[idx, sel] = self.actor(h[idx, sel])  # gradient only through the chosen robots
         return a

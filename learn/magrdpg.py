@@ -43,12 +43,12 @@ class MAGRDPG(CentralisedDDPG):
                  gamma: float, tau: float, lr_actor: float, lr_critic: float, reward_scale: float = 1.0,
                  burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert", actor_robots: int = 0,
                  make_critic: Callable[[], torch.nn.Module] | None = None, unroll: int = 8, cell: str = "gru",
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu", actor_others: str = "policy") -> None:
         assert cell in RECURRENT_ACTORS, f"unknown recurrent cell {cell!r}"
         actor = RECURRENT_ACTORS[cell](in_dim, hidden)
         critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
         super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
-                         actor_robots, device)
+                         actor_robots, device, actor_others)
         self.burn_in, self.unroll, self.cell = int(burn_in), int(unroll), cell
 
     @classmethod
@@ -57,7 +57,7 @@ class MAGRDPG(CentralisedDDPG):
         M = cfg.n_robots[0]
         return cls(world.tuple_dim, world.state_dim(M), M, cfg.hidden, cfg.critic_hidden, cfg.gamma, cfg.tau,
                    cfg.lr_actor, cfg.lr_critic, cfg.reward_scale, cfg.burn_in, cfg.grad_clip, cfg.action_gradient,
-                   cfg.actor_robots, lambda: config_critic(cfg, world), cfg.unroll, cfg.cell, device)
+                   cfg.actor_robots, lambda: config_critic(cfg, world), cfg.unroll, cfg.cell, device, cfg.actor_others)
 
     # --- what the experiment loop asks ----------------------------------------------------------
     replay_t_prev = 1
@@ -126,12 +126,15 @@ class MAGRDPG(CentralisedDDPG):
         rows = torch.arange(X.shape[0], device=self.device)[:, None]
         return self.per_step(a2_all[rows, pos + 1], N, M, U)
 
-    def policy_actions(self, w: Windows, sel: torch.Tensor | None) -> torch.Tensor:
+    def policy_actions(self, w: Windows, sel: torch.Tensor | None, others: torch.Tensor | None = None) -> torch.Tensor:
         X, off, pos, N, M, U = self._unpack(w)
-        if sel is not None:  # the other robots' actions without gradient: one pass from the zero state
+        if sel is not None and others is not None:  # rows n·U + t -> robot-major (N·M, U, 2)
+            a = others.reshape(N, U, M, ACTION_DIM).permute(0, 2, 1, 3).reshape(N * M, U, ACTION_DIM).clone()
+        elif sel is not None:  # the other robots' actions without gradient: one pass from the zero state
             with torch.no_grad():
                 full, _ = self.actor(X, self.actor.initial_state(X.shape[0]))
             a = full[torch.arange(X.shape[0], device=self.device)[:, None], pos]  # (N·M, U, 2)
+        if sel is not None:
             r = (torch.arange(N, device=self.device)[:, None] * M + sel).reshape(-1)  # chosen rows
             X, off, pos = X[r], off[r], pos[r]
         rows = torch.arange(X.shape[0], device=self.device)[:, None]

@@ -184,3 +184,39 @@ def test_actor_objective_on_robot_subsets_is_unbiased(kind):
     for f, a, b in zip(full, first, second):
         torch.testing.assert_close((a + b) / 2, f, rtol=1e-4, atol=1e-6)
     assert any(not torch.allclose(a, f) for a, f in zip(first, full))  # a subset alone is not the full gradient
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_actor_others_from_the_replay(kind):
+    """actor_others='replay': Q sees the chosen robot's current action and the other robots' replayed ones."""
+    from learn.magrdpg import MAGRDPG
+    from learn.replay import Batch, Windows
+    N, M, S, H, U = 3, 4, 2 + 3 * 4, 5, 3
+    gen = torch.Generator().manual_seed(6)
+    torch.manual_seed(7)
+    if kind == "mlp":
+        agent = MAGDDPG(H, S, M, (6,), (8,), 0.9, 0.1, 1e-3, 1e-3, actor_robots=1, actor_others="replay")
+        part = Batch(s=torch.rand(N, S, generator=gen), h=torch.rand(N, M, H, generator=gen),
+                     a=torch.rand(N, M, 2, generator=gen), r=torch.rand(N, generator=gen),
+                     s2=torch.rand(N, S, generator=gen), h2=torch.rand(N, M, H, generator=gen))
+        own = agent.actor(part.h).detach()  # (N, M, 2)
+    else:
+        agent = MAGRDPG(H, S, M, 6, (8,), 0.9, 0.1, 1e-3, 1e-3, burn_in=2, unroll=U, actor_robots=1,
+                        actor_others="replay")
+        part = Windows(x=torch.rand(N, M, 2 + U + 1, H, generator=gen), off=torch.tensor([0, 1, 2]),
+                       s=torch.rand(N, U, S, generator=gen), a=torch.rand(N, U, M, 2, generator=gen),
+                       r=torch.rand(N, U, generator=gen), s2=torch.rand(N, U, S, generator=gen))
+        own = agent.policy_actions(part, None).detach()  # (N·U, M, 2)
+    rows = agent.rows(part)
+    sel = torch.tensor([[1], [3], [0]])
+    agent.robot_subset = lambda n, m: sel
+    seen = []
+    critic = agent.critic
+    agent.critic = lambda s, a: (seen.append(a.detach().clone()), critic(s, a))[1]
+    agent.actor_step_parts([(part, False)], [rows], len(rows.s))
+    a_q = seen[0]  # the actions the actor step evaluated Q at
+    chosen = sel.repeat_interleave(a_q.shape[0] // N, dim=0)[:, 0]  # (N',) robot chosen in each row
+    mask = torch.zeros(a_q.shape[:2], dtype=torch.bool)
+    mask[torch.arange(a_q.shape[0]), chosen] = True
+    torch.testing.assert_close(a_q[~mask], rows.a[~mask])
+    torch.testing.assert_close(a_q[mask], own[mask], rtol=1e-5, atol=1e-6)
