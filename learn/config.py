@@ -1,31 +1,48 @@
-"""Training configuration: one documented dataclass, training presets, and validation.
+"""Training configurations: one documented dataclass per algorithm, training presets, validation.
 
-The defaults are the thesis's MAGDDPG hyper-parameters (§4.3, §4.3.1), except the actor, which
-has to run on a Kilobot: ``t_prev = 10`` and two hidden layers of 32 ELUs fit the ATmega328P
-(checked against :mod:`export.codegen.budget`); the thesis's actor had four hidden layers on a 20-step
-history. The thesis gives neither γ nor the layer widths (its Fig. 4.2 is not available to us): γ is
-0.99 as in DDPG, and the critic has three hidden ELU layers of 256, 128 and 64 units.
+* :class:`ExperimentConfig` — what the one experiment loop (:mod:`learn.train`) needs whatever the
+  actor: task, critic, the DDPG hyper-parameters, exploration, guidance by demonstrations, speed and
+  bookkeeping. Not used on its own.
+* :class:`TrainConfig` — **MAGDDPG** (thesis Algorithm 4): a feed-forward (MLP) actor over the
+  ``t_prev`` history of (previous action, observation) tuples, minibatches of transitions.
+* :class:`RecurrentConfig` — **MAGRDPG** (thesis Algorithm 5): a recurrent actor (GRU) over one tuple
+  per step, minibatches of burn-in + unroll windows.
 
-Training presets (``--preset``; distinct from the *world* preset, ``--world``):
+Every field is a command-line option (:mod:`learn.cli`, tyro); its ``#:`` comment is the help text.
+``to_dict`` / ``from_dict`` round-trip through JSON; ``from_dict`` refuses unknown fields and values
+of the wrong type with one line. ``config_from_dict`` picks the class from the ``algorithm`` key.
 
-``default``  the thesis hyper-parameters: one environment, one update per transition, minibatch
-             32, τ = 0.001, 500 warm-up + 10 000 learning episodes. Faithful and slow (days on a CPU).
+The MAGDDPG defaults are the thesis's hyper-parameters (§4.3, §4.3.1), except the actor, which has
+to run on a Kilobot: ``t_prev = 10`` and two hidden layers of 32 ELUs fit the ATmega328P (checked
+against the exporter's budget); the thesis's actor had four hidden layers on a 20-step history. The
+thesis gives neither γ nor the layer widths: γ is 0.99 as in DDPG, and the critic has three hidden ELU
+layers of 256, 128 and 64 units.
+
+Training presets (``--preset``; distinct from the *world*, ``--world``), in ``TRAIN_PRESETS``
+(MAGDDPG) and ``RECURRENT_PRESETS`` (MAGRDPG):
+
+``default``  MAGDDPG with the thesis hyper-parameters: one environment, one update per transition,
+             minibatch 32, τ = 0.001, 500 warm-up + 10 000 learning episodes (days on a CPU).
 ``thesis``   ``default`` with the thesis's history length (20).
-``fast``     tuned for wall clock on a small CPU: 16 environments in parallel, bigger minibatches,
-             faster target tracking, higher learning rates (see ``TRAIN_PRESETS`` for the values
-             and the README for why), and phantom neighbours (:mod:`learn.augment`) so that a
-             policy trained with a few robots keeps working in large swarms.
-``quick``    ``fast`` with a 5-minute budget and a small replay memory: learns something
-             measurable (beats the random baseline) in minutes.
+``fast``     tuned for wall clock on a small CPU: 16 environments, bigger minibatches, faster target
+             tracking, higher learning rates, phantom neighbours (:mod:`learn.augment`); 50
+             evaluation episodes every 51 200 transitions (evaluation ≈ 5 % of the wall clock).
+``quick``    ``fast`` with a 5-minute budget and a small replay memory.
+``guided``   ``fast`` started from demonstrations of the hand-written searcher (:mod:`learn.demos`):
+             behaviour cloning, a critic-only phase, small BC-anchored actor steps through ``clip``
+             action gradients (README: guided training).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
+import re
 import typing
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any, ClassVar
+
+import tyro
 
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
@@ -36,97 +53,164 @@ class ConfigError(ValueError):
     """A bad configuration value; the message is one line and says what to do."""
 
 
+ACTION_GRADIENTS = ("invert", "clip")  #: values of ``action_gradient``
+ACTOR_OTHERS = ("policy", "replay")  #: values of ``actor_others``
+CRITICS = ("concat", "mean")  #: values of ``critic``
+CRITIC_POOLS = ("mean", "meanmax")  #: values of ``critic_pool``
+REWARDS = ("team", "linear", "potential")  #: values of ``reward`` (learn.rewards)
+SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
+DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
+DEMO_POLICIES = ("none", "searcher")  #: values of ``demo_policy`` (learn.demos)
+CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
+MAX_ROBOTS = 256
+
+Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
+HistoryLength = Annotated[int, tyro.conf.arg(aliases=("--history",))]
+
+
 @dataclass
-class TrainConfig:
-    """Everything a MAGDDPG run depends on. Field docs double as ``--help`` text."""
+class ExperimentConfig:
+    """Fields of every algorithm (see the module doc); use TrainConfig or RecurrentConfig."""
+
+    algorithm: ClassVar[str] = ""
 
     # --- task --------------------------------------------------------------------------------
     world: str = "thesis"  #: world preset (sim.config.PRESETS): thesis or kilobot
-    n_robots: int = 4  #: robots trained together (thesis experiment 1: 1 to 8)
-    t_prev: int = 10  #: history length T_prev in (previous action, observation) tuples
+    n_robots: Robots = (4,)  #: swarm sizes trained together (one env group and replay per size; > 1 needs --critic mean)
     episode_steps: int = 0  #: control steps per episode; 0 = the world's (thesis: 200)
-    # --- networks ----------------------------------------------------------------------------
-    actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
-    critic_hidden: tuple[int, ...] = (256, 128, 64)  #: critic hidden widths (ELU)
-    # --- MAGDDPG -----------------------------------------------------------------------------
+    randomise: str = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
+    randomise_eval: bool = False  #: also randomise the evaluation envs
+    reward: str = "team"  #: learning reward: team (the world's), linear (coverage, not squared), potential (team + shaping)
+    shaping_weight: float = 1.0  #: weight of the potential-based shaping term (reward potential)
+    # --- critic ------------------------------------------------------------------------------
+    critic: str = "concat"  #: centralised critic: concat (thesis: full state + joint action) or mean (mean embedding, any swarm size)
+    critic_hidden: tuple[int, ...] = (256, 128, 64)  #: critic hidden widths (ELU); the mean critic's head after pooling
+    critic_embed: tuple[int, ...] = (64, 64)  #: mean critic: per-robot encoder widths (ELU)
+    critic_pool: str = "mean"  #: mean critic pooling over robots: mean or meanmax
+    critic_obs: bool = False  #: mean critic: also encode each robot's observation
+    # --- actor-critic updates ----------------------------------------------------------------
     gamma: float = 0.99  #: discount factor (not given in the thesis; 0.99 as in DDPG)
     tau: float = 0.001  #: soft target update rate
-    lr_critic: float = 1e-3  #: Adam base learning rate of the critic
-    lr_actor: float = 1e-4  #: Adam base learning rate of the actor
-    batch_size: int = 32  #: minibatch size N
-    replay_size: int = 500_000  #: replay memory capacity R in transitions
+    lr_critic: float = 1e-3  #: Adam learning rate of the critic
+    lr_actor: float = 1e-4  #: Adam learning rate of the actor
+    grad_clip: float = 0.0  #: clip the actor's gradient norm to this (0 = no clipping)
+    #: how ∇_a Q reaches a bounded action: invert (inverting gradients, thesis §4.3.1) or clip (the
+    #: gradient of Q(s, clip(a)): zero beyond the bounds, so commands at 0 or 1 are not ratcheted inwards)
+    action_gradient: str = "invert"
+    actor_robots: int = 0  #: actor objective on this many random robots per sample, scaled to all (0 = every robot)
+    #: with actor_robots: the other robots' actions in Q come from the current actor without gradient (policy:
+    #: an unbiased estimate of the full gradient) or from the replay (replay: as MADDPG; cheaper, a different objective)
+    actor_others: str = "policy"
+    replay_size: int = 500_000  #: replay capacity in transitions per swarm size (whole episodes)
     warmup_episodes: int = 500  #: episodes (summed over envs) run with the initial policy before learning
-    episodes: int = 10_000  #: learning episodes (summed over envs) after the warm-up
+    episodes: int = 10_000  #: learning episodes (summed over envs and sizes) after the warm-up
     updates_per_step: float = 1.0  #: gradient updates per collected transition (thesis: 1)
-    reward_scale: float = 1.0  #: multiplies the world's reward for learning only (metrics stay raw)
+    update_every: int = 1  #: owed updates run in blocks every this many env steps (and at episode ends)
+    size_mix: str = "equal"  #: share of a minibatch per swarm size: equal, or robots (proportional to robot count)
+    reward_scale: float = 1.0  #: multiplies the learning reward (metrics stay raw)
     extra_action_penalty: float = 0.0  #: learning only: added to the world's action penalty (thesis 0.01)
     # --- exploration (Ornstein-Uhlenbeck, per robot and motor) -------------------------------
     noise_theta: float = 0.15  #: OU mean reversion per control step
     noise_sigma: float = 0.2  #: OU noise scale per control step
     noise_mu: float = 0.0  #: OU mean (added to the actor's action)
-    phantom_neighbours: float = 0.0  #: training only: up to this many phantom neighbours per robot and step in the RBF histogram (learn/augment.py; 0 = off)
+    phantom_neighbours: float = 0.0  #: training only: up to this many phantom neighbours per robot and step (learn/augment.py; 0 = off)
+    # --- guidance by demonstrations (learn.demos) --------------------------------------------
+    demo_policy: str = "none"  #: demonstrator: none, or searcher (the hand-written searcher, turning left)
+    demo_episodes: int = 1024  #: demonstrator episodes per swarm size, collected before training
+    bc_updates: int = 1500  #: behaviour-cloning steps of the actor on the demonstrations before RL
+    bc_lr: float = 3e-3  #: Adam learning rate of behaviour cloning
+    bc_weight: float = 1.0  #: weight of the Q-filtered behaviour-cloning loss during RL (0 = none)
+    actor_delay: int = 0  #: the first this many updates train only the critic (keeps a cloned actor intact)
+    critic_pretrain: int = 0  #: critic-only updates on the demonstrations after cloning
     # --- speed -------------------------------------------------------------------------------
-    n_envs: int = 1  #: environments stepped together (each contributes one transition per step)
-    threads: int = 1  #: torch CPU threads (1: on a shared 2-core CPU, 2 threads made updates 10-20x slower)
+    n_envs: int = 1  #: environments stepped together per swarm size
+    threads: int = 0  #: torch CPU threads; 0 = auto (1 per process: on a shared CPU more threads oversubscribe)
+    device: str = "auto"  #: networks and replay on cpu or cuda; auto = cuda when available (the env stays NumPy)
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 20_000  #: evaluate every this many transitions (at the next episode end)
-    eval_episodes: int = 20  #: deterministic evaluation episodes (run as one vectorised batch)
+    eval_episodes: int = 20  #: deterministic evaluation episodes per swarm size
     checkpoint_every: int = 1  #: write a checkpoint every this many evaluations (0 = only at the end)
     max_minutes: float = 0.0  #: stop at the first episode end after this wall-clock time (0 = no limit)
+    tensorboard: bool = False  #: also log every metrics row as TensorBoard scalars (run_dir/tensorboard)
     seed: int = 1  #: master seed (networks, environments, noise, replay sampling, evaluation)
     exp_name: str = "default"  #: experiment name used in the default run directory name
 
-    # ------------------------------------------------------------------------------------------
-    def validate(self) -> "TrainConfig":
+    def __post_init__(self) -> None:
+        if isinstance(self.n_robots, int) and not isinstance(self.n_robots, bool):
+            self.n_robots = (self.n_robots,)
+        for name in self._tuple_fields():
+            value = getattr(self, name)
+            if isinstance(value, list):
+                setattr(self, name, tuple(value))
+
+    @classmethod
+    def _tuple_fields(cls) -> tuple[str, ...]:
+        return tuple(f for f, h in _hints(cls).items() if typing.get_origin(h) is tuple)
+
+    # --- validation ----------------------------------------------------------------------------
+    def validate(self) -> "ExperimentConfig":
         """Raise :class:`ConfigError` (one line) for a bad value; return self."""
-
-        def need(cond: bool, msg: str) -> None:
-            if not cond:
-                raise ConfigError(msg)
-
-        need(self.world in WORLD_PRESETS,
-             f"world must be one of {', '.join(sorted(WORLD_PRESETS))}, got '{self.world}'")
-        need(1 <= self.n_robots <= 256, f"n_robots must be in 1..256, got {self.n_robots}")
-        need(1 <= self.t_prev <= 200, f"t_prev (history) must be in 1..200, got {self.t_prev}")
+        need(self.world in WORLD_PRESETS, f"world must be one of {', '.join(sorted(WORLD_PRESETS))}, got '{self.world}'")
+        need(len(self.n_robots) >= 1 and all(isinstance(m, int) and 1 <= m <= MAX_ROBOTS for m in self.n_robots),
+             f"n_robots must be in 1..{MAX_ROBOTS}, got {_show(self.n_robots)}")
+        need(len(set(self.n_robots)) == len(self.n_robots), f"n_robots lists a size twice: {_show(self.n_robots)}")
+        need(len(self.n_robots) == 1 or self.critic == "mean",
+             f"training on several swarm sizes ({_show(self.n_robots)}) needs --critic mean "
+             "(the concatenating critic's input depends on the robot count)")
         need(self.episode_steps >= 0, f"episode_steps must be >= 0 (0 = the world's), got {self.episode_steps}")
-        for name in ("actor_hidden", "critic_hidden"):
+        need(self.reward in REWARDS, f"reward must be one of {', '.join(REWARDS)}, got '{self.reward}'")
+        need(math.isfinite(self.shaping_weight), f"shaping_weight must be finite, got {self.shaping_weight}")
+        need(self.critic in CRITICS, f"critic must be one of {', '.join(CRITICS)}, got '{self.critic}'")
+        need(self.critic_pool in CRITIC_POOLS, f"critic_pool must be one of {', '.join(CRITIC_POOLS)}, got '{self.critic_pool}'")
+        for name in (f for f in self._tuple_fields() if f != "n_robots"):
             widths = getattr(self, name)
             need(len(widths) >= 1 and all(isinstance(w, int) and 1 <= w <= 4096 for w in widths),
                  f"{name} must be one or more widths in 1..4096, got {list(widths)}")
         need(0.0 <= self.gamma < 1.0, f"gamma must be in [0, 1), got {self.gamma}")
         need(0.0 < self.tau <= 1.0, f"tau must be in (0, 1], got {self.tau}")
-        need(self.lr_critic > 0 and math.isfinite(self.lr_critic), f"lr_critic must be > 0, got {self.lr_critic}")
-        need(self.lr_actor > 0 and math.isfinite(self.lr_actor), f"lr_actor must be > 0, got {self.lr_actor}")
-        need(self.batch_size >= 1, f"batch_size must be >= 1, got {self.batch_size}")
+        for name in ("lr_critic", "lr_actor", "reward_scale", "bc_lr"):
+            v = getattr(self, name)
+            need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")
+        for name in ("grad_clip", "extra_action_penalty", "updates_per_step", "noise_theta", "noise_sigma",
+                     "bc_weight", "max_minutes"):
+            v = getattr(self, name)
+            need(v >= 0 and math.isfinite(v), f"{name} must be >= 0, got {v}")
+        need(math.isfinite(self.noise_mu), f"noise_mu must be finite, got {self.noise_mu}")
+        need(self.action_gradient in ACTION_GRADIENTS,
+             f"action_gradient must be one of {', '.join(ACTION_GRADIENTS)}, got '{self.action_gradient}'")
+        need(0 <= self.actor_robots <= MAX_ROBOTS, f"actor_robots must be in 0..{MAX_ROBOTS}, got {self.actor_robots}")
+        need(self.actor_others in ACTOR_OTHERS,
+             f"actor_others must be one of {', '.join(ACTOR_OTHERS)}, got '{self.actor_others}'")
         need(self.warmup_episodes >= 0, f"warmup_episodes must be >= 0, got {self.warmup_episodes}")
         need(self.episodes >= 0, f"episodes must be >= 0, got {self.episodes}")
-        need(self.updates_per_step >= 0 and math.isfinite(self.updates_per_step),
-             f"updates_per_step must be >= 0, got {self.updates_per_step}")
-        need(self.reward_scale > 0 and math.isfinite(self.reward_scale),
-             f"reward_scale must be > 0, got {self.reward_scale}")
-        need(self.extra_action_penalty >= 0 and math.isfinite(self.extra_action_penalty),
-             f"extra_action_penalty must be >= 0, got {self.extra_action_penalty}")
+        need(self.update_every >= 1, f"update_every must be >= 1, got {self.update_every}")
+        need(self.size_mix in SIZE_MIXES, f"size_mix must be one of {', '.join(SIZE_MIXES)}, got '{self.size_mix}'")
         need(0 <= self.phantom_neighbours <= 1000, f"phantom_neighbours must be in [0, 1000], got {self.phantom_neighbours}")
-        need(self.noise_theta >= 0, f"noise_theta must be >= 0, got {self.noise_theta}")
-        need(self.noise_sigma >= 0, f"noise_sigma must be >= 0, got {self.noise_sigma}")
+        need(self.demo_policy in DEMO_POLICIES,
+             f"demo_policy must be one of {', '.join(DEMO_POLICIES)}, got '{self.demo_policy}'")
+        need(self.demo_episodes >= 1, f"demo_episodes must be >= 1, got {self.demo_episodes}")
+        for name in ("bc_updates", "actor_delay", "critic_pretrain"):
+            need(getattr(self, name) >= 0, f"{name} must be >= 0, got {getattr(self, name)}")
         need(1 <= self.n_envs <= 4096, f"n_envs must be in 1..4096, got {self.n_envs}")
-        need(1 <= self.threads <= 256, f"threads must be in 1..256, got {self.threads}")
+        need(0 <= self.threads <= 256, f"threads must be in 0..256 (0 = auto), got {self.threads}")
+        need(self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}, got '{self.device}'")
         need(self.eval_every >= 1, f"eval_every must be >= 1, got {self.eval_every}")
         need(self.eval_episodes >= 1, f"eval_episodes must be >= 1, got {self.eval_episodes}")
         need(self.checkpoint_every >= 0, f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
-        need(self.max_minutes >= 0, f"max_minutes must be >= 0, got {self.max_minutes}")
         need(0 <= self.seed < 2 ** 63, f"seed must be a non-negative integer, got {self.seed}")
-        need(self.exp_name.replace("-", "").replace("_", "").replace(".", "").isalnum(),
+        need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
              f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")
+        if self.randomise != "none":
+            from .groups import randomisation  # raises ConfigError for an unknown name or without sim.variants
+
+            randomisation(self.randomise)
         steps = self.world_config().episode_steps
         need(self.replay_size >= steps * self.n_envs,
              f"replay_size ({self.replay_size}) must hold at least one episode per env "
              f"(episode_steps {steps} x n_envs {self.n_envs} = {steps * self.n_envs})")
-        need(self.batch_size <= self.replay_size,
-             f"batch_size ({self.batch_size}) must be <= replay_size ({self.replay_size})")
         return self
 
-    # --- derived -----------------------------------------------------------------------------
+    # --- derived -------------------------------------------------------------------------------
     def world_config(self) -> WorldConfig:
         """The world this run trains in (world preset, with ``episode_steps`` when set)."""
         if self.episode_steps:
@@ -137,112 +221,267 @@ class TrainConfig:
     def total_episodes(self) -> int:
         return self.warmup_episodes + self.episodes
 
-    # --- (de)serialisation -------------------------------------------------------------------
+    @property
+    def batch_samples(self) -> int:
+        """Samples per minibatch (transitions or windows) drawn from the learner's replay."""
+        raise NotImplementedError
+
+    @property
+    def demo_samples(self) -> int:
+        """Demonstration samples added to every minibatch (0 without a demonstrator)."""
+        raise NotImplementedError
+
+    # --- (de)serialisation ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        d = dataclasses.asdict(self)
-        d["actor_hidden"] = list(self.actor_hidden)
-        d["critic_hidden"] = list(self.critic_hidden)
+        """JSON-ready fields and the algorithm; one swarm size is written as an integer."""
+        d = {"algorithm": self.algorithm, **dataclasses.asdict(self)}
+        d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        if len(self.n_robots) == 1:
+            d["n_robots"] = self.n_robots[0]
         return d
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], base: "TrainConfig | None" = None) -> "TrainConfig":
-        """Fields of ``d`` replace those of ``base`` (default: the defaults); unknown keys are an error."""
+    def from_dict(cls, d: dict[str, Any], base: "ExperimentConfig | None" = None):
+        """Fields of ``d`` replace those of ``base`` (default: the defaults); unknown keys and values of
+        the wrong type are an error (one line naming the field). Not validated: call ``validate()``."""
         if not isinstance(d, dict):
             raise ConfigError(f"a training config must be a JSON object, got {type(d).__name__}")
-        unknown = sorted(set(d) - set(FIELD_TYPES))
+        d = dict(d)
+        algo = d.pop("algorithm", cls.algorithm)
+        if algo != cls.algorithm:
+            raise ConfigError(f"this is a {algo} config, not {cls.algorithm}")
+        hints = _hints(cls)
+        unknown = sorted(set(d) - set(hints))
         if unknown:
             raise ConfigError(f"unknown training config field(s): {', '.join(unknown)} "
-                              f"(known: {', '.join(FIELD_TYPES)})")
-        values = {k: coerce(k, v) for k, v in d.items()}
-        return dataclasses.replace(base or cls(), **values)
+                              f"({cls.algorithm}; known: {', '.join(hints)})")
+        return dataclasses.replace(base or cls(), **{k: check_type(cls, k, v) for k, v in d.items()})
 
 
-FIELD_TYPES: dict[str, Any] = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
-_HINTS = typing.get_type_hints(TrainConfig)
+@dataclass
+class TrainConfig(ExperimentConfig):
+    """MAGDDPG: an MLP actor over the T_prev history (thesis Algorithm 4). Field docs double as --help."""
+
+    algorithm: ClassVar[str] = "magddpg"
+
+    t_prev: HistoryLength = 10  #: history length T_prev in (previous action, observation) tuples
+    actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
+    batch_size: int = 32  #: minibatch size in transitions (per update, summed over swarm sizes)
+    demo_transitions: int = 32  #: demonstration transitions added to every minibatch (with a demonstrator)
+
+    def validate(self) -> "TrainConfig":
+        super().validate()
+        need(1 <= self.t_prev <= 200, f"t_prev (history) must be in 1..200, got {self.t_prev}")
+        need(self.batch_size >= 1, f"batch_size must be >= 1, got {self.batch_size}")
+        need(self.batch_size <= self.replay_size,
+             f"batch_size ({self.batch_size}) must be <= replay_size ({self.replay_size})")
+        need(self.demo_transitions >= 0, f"demo_transitions must be >= 0, got {self.demo_transitions}")
+        return self
+
+    @property
+    def batch_samples(self) -> int:
+        return self.batch_size
+
+    def budget_note(self) -> str | None:
+        """Why the exporter would refuse this actor (None when it fits the Kilobot)."""
+        from export.codegen.budget import estimate
+        from kiloforge.actors.mlp import MLP, MLPArch
+
+        b = estimate(MLP, self.world_config(), MLPArch(self.t_prev, tuple(self.actor_hidden)))
+        return None if b.ok else (f"this actor (t_prev {self.t_prev}, hidden {list(self.actor_hidden)}) does not "
+                                  f"fit the Kilobot budget ({b.summary()})")
+
+    @property
+    def demo_samples(self) -> int:
+        return self.demo_transitions if self.demo_policy != "none" else 0
 
 
-def coerce(name: str, value: Any) -> Any:
-    """Convert a JSON / CLI value to the field's type, with a one-line error naming the field."""
-    hint = _HINTS[name]
-    try:
-        if hint is bool:
-            if isinstance(value, str):
-                if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
-                    raise ValueError(value)
-                return value.lower() in ("true", "1", "yes")
-            return bool(value)
-        if hint is int:
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise ValueError(value)
-            return int(value)
-        if hint is float:
-            if isinstance(value, bool):
-                raise ValueError(value)
-            return float(value)
-        if hint is str:
-            if not isinstance(value, str):
-                raise ValueError(value)
-            return value
+@dataclass
+class RecurrentConfig(ExperimentConfig):
+    """MAGRDPG: a recurrent actor over one tuple per step (thesis Algorithm 5). Field docs double as --help."""
+
+    algorithm: ClassVar[str] = "magrdpg"
+
+    n_robots: Robots = (2,)  #: swarm sizes trained together (one env group and replay per size; > 1 needs --critic mean)
+    tau: float = 0.005  #: soft target update rate
+    lr_actor: float = 3e-4  #: Adam learning rate of the actor (1e-3, MAGDDPG's fast value, was less stable)
+    grad_clip: float = 1.0  #: clip the actor's gradient norm to this (0 = no clipping)
+    replay_size: int = 200_000  #: replay capacity in transitions per swarm size (whole episodes)
+    warmup_episodes: int = 32  #: episodes (summed over envs) with the initial policy before learning
+    episodes: int = 100_000  #: learning episodes (summed over envs and sizes) after the warm-up
+    updates_per_step: float = 0.125  #: gradient updates per collected transition
+    n_envs: int = 16  #: environments stepped together per swarm size
+    eval_every: int = 25_600  #: evaluate every this many transitions (at the next episode end)
+    exp_name: str = "gru"  #: experiment name used in the default run directory name
+
+    cell: str = "gru"  #: the actor's recurrent cell: gru or lstm (the thesis's MAGRDPG used an LSTM)
+    hidden: int = 32  #: recurrent units of the actor (the firmware keeps them as int8 in SRAM)
+    unroll: int = 8  #: T_unroll: steps per window with loss and gradient (truncated BPTT length)
+    burn_in: int = 8  #: steps before them that only warm up the hidden state from zero
+    batch_windows: int = 32  #: windows per minibatch (critic samples = batch_windows x unroll)
+    demo_windows: int = 8  #: demonstration windows added to every minibatch (with a demonstrator)
+
+    def validate(self) -> "RecurrentConfig":
+        super().validate()
+        need(self.cell in CELLS, f"cell must be one of {', '.join(CELLS)}, got '{self.cell}'")
+        need(1 <= self.hidden <= 255, f"hidden must be in 1..255 (uint8 index in the firmware), got {self.hidden}")
+        need(self.unroll >= 1, f"unroll must be >= 1, got {self.unroll}")
+        need(self.burn_in >= 0, f"burn_in must be >= 0, got {self.burn_in}")
+        need(self.batch_windows >= 1, f"batch_windows must be >= 1, got {self.batch_windows}")
+        need(self.demo_windows >= 0, f"demo_windows must be >= 0, got {self.demo_windows}")
+        T = self.world_config().episode_steps
+        need(self.unroll <= T, f"unroll ({self.unroll}) must be <= episode_steps ({T})")
+        return self
+
+    @property
+    def batch_samples(self) -> int:
+        return self.batch_windows
+
+    def budget_note(self) -> str | None:
+        """Why the exporter would refuse this actor (None when it fits the Kilobot)."""
+        from export.codegen.budget import estimate
+        from kiloforge.actors.base import HiddenArch
+        from kiloforge.actors.registry import kind_named
+
+        b = estimate(kind_named(self.cell), self.world_config(), HiddenArch(self.hidden))
+        return None if b.ok else (f"an actor of {self.hidden} {self.cell.upper()} units does not fit the Kilobot "
+                                  f"budget ({b.summary()})")
+
+    @property
+    def demo_samples(self) -> int:
+        return self.demo_windows if self.demo_policy != "none" else 0
+
+
+CONFIGS: dict[str, type[ExperimentConfig]] = {"magddpg": TrainConfig, "magrdpg": RecurrentConfig}
+
+
+def config_from_dict(d: dict[str, Any]) -> ExperimentConfig:
+    """A config of the class its ``algorithm`` key names (files without one: MAGDDPG unless they hold
+    recurrent fields, as the run directories of earlier versions)."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"a training config must be a JSON object, got {type(d).__name__}")
+    algo = d.get("algorithm")
+    if algo is None:
+        algo = "magrdpg" if {"hidden", "unroll"} <= set(d) else "magddpg"
+    if algo not in CONFIGS:
+        raise ConfigError(f"unknown algorithm '{algo}'; choose one of: {', '.join(CONFIGS)}")
+    return CONFIGS[algo].from_dict(d)
+
+
+def need(cond: bool, msg: str) -> None:
+    if not cond:
+        raise ConfigError(msg)
+
+
+def _show(robots: tuple[int, ...]) -> str:
+    return " ".join(map(str, robots)) if isinstance(robots, tuple) else repr(robots)
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    """Field name -> type (Annotated unwrapped) of a config class."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        h = hints[f.name]
+        out[f.name] = typing.get_args(h)[0] if typing.get_origin(h) is Annotated else h
+    return out
+
+
+def check_type(cls: type, name: str, value: Any) -> Any:
+    """A JSON value as field ``name``'s type, exactly: integers for int fields (not booleans or 3.0),
+    finite numbers for float fields, booleans for bool fields, strings for str fields, lists (or a
+    single integer) of integers for tuple fields. One-line ConfigError naming the field otherwise."""
+    hint = _hints(cls)[name]
+
+    def bad() -> typing.NoReturn:
+        kind = getattr(hint, "__name__", str(hint))
         if typing.get_origin(hint) is tuple:
-            if isinstance(value, (int, str)):
-                value = [value]
-            return tuple(coerce_int(v) for v in value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name}: cannot read {value!r} as {getattr(hint, '__name__', hint)}") from None
+            kind = "a list of integers"
+        raise ConfigError(f"{name}: cannot read {value!r} as {kind}")
+
+    def is_int(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    if hint is bool:
+        return value if isinstance(value, bool) else bad()
+    if hint is int:
+        return value if is_int(value) else bad()
+    if hint is float:
+        if (is_int(value) or isinstance(value, float)) and math.isfinite(value):
+            return float(value)
+        bad()
+    if hint is str:
+        return value if isinstance(value, str) else bad()
+    if typing.get_origin(hint) is tuple:
+        if is_int(value) and name == "n_robots":
+            return (value,)
+        if isinstance(value, (list, tuple)) and all(is_int(v) for v in value):
+            return tuple(value)
+        bad()
     raise ConfigError(f"{name}: unsupported field type {hint}")  # pragma: no cover
 
 
-def coerce_int(v: Any) -> int:
-    if isinstance(v, bool) or (isinstance(v, float) and not v.is_integer()):
-        raise ValueError(v)
-    return int(v)
+def parse_text(cls: type, name: str, value: Any) -> Any:
+    """Command-line text as field ``name``'s JSON value (then :func:`check_type` applies): a string for a
+    scalar field, a string or list of strings of integers for a tuple field (``"32x32"``, ``["32", "32"]``;
+    ``n_robots`` also a single integer). Values that are not text pass through unchanged."""
+    hint = _hints(cls)[name]
+    texts = value if isinstance(value, list) else [value]
+    if not all(isinstance(v, str) for v in texts) or hint is str:
+        return value
+
+    def read(kind: str, conv):
+        try:
+            return conv(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: cannot read {value!r} as {kind}") from None
+
+    if typing.get_origin(hint) is tuple:
+        if name == "n_robots" and isinstance(value, str) and "x" not in value and " " not in value.strip():
+            return read("int", int)
+        items = value if isinstance(value, list) else value.replace("x", " ").split()
+        return read("a list of integers", lambda _: [int(v) for v in items])
+    if hint is int:
+        return read("int", int)
+    if hint is float:
+        f = read("float", float)
+        return f if math.isfinite(f) else read("a finite float", lambda _: float("x"))
+    if hint is bool:
+        return read("bool (true or false)", lambda v: {"true": True, "false": False}[v.strip().lower()])
+    return value  # pragma: no cover
 
 
-#: Training presets: fields that differ from the defaults. ``fast`` departs from the thesis where
-#: wall clock on a small CPU matters (see the module doc and README); every value is overridable.
+#: MAGDDPG training presets: fields that differ from TrainConfig's defaults. ``fast`` departs from the
+#: thesis where wall clock on a small CPU matters (module doc, README); every value is overridable.
+_FAST = {"n_envs": 16, "batch_size": 256, "tau": 0.005, "lr_critic": 1e-3, "lr_actor": 1e-3,
+         "updates_per_step": 0.125, "warmup_episodes": 32, "episodes": 100_000, "replay_size": 200_000,
+         "eval_every": 51_200, "eval_episodes": 50, "phantom_neighbours": 16.0, "exp_name": "fast"}
+#: guidance by demonstrations: clone, a long critic-only phase, then small BC-anchored actor steps through
+#: clip (not inverting) gradients: cloned commands sit at 0 and 1, where inverting gradients only push inwards
+_GUIDED = {"demo_policy": "searcher", "bc_weight": 1000.0, "actor_delay": 20_000, "lr_actor": 3e-5,
+           "noise_sigma": 0.1, "action_gradient": "clip"}
 TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "thesis": {"t_prev": 20},
-    "fast": {
-        "n_envs": 16,
-        "batch_size": 256,
-        "tau": 0.005,
-        "lr_critic": 1e-3,
-        "lr_actor": 1e-3,
-        "updates_per_step": 0.125,
-        "warmup_episodes": 32,
-        "episodes": 100_000,
-        "replay_size": 200_000,
-        "eval_every": 25_600,
-        "eval_episodes": 50,
-        "phantom_neighbours": 16.0,
-        "exp_name": "fast",
-    },
-    "quick": {
-        "n_envs": 16,
-        "batch_size": 256,
-        "tau": 0.005,
-        "lr_critic": 1e-3,
-        "lr_actor": 1e-3,
-        "updates_per_step": 0.125,
-        "warmup_episodes": 32,
-        "episodes": 100_000,
-        "replay_size": 100_000,
-        "eval_every": 12_800,
-        "eval_episodes": 50,
-        "phantom_neighbours": 16.0,
-        "max_minutes": 5.0,
-        "exp_name": "quick",
-    },
+    "fast": _FAST,
+    "quick": {**_FAST, "replay_size": 100_000, "eval_every": 12_800, "max_minutes": 5.0, "exp_name": "quick"},
+    "guided": {**_FAST, **_GUIDED, "exp_name": "guided"},
 }
+#: MAGRDPG training presets (RecurrentConfig's defaults are its ``fast``)
+RECURRENT_PRESETS: dict[str, dict[str, Any]] = {
+    "fast": {},
+    "quick": {"max_minutes": 5.0, "replay_size": 100_000, "eval_every": 12_800, "exp_name": "gru-quick"},
+    "guided": {**_GUIDED, "exp_name": "gru-guided"},
+}
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {"magddpg": TRAIN_PRESETS, "magrdpg": RECURRENT_PRESETS}
 
 
-def from_preset(name: str, **overrides: Any) -> TrainConfig:
-    """The training preset ``name`` with fields replaced (validated)."""
-    if name not in TRAIN_PRESETS:
-        raise ConfigError(f"unknown training preset '{name}'; choose one of: {', '.join(TRAIN_PRESETS)}")
-    cfg = TrainConfig.from_dict({**TRAIN_PRESETS[name], **overrides})
-    return cfg.validate()
+def from_preset(name: str, cls: type[ExperimentConfig] = TrainConfig, **overrides: Any) -> ExperimentConfig:
+    """The training preset ``name`` of ``cls``'s algorithm with fields replaced (validated)."""
+    presets = PRESETS[cls.algorithm]
+    if name not in presets:
+        raise ConfigError(f"unknown training preset '{name}'; choose one of: {', '.join(presets)}")
+    return cls.from_dict({**presets[name], **overrides}).validate()

@@ -1,26 +1,29 @@
 """Demonstrations for guided learning: episodes of a scripted policy, and behaviour cloning on them.
 
-MAGRDPG can start from a *demonstrator* instead of from scratch (``--demo-policy searcher``):
+Any actor (MLP or recurrent) can start from a *demonstrator* instead of from scratch
+(``--demo-policy searcher``):
 
 1. :func:`collect_demos` runs the demonstrator in the training world and stores its episodes in an
-   :class:`~learn.replay.EpisodeReplay` of their own, in the same tuple layout as the learner's
+   :class:`~learn.replay.EpisodeReplay` of their own, in the learner's tuple layout
    (``x_t = [a_{t-1}, o_t]``), with states and rewards, so the critic can learn from them too;
-2. :func:`bc_pretrain` fits the recurrent actor to the demonstrator's commands (mean squared error over
-   whole episodes from a zero hidden state: behaviour cloning);
-3. during reinforcement learning the demonstrations stay in every minibatch, and a Q-filtered
+2. :func:`bc_pretrain` fits the actor to the demonstrator's commands through the exact input pipeline
+   of the firmware (mean squared error): the MLP on the T_prev histories the robot would hold
+   (Algorithm 4's first-tuple fill included), the recurrent actor unrolled over whole episodes from
+   the zero state (the algorithms' ``bc_loss``);
+3. during reinforcement learning demonstration samples stay in every minibatch, and a Q-filtered
    behaviour-cloning term keeps the actor near them only where the critic rates the demonstrated
-   action above the actor's own (Nair et al. 2018, "Overcoming exploration in RL with demonstrations").
+   action above the actor's own (Nair et al. 2018; :class:`learn.ddpg.CentralisedDDPG`).
 
 The demonstrator is the hand-written searcher of :mod:`sim.baselines` with one change: it always
 turns left (``turn_sign=+1``). A deterministic actor cannot imitate "left or right at random" (the
 mean of the two is "straight on"); with a fixed turn direction the searcher is as good (thesis world:
-0.96 vs 0.97 final coverage with 2 robots) and a GRU can copy it.
+0.96 vs 0.97 final coverage with 2 robots) and an actor can copy it.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -29,10 +32,7 @@ from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
 
-from .recurrent import GRUActor
 from .replay import EpisodeReplay
-
-DEMO_POLICIES = ("none", "searcher")  #: values of ``--demo-policy``
 
 
 def demonstrator(world: WorldConfig) -> HandWrittenSearcher:
@@ -42,12 +42,13 @@ def demonstrator(world: WorldConfig) -> HandWrittenSearcher:
 
 
 def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int, rng: np.random.Generator,
-                  progress: Callable[[int], None] | None = None) -> EpisodeReplay:
+                  progress: Callable[[int], None] | None = None, t_prev: int = 1, device: str = "cpu",
+                  with_obs: bool = False) -> EpisodeReplay:
     """``episodes`` demonstrator episodes (rounded up to whole batches of ``n_envs``) in a replay of their own."""
     assert episodes >= 1 and n_envs >= 1, f"need episodes >= 1 and n_envs >= 1, got {episodes}, {n_envs}"
     T, M = world.episode_steps, n_robots
     batches = math.ceil(episodes / n_envs)
-    replay = EpisodeReplay(batches * n_envs * T, T, M, world.tuple_dim, world.state_dim(M), 1)
+    replay = EpisodeReplay(batches * n_envs * T, T, M, world.tuple_dim, world.state_dim(M), t_prev, device, with_obs)
     env = SwarmEnv(world, n_envs=n_envs, n_robots=M, seed=int(rng.integers(2 ** 31)))
     policy = demonstrator(world)
     for _ in range(batches):
@@ -65,32 +66,20 @@ def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int,
     return replay
 
 
-def episode_sequences(replay: EpisodeReplay) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every stored episode as per-robot sequences: inputs (E·M, T, D) and the commands taken (E·M, T, 2)."""
-    full = np.flatnonzero(replay.filled == replay.T)
-    assert full.size, "no complete demonstration episode stored"
-    x = replay.tuples[full]  # (E, T + 1, M, D)
-    E, L, M, D = x.shape
-    seq = np.ascontiguousarray(x.transpose(0, 2, 1, 3))  # (E, M, T + 1, D)
-    inputs = seq[:, :, :-1].reshape(E * M, L - 1, D)  # x_0 .. x_{T-1}
-    targets = seq[:, :, 1:, :ACTION_DIM].reshape(E * M, L - 1, ACTION_DIM)  # a_t is stored in x_{t+1}
-    return torch.from_numpy(inputs), torch.from_numpy(targets)
-
-
-def bc_pretrain(actor: GRUActor, replay: EpisodeReplay, updates: int, batch: int, lr: float,
+def bc_pretrain(algo, demos: Sequence[EpisodeReplay], shares: Sequence[int], updates: int, lr: float,
                 rng: np.random.Generator, progress: Callable[[int, float], None] | None = None) -> float:
-    """Behaviour cloning: ``updates`` Adam steps of mean squared error on whole demonstration episodes.
+    """Behaviour cloning: ``updates`` Adam steps of the actor on the demonstrations.
 
-    Each step takes ``batch`` robot-episodes at random and unrolls the actor over all T steps from a
-    zero hidden state, exactly as it will run. Returns the mean loss of the last 10 % of the steps.
+    Each step draws ``shares[g]`` samples (transitions for an MLP, robot-episodes for a recurrent
+    actor) from every swarm size's demonstrations ``demos[g]`` and descends the sample-weighted mean
+    of ``algo.bc_loss``. Returns the mean loss of the last 10 % of the steps. ``progress(k, loss)``
+    runs after each step (it may raise to stop).
     """
-    X, A = episode_sequences(replay)
-    opt = torch.optim.Adam(actor.parameters(), lr=lr)
+    opt = torch.optim.Adam(algo.actor.parameters(), lr=lr)
+    total = sum(shares)
     tail: list[float] = []
     for k in range(updates):
-        idx = torch.from_numpy(rng.integers(0, X.shape[0], batch))
-        y, _ = actor(X[idx], actor.initial_state(batch))
-        loss = torch.mean((y - A[idx]) ** 2)
+        loss = sum(algo.bc_loss(d, n, rng) * (n / total) for d, n in zip(demos, shares) if n)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

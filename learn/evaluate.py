@@ -23,27 +23,54 @@ from sim.baselines import make_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
-from sim.rollout import HistoryActor, RolloutResult, rollout
+from sim.rollout import RolloutResult, rollout
 
 MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache friendly)
 
 
 class Evaluator:
-    """Deterministic evaluation episodes of an actor function, always from the same seeds."""
+    """Deterministic evaluation episodes of a swarm policy, always from the same seeds."""
 
-    def __init__(self, world: WorldConfig, n_robots: int, t_prev: int, episodes: int, seed: int) -> None:
+    def __init__(self, world: WorldConfig, n_robots: int, episodes: int, seed: int, randomise: str = "none") -> None:
+        from .groups import make_env
+
         assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
-        self.world, self.t_prev, self.episodes, self.seed = world, t_prev, episodes, seed
+        self.world, self.n_robots, self.episodes, self.seed = world, n_robots, episodes, seed
         # the largest batch that divides the episodes, so no env is simulated for nothing
         b = min(episodes, MAX_EVAL_ENVS)
         while episodes % b:
             b -= 1
-        self.env = SwarmEnv(world, n_envs=b, n_robots=n_robots, seed=seed)
+        self.env = make_env(world, b, n_robots, seed, randomise)
 
-    def __call__(self, act_fn: Callable[[np.ndarray], np.ndarray]) -> EpisodeMetrics:
-        """``act_fn(history (..., history_dim)) -> (..., 2)`` (clipped to [0, 1] here)."""
-        policy = HistoryActor(act_fn, self.t_prev, self.world)
+    def __call__(self, policy) -> EpisodeMetrics:
+        """Metrics of ``policy`` (a :class:`sim.rollout.SwarmPolicy`, e.g. :class:`LearnerPolicy`)."""
         return rollout(self.env, policy, self.episodes, seed=self.seed).metrics()
+
+
+class LearnerPolicy:
+    """The learning actor as a deterministic :class:`sim.rollout.SwarmPolicy`: the robots' inputs are
+    built by the algorithm's acting object (a T_prev history, or a recurrent state), fed the clipped
+    action each robot executed, as in the firmware."""
+
+    def __init__(self, algo, world: WorldConfig) -> None:
+        self.algo, self.world = algo, world
+        self.acting = None
+        self.prev: np.ndarray | None = None
+
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator | None = None) -> None:
+        self.acting = self.algo.acting(n_envs, n_robots, self.world)
+        self.prev = None
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        assert self.acting is not None, "LearnerPolicy.act before reset"
+        obs = np.asarray(obs, np.float32)
+        if self.prev is None:
+            self.acting.reset(obs)
+        else:
+            self.acting.push(self.prev, obs)
+        a = np.clip(self.acting.act(), 0.0, 1.0)
+        self.prev = a.astype(np.float32)
+        return a
 
 
 @dataclass

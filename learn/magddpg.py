@@ -1,124 +1,136 @@
-"""MAGDDPG (thesis §3.3, Algorithm 4): a centralised critic guides one actor shared by all robots.
+"""MAGDDPG (thesis §3.3, Algorithm 4): the centralised critic guides an MLP actor over the T_prev history.
 
-* Critic Q(s, a¹..a^M | θ^Q) sees the full state (``env.state()``) and the joint action.
-* Actor μ(h | θ^μ) sees one robot's own history; every robot runs the same parameters.
-* Critic target: y = r + γ Q'(s', μ'(h¹'), …, μ'(h^M')) with target networks tracking the learned
-  ones by soft updates θ' ← τ θ + (1 − τ) θ'. Episodes end by time limit only (``truncated``),
-  never in a terminal state, so every target bootstraps.
-* Actor gradient (thesis eq. 3.1): ∇θ J ≈ 1/N Σ_j Σ_i ∇θ μ(h_j^i) ∇_{a^i} Q(s_j, a¹..a^M), the
-  sum over robots coming from the shared parameters, with ∇_{a^i} Q passed through the
-  inverting-gradient rule for the bounded actions (thesis §4.3.1, Hausknecht & Stone 2016).
+* Actor μ(h | θ^μ) (:class:`learn.networks.Actor`) sees one robot's own history: the last t_prev
+  (previous action, observation) tuples, oldest first, the first tuple repeated at an episode start
+  (:class:`sim.history.History`, exactly what the firmware keeps); every robot runs the same weights.
+* Minibatches are transitions (s, h, a, r, s', h') cut from the episode replay
+  (:meth:`learn.replay.EpisodeReplay.sample`); the critic target uses μ'(h') of every robot.
+* Behaviour cloning fits μ(h_t) to the demonstrator's a_t on the demonstrations' histories.
+
+The update itself (critic, actor with inverting or clip gradients, Q-filtered BC, soft updates) is
+:class:`learn.ddpg.CentralisedDDPG`'s.
 """
 from __future__ import annotations
 
-import copy
-from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 import torch
-from torch import nn
 
-from .networks import Actor, Critic
-from .replay import Batch
+from sim.config import ACTION_DIM, WorldConfig
+from sim.history import History
 
-A_MIN, A_MAX = 0.0, 1.0  #: motor commands u_left, u_right are in [0, 1]
+from .ddpg import A_MAX, A_MIN, CentralisedDDPG, Rows, UpdateStats, invert_gradients, np_float64, soft_update  # noqa: F401
+from .networks import Actor, Critic, config_critic
+from .replay import Batch, EpisodeReplay
 
-
-def invert_gradients(grad: torch.Tensor, a: torch.Tensor, a_min: float = A_MIN,
-                     a_max: float = A_MAX) -> torch.Tensor:
-    """Inverting gradients for a bounded action (Hausknecht & Stone 2016, thesis §4.3.1).
-
-    ``grad`` is ∇_a Q (the direction that increases Q) at the actor's raw (linear) output ``a``:
-    where it suggests increasing a it is scaled by (a_max − a)/(a_max − a_min), otherwise by
-    (a − a_min)/(a_max − a_min). Gradients shrink as a approaches a bound and point back inside
-    once a is beyond it. (The thesis prints the two factors; as in Hausknecht & Stone they multiply
-    the gradient.)
-    """
-    width = a_max - a_min
-    scale = torch.where(grad > 0, (a_max - a) / width, (a - a_min) / width)
-    return grad * scale
+__all__ = ["MAGDDPG", "HistoryActing", "invert_gradients", "soft_update", "UpdateStats", "A_MIN", "A_MAX"]
 
 
-@torch.no_grad()
-def soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """θ' ← τ θ + (1 − τ) θ' for every parameter (buffers are copied)."""
-    t_params = list(target.parameters())
-    torch._foreach_lerp_(t_params, list(source.parameters()), tau)
-    for tb, sb in zip(target.buffers(), source.buffers()):
-        tb.copy_(sb)
+class MAGDDPG(CentralisedDDPG):
+    """MLP actor on flat histories (..., t_prev · tuple_dim), centralised critic, the update of Algorithm 4."""
 
-
-@dataclass
-class UpdateStats:
-    critic_loss: float
-    q_mean: float
-    bc_pass: float = float("nan")  #: MAGRDPG with demonstrations: fraction of demo steps passing the Q-filter
-
-
-class MAGDDPG:
-    """Networks, target networks, optimisers and the update of Algorithm 4."""
+    name = "MAGDDPG"
 
     def __init__(self, history_dim: int, state_dim: int, n_robots: int, actor_hidden: tuple[int, ...],
-                 critic_hidden: tuple[int, ...], gamma: float, tau: float, lr_actor: float,
-                 lr_critic: float, reward_scale: float = 1.0) -> None:
-        self.n_robots = n_robots
-        self.gamma, self.tau, self.reward_scale = float(gamma), float(tau), float(reward_scale)
-        self.actor = Actor(history_dim, actor_hidden)
-        self.critic = Critic(state_dim, n_robots, critic_hidden)
-        self.actor_target = copy.deepcopy(self.actor)
-        self.critic_target = copy.deepcopy(self.critic)
-        for p in list(self.actor_target.parameters()) + list(self.critic_target.parameters()):
-            p.requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=lr_actor, fused=True)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=lr_critic, fused=True)
+                 critic_hidden: tuple[int, ...], gamma: float, tau: float, lr_actor: float, lr_critic: float,
+                 reward_scale: float = 1.0, grad_clip: float = 0.0, action_gradient: str = "invert",
+                 actor_robots: int = 0, make_critic: Callable[[], torch.nn.Module] | None = None,
+                 t_prev: int | None = None, device: str | torch.device = "cpu", actor_others: str = "policy") -> None:
+        actor = Actor(history_dim, actor_hidden)  # drawn first, then the critic (the seeds of earlier runs)
+        critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
+        super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
+                         actor_robots, device, actor_others)
+        self.t_prev = t_prev
 
-    # --- acting -------------------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, cfg: Any, world: WorldConfig, device: str | torch.device = "cpu") -> "MAGDDPG":
+        """The MAGDDPG of a :class:`learn.config.TrainConfig`."""
+        M = cfg.n_robots[0]
+        return cls(world.history_dim(cfg.t_prev), world.state_dim(M), M, cfg.actor_hidden, cfg.critic_hidden,
+                   cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic, cfg.reward_scale, cfg.grad_clip,
+                   cfg.action_gradient, cfg.actor_robots, lambda: config_critic(cfg, world), cfg.t_prev, device,
+                   cfg.actor_others)
+
+    # --- what the experiment loop asks ----------------------------------------------------------
+    @property
+    def replay_t_prev(self) -> int:
+        """History length the replay cuts transitions with."""
+        return self.t_prev or 1
+
+    def sample(self, replay: EpisodeReplay, n: int, rng: np.random.Generator) -> Batch:
+        return replay.sample(n, rng)
+
+    def acting(self, n_envs: int, n_robots: int, world: WorldConfig) -> "HistoryActing":
+        return HistoryActing(self, world)
+
     @torch.no_grad()
     def act(self, h: np.ndarray) -> np.ndarray:
         """Raw (linear, unclipped) actor output for flat histories (..., history_dim), float64 NumPy."""
-        return self.actor(torch.as_tensor(h, dtype=torch.float32)).double().numpy()
+        return np_float64(self.actor(self.tensor(h)))
 
-    # --- learning -----------------------------------------------------------------------------
-    def update(self, batch: Batch) -> UpdateStats:
-        """One critic step, one actor step (eq. 3.1 with inverting gradients), soft target updates."""
-        s, h, a, r, s2, h2 = (torch.from_numpy(x) for x in
-                              (batch.s, batch.h, batch.a, batch.r, batch.s2, batch.h2))
-        # critic: y = r + γ Q'(s', μ'(h')), the target actions clipped as the robots would execute them
-        with torch.no_grad():
-            a2 = self.actor_target(h2).clamp(A_MIN, A_MAX)  # (N, M, 2)
-            y = self.reward_scale * r + self.gamma * self.critic_target(s2, a2)  # (N,)
-        q = self.critic(s, a)
-        critic_loss = torch.mean((q - y) ** 2)
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_opt.step()
+    def bc_loss(self, demos: EpisodeReplay, n: int, rng: np.random.Generator) -> torch.Tensor:
+        """Mean squared error of μ(h_t) to the demonstrated a_t over n demo transitions (all robots)."""
+        b = demos.sample(n, rng)
+        return torch.mean((self.actor(b.h) - b.a) ** 2)
 
-        self.actor_step(s, h)
-        soft_update(self.critic_target, self.critic, self.tau)
-        soft_update(self.actor_target, self.actor, self.tau)
-        return UpdateStats(critic_loss=float(critic_loss.detach()), q_mean=float(q.detach().mean()))
+    def artifact(self, world: WorldConfig, provenance: dict):
+        """The actor as a :class:`kiloforge.actors.mlp.MLPPolicy`."""
+        from kiloforge.actors.mlp import MLPPolicy
 
-    def actor_step(self, s: torch.Tensor, h: torch.Tensor) -> None:
-        """θ^μ += lr · 1/N Σ_j Σ_i ∇θ μ(h_j^i) · invert(∇_{a^i} Q(s_j, μ(h_j^1..M)))  (via Adam)."""
-        a = self.actor(h)  # (N, M, 2) raw linear outputs, graph to θ^μ
-        a_in = a.detach().requires_grad_(True)
-        (dq_da,) = torch.autograd.grad(self.critic(s, a_in).sum(), a_in)  # (N, M, 2): per-sample ∇_a Q
-        g = invert_gradients(dq_da, a_in.detach())
-        self.actor_opt.zero_grad(set_to_none=True)
-        a.backward(-g / a.shape[0])  # ascend J: minimise −(1/N) Σ_j Σ_i g_j^i · μ(h_j^i)
-        self.actor_opt.step()
+        layers = self.actor.layers()
+        return MLPPolicy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
+                         activations=[a for _, _, a in layers], t_prev=self.t_prev, world=world, provenance=provenance)
 
-    # --- state --------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {"actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-                "actor_target": self.actor_target.state_dict(),
-                "critic_target": self.critic_target.state_dict(),
-                "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict()}
+    def describe(self) -> str:
+        return f"MLP {'-'.join(map(str, self.actor.hidden))}, T_prev {self.t_prev}"
 
-    def load_state_dict(self, d: dict) -> None:
-        self.actor.load_state_dict(d["actor"])
-        self.critic.load_state_dict(d["critic"])
-        self.actor_target.load_state_dict(d["actor_target"])
-        self.critic_target.load_state_dict(d["critic_target"])
-        self.actor_opt.load_state_dict(d["actor_opt"])
-        self.critic_opt.load_state_dict(d["critic_opt"])
+    # --- rows and actions of a minibatch of transitions -----------------------------------------
+    def rows(self, b: Batch) -> Rows:
+        t = self.tensor
+        return Rows(s=t(b.s), a=t(b.a), r=t(b.r), s2=t(b.s2), o=t(b.o), o2=t(b.o2))
+
+    def n_robots_of(self, b: Batch) -> int:
+        return int(b.h.shape[1])
+
+    def target_actions(self, b: Batch) -> torch.Tensor:
+        return self.actor_target(self.tensor(b.h2))
+
+    def policy_actions(self, b: Batch, sel: torch.Tensor | None, others: torch.Tensor | None = None) -> torch.Tensor:
+        h = self.tensor(b.h)
+        if sel is None:
+            return self.actor(h)
+        if others is None:
+            with torch.no_grad():
+                others = self.actor(h)
+        a = others.clone()  # a plain tensor, so the chosen robots' rows can be written with their graph
+        idx = torch.arange(h.shape[0], device=h.device)[:, None]
+        a[idx, sel] = self.actor(h[idx, sel])  # gradient only through the chosen robots
+        return a
+
+    def actor_step(self, s: Any, h: Any) -> None:
+        """The actor step alone on states s (N, S) and histories h (N, M, history_dim)."""
+        b = Batch(s=s, h=h, a=None, r=None, s2=None, h2=None)
+        self.actor_step_parts([(b, False)], [Rows(s=self.tensor(s), a=None, r=None, s2=None)], len(b))
+
+
+class HistoryActing:
+    """What the robots of one env group feed the MLP actor: the Algorithm-4 history of each robot."""
+
+    def __init__(self, algo: MAGDDPG, world: WorldConfig) -> None:
+        self.algo = algo
+        self.history = History(algo.t_prev, world.obs_dim)
+        self.h: np.ndarray | None = None
+
+    def reset(self, obs: np.ndarray) -> np.ndarray:
+        """New episodes: the history is (a_0 = 0, o_0) repeated; returns that first tuple (B, M, tuple_dim)."""
+        self.h = self.history.reset(obs)
+        return self.history.buf[:, :, 0]
+
+    def act(self) -> np.ndarray:
+        """Raw actions (B, M, 2) float64 of the current histories."""
+        return self.algo.act(self.h)
+
+    def push(self, action: np.ndarray, obs: np.ndarray) -> None:
+        """The executed action and the next observation."""
+        self.h = self.history.push(action, obs)

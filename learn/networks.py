@@ -1,6 +1,12 @@
-"""Actor and critic networks of MAGDDPG (thesis §4.3.1).
+"""Actor and critic networks (thesis §4.3.1), and a critic invariant to robot order and count.
 
-Both are fully connected with ELU hidden layers. Initialisation follows the thesis: every hidden
+* :class:`Actor` — the MLP actor over one robot's flat T_prev history;
+* :class:`Critic` — the thesis's centralised critic: full state and joint action concatenated;
+* :class:`MeanCritic` — a mean-embedding (DeepSets) critic (Hüttenrauch, Šošić & Neumann, *Deep
+  Reinforcement Learning for Swarm Systems*, JMLR 2019): the same encoder on every robot's features,
+  pooled over robots, so one set of weights evaluates any swarm size and any robot order.
+
+All are fully connected with ELU hidden layers. Initialisation follows the thesis: every hidden
 layer's weights and biases from U(±1/√f) with f the layer's input width; the critic's output layer
 from U(±3·10⁻⁴), the actor's from U(±3·10⁻³). The actor's output layer is *linear*: its outputs
 are kept in [0, 1] by the inverting-gradient rule during learning (see :mod:`learn.magddpg`) and
@@ -73,6 +79,75 @@ class Critic(nn.Module):
         self.n_robots = n_robots
         self.net = mlp(state_dim + ACTION_DIM * n_robots, tuple(hidden), 1, CRITIC_OUT_INIT)
 
-    def forward(self, s: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """s (N, state_dim), a (N, M, 2) → Q (N,)."""
+    def forward(self, s: torch.Tensor, a: torch.Tensor, o: torch.Tensor | None = None) -> torch.Tensor:
+        """s (N, state_dim), a (N, M, 2) → Q (N,). (``o``, the robots' observations, is not used.)"""
         return self.net(torch.cat([s, a.flatten(1)], dim=1)).squeeze(1)
+
+
+#: per-robot features of the mean critic: x, y (arena), x − x_t, y − y_t (target), cos φ, sin φ, a_l, a_r
+ROBOT_FEATURES = 8
+
+
+class MeanCritic(nn.Module):
+    """Q(s, a¹..a^M) = ρ([pool_i φ(f_i), g]): invariant to the order and the number of robots.
+
+    ``s`` is the simulator's critic state (``SwarmEnv.state()``: target x, y, then every robot's x, y,
+    φ/π, positions / arena half-width). Robot i's features f_i are its position (relative to the
+    arena), its position relative to the target, cos φ and sin φ, its action and, with ``obs_dim``,
+    its observation; φ is a shared ELU encoder, pooled by the mean over robots (``pool="meanmax"``:
+    mean and element-wise max), and ρ an ELU MLP on the pooled embedding and the global features
+    g = (target x, target y, 1/M).
+    """
+
+    def __init__(self, embed: tuple[int, ...], hidden: tuple[int, ...], pool: str = "mean", obs_dim: int = 0) -> None:
+        super().__init__()
+        assert len(embed) >= 1 and pool in ("mean", "meanmax"), f"bad mean critic {embed}, {pool}"
+        self.pool, self.obs_dim = pool, int(obs_dim)
+        layers: list[nn.Module] = []
+        width = ROBOT_FEATURES + self.obs_dim
+        for h in embed:
+            lin = nn.Linear(width, h)
+            bound = 1.0 / math.sqrt(width)
+            nn.init.uniform_(lin.weight, -bound, bound)
+            nn.init.uniform_(lin.bias, -bound, bound)
+            layers += [lin, nn.ELU()]
+            width = h
+        self.encoder = nn.Sequential(*layers)
+        pooled = width * (2 if pool == "meanmax" else 1)
+        self.head = mlp(pooled + 3, tuple(hidden), 1, CRITIC_OUT_INIT)
+
+    def features(self, s: torch.Tensor, a: torch.Tensor, o: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-robot features (N, M, ROBOT_FEATURES [+ obs_dim])."""
+        N, M, _ = a.shape
+        assert s.shape[1] == 2 + 3 * M, f"state width {s.shape[1]} does not match {M} robots"
+        target = s[:, None, :2]  # (N, 1, 2)
+        robots = s[:, 2:].reshape(N, M, 3)
+        xy, phi = robots[..., :2], robots[..., 2] * math.pi
+        parts = [xy, xy - target, torch.cos(phi)[..., None], torch.sin(phi)[..., None], a]
+        if self.obs_dim:
+            assert o is not None and o.shape[-1] == self.obs_dim, "this critic needs the robots' observations"
+            parts.append(o)
+        return torch.cat(parts, dim=-1)
+
+    def forward(self, s: torch.Tensor, a: torch.Tensor, o: torch.Tensor | None = None) -> torch.Tensor:
+        """s (N, 2 + 3M), a (N, M, 2)[, o (N, M, obs_dim)] → Q (N,), for any M."""
+        e = self.encoder(self.features(s, a, o))  # (N, M, E)
+        pooled = [e.mean(dim=1)] + ([e.amax(dim=1)] if self.pool == "meanmax" else [])
+        g = torch.cat([s[:, :2], torch.full_like(s[:, :1], 1.0 / a.shape[1])], dim=1)
+        return self.head(torch.cat(pooled + [g], dim=1)).squeeze(1)
+
+
+def make_critic(kind: str, state_dim: int, n_robots: int, hidden: tuple[int, ...], embed: tuple[int, ...] = (64, 64),
+                pool: str = "mean", obs_dim: int = 0) -> nn.Module:
+    """The critic a config names: ``concat`` (:class:`Critic`, one swarm size) or ``mean`` (:class:`MeanCritic`)."""
+    if kind == "concat":
+        return Critic(state_dim, n_robots, hidden)
+    assert kind == "mean", f"unknown critic {kind!r}"
+    return MeanCritic(embed, hidden, pool, obs_dim)
+
+
+def config_critic(cfg, world) -> nn.Module:
+    """The critic of a training config (:mod:`learn.config`) in ``world``."""
+    M = cfg.n_robots[0]
+    return make_critic(cfg.critic, world.state_dim(M), M, cfg.critic_hidden, cfg.critic_embed, cfg.critic_pool,
+                       world.obs_dim if cfg.critic_obs else 0)

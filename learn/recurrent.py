@@ -43,8 +43,8 @@ class GRUActor(nn.Module):
         nn.init.uniform_(self.out.bias, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
 
     def initial_state(self, n: int) -> torch.Tensor:
-        """Zero hidden states (n, H)."""
-        return torch.zeros(n, self.hidden)
+        """Zero hidden states (n, H) on the actor's device."""
+        return torch.zeros(n, self.hidden, device=self.out.weight.device)
 
     def states(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         """Hidden states after each step: x (R, L, D), h (R, H) -> (R, L, H)."""
@@ -95,8 +95,8 @@ class LSTMActor(nn.Module):
         nn.init.uniform_(self.out.bias, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
 
     def initial_state(self, n: int) -> torch.Tensor:
-        """Zero states [h, c] (n, 2H)."""
-        return torch.zeros(n, 2 * self.hidden)
+        """Zero states [h, c] (n, 2H) on the actor's device."""
+        return torch.zeros(n, 2 * self.hidden, device=self.out.weight.device)
 
     def _split(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         H = self.hidden

@@ -1,247 +1,279 @@
-"""The MAGDDPG training loop (thesis Algorithm 4), run directories, checkpoints and artifacts.
+"""The one experiment loop for every algorithm and actor: collect, replay, update, evaluate, checkpoint.
 
-Read top to bottom: seeding, environment and networks, then one loop over batches of
-``n_envs`` synchronised episodes. Each step every robot acts on its own history with
-Ornstein-Uhlenbeck noise, the joint transition goes to the replay memory, and after the warm-up
-``updates_per_step`` gradient updates are made per collected transition. At episode ends the
-trainer evaluates (every ``eval_every`` transitions), logs, checkpoints and exports the policy.
+:func:`train` runs a :class:`learn.config.TrainConfig` (MAGDDPG, MLP actor) or a
+:class:`learn.config.RecurrentConfig` (MAGRDPG, recurrent actor); the algorithm
+(:data:`ALGORITHMS`) supplies everything that differs between them — how a robot's actor input or
+state is built while acting, how the replay is sampled (transitions or burn-in windows), behaviour
+cloning, and the policy artifact — so the loop has no branch on the actor kind.
 
-A run directory holds::
+Read top to bottom: seeding (one ``SeedSequence``, one stream per consumer), one env group per swarm
+size (:mod:`learn.groups`), the guided preparation with a demonstrator (demonstrations, behaviour
+cloning, critic pre-training; :mod:`learn.demos`), then one loop over batches of ``n_envs``
+synchronised episodes per size. Each step every robot acts with Ornstein-Uhlenbeck noise, the joint
+transition goes to its size's replay, and after the warm-up the owed updates (``updates_per_step``
+per transition) run in blocks every ``update_every`` steps and at the episode end. At episode ends the
+trainer evaluates every ``eval_every`` transitions (each size on fixed episodes), logs (CSV, curve,
+TensorBoard), exports the policies and checkpoints (incrementally, :mod:`learn.checkpoint`).
 
-    config.json          the TrainConfig (the world preset it names is in world.json)
-    world.json           the WorldConfig trained in
-    metrics.csv          one row per evaluation (see METRIC_COLUMNS)
-    learning_curve.png   evaluation return and final coverage over transitions
-    checkpoint.pt        everything needed to resume exactly (written atomically)
-    policy_best.npz      the actor with the best evaluation return (kiloforge.artifact format)
-    policy_last.npz      the latest actor
-    summary.json         final numbers: best evaluation, wall time, updates/s, env steps/s
+Resume is exact: a run resumed from a checkpoint continues as if it had never stopped (networks,
+optimisers, replay, every RNG stream, counters). SIGKILL loses only what came after the last
+checkpoint. SIGINT / SIGTERM (:mod:`learn.interrupt`) stop at the next step: the unfinished episodes
+are dropped, everything learned so far is checkpointed, and the CLI exits 130 / 143.
+The run directory's files are listed in :mod:`learn.rundir`.
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import os
-import subprocess
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
-from kiloforge.actors.mlp import MLPPolicy
 from kiloforge.io import write_atomic
-from kiloforge.policies import save_policy
-from sim.config import ACTION_DIM
-from sim.env import SwarmEnv
-from sim.history import History
 
-from .checkpoint import load_checkpoint, save_checkpoint
-from .config import ConfigError, TrainConfig
-from .evaluate import Evaluator, metrics_row
-from .augment import PhantomNeighbours
+from .checkpoint import Checkpointer
+from .config import ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
+from .demos import bc_pretrain, collect_demos, demonstrator
+from .evaluate import Evaluator, LearnerPolicy, metrics_row
+from .groups import EnvGroup, size_shares
+from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
-from .noise import OUNoise
+from .magrdpg import MAGRDPG
 from .replay import EpisodeReplay
+from .rundir import (METRIC_COLUMNS, RESUME_MAY_CHANGE, Counters, RunResult, check_resumable,  # noqa: F401
+                     finite_or_none, git_hash, prepare_run_dir, read_metrics, rows_to_csv, run_name, write_summary)
+from .speed import resolve_device, set_threads, tune_allocator
 
-TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 PLOT_EVERY_S = 60.0  #: redraw learning_curve.png at most this often (and at the end): plotting is slow
-METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
-                  "eval_final_coverage", "eval_mean_coverage", "eval_time_to_find", "eval_found_rate",
-                  "train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
+ALGORITHMS = {"magddpg": MAGDDPG, "magrdpg": MAGRDPG}  #: algorithm class of each config's ``algorithm``
+
+__all__ = ["train", "RunResult", "Counters", "TrainConfig", "RecurrentConfig", "read_metrics", "rows_to_csv",
+           "run_name", "METRIC_COLUMNS", "RESUME_MAY_CHANGE"]
 
 
-def run_name(cfg: TrainConfig) -> str:
-    """CleanRL-style run name: task__experiment__seed__unixtime."""
-    return f"{TASK}__{cfg.exp_name}__{cfg.seed}__{int(time.time())}"
-
-
-def git_hash() -> str:
-    """The commit of the code that trains (``unknown`` outside a git checkout)."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).parent,
-                             capture_output=True, text=True, timeout=5)
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-@dataclass
-class Counters:
-    """Progress of a run (all of it goes into checkpoints)."""
-
-    env_steps: int = 0  # transitions collected (summed over envs)
-    episodes: int = 0  # episodes finished (summed over envs)
-    updates: int = 0  # gradient updates made
-    update_debt: float = 0.0  # fractional updates owed (updates_per_step * transitions so far)
-    next_eval: int = 0  # evaluate at the first episode end with env_steps >= this
-    evals: int = 0
-    best_return: float = -math.inf
-    wall_s: float = 0.0  # wall clock spent in this run, over all sessions
-    env_s: float = 0.0  # of which: acting and stepping the environments
-    update_s: float = 0.0  # of which: gradient updates
-    rows: list = field(default_factory=list)  # metrics.csv rows
-
-
-@dataclass
-class RunResult:
-    run_dir: Path
-    counters: Counters
-    stopped: str  # "done", "time" or "interrupted"
-
-
-def train(cfg: TrainConfig, run_dir: str | os.PathLike, resume: bool = False, progress: bool = True,
+def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = False, progress: bool = True,
           log: Callable[[str], None] = print) -> RunResult:
-    """Train MAGDDPG with ``cfg``, writing to ``run_dir``; ``resume`` continues from its checkpoint."""
+    """Train with ``cfg`` (any algorithm), writing to ``run_dir``; ``resume`` continues from its checkpoint
+    (or restarts a run directory that has none). Returns the counters and why the run stopped."""
     cfg.validate()
+    device = resolve_device(cfg.device)
     run_dir = Path(run_dir)
-    prepare_run_dir(run_dir, resume)
+    resume = prepare_run_dir(run_dir, resume, log)
+    ckpt = Checkpointer(run_dir)
     world = cfg.world_config()
-    M, B, T = cfg.n_robots, cfg.n_envs, world.episode_steps
-    history_dim, state_dim = world.history_dim(cfg.t_prev), world.state_dim(M)
+    set_threads(cfg.threads)
+    tune_allocator()
+    T = world.episode_steps
 
-    # --- seeding: one SeedSequence, one stream per consumer; no global NumPy RNG -------------
-    torch.set_num_threads(cfg.threads)
-    ss_init, ss_env, ss_noise, ss_replay, ss_eval, ss_aug = np.random.SeedSequence(cfg.seed).spawn(6)
+    # --- seeding: one SeedSequence, one stream per consumer; no global NumPy RNG ----------------
+    ss_init, ss_env, ss_noise, ss_replay, ss_eval, ss_aug, ss_demo = np.random.SeedSequence(cfg.seed).spawn(7)
     torch.manual_seed(int(ss_init.generate_state(1, np.uint64)[0]))
-    env_rng = np.random.default_rng(ss_env)  # episode reset seeds
+    env_rng = np.random.default_rng(ss_env)  # env construction and episode reset seeds
     noise_rng = np.random.default_rng(ss_noise)
     sample_rng = np.random.default_rng(ss_replay)
     aug_rng = np.random.default_rng(ss_aug)  # phantom neighbours (off unless phantom_neighbours > 0)
+    demo_rng = np.random.default_rng(ss_demo)  # demonstrations and behaviour cloning
     eval_seed = int(ss_eval.generate_state(1, np.uint32)[0])
 
-    # --- environments, networks, memory -------------------------------------------------------
-    env = SwarmEnv(world, n_envs=B, n_robots=M, seed=int(env_rng.integers(2 ** 31)))
-    agent = MAGDDPG(history_dim, state_dim, M, cfg.actor_hidden, cfg.critic_hidden, cfg.gamma, cfg.tau,
-                    cfg.lr_actor, cfg.lr_critic, cfg.reward_scale)
-    replay = EpisodeReplay(cfg.replay_size, T, M, world.tuple_dim, state_dim, cfg.t_prev)
-    noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
-    history = History(cfg.t_prev, world.obs_dim)
-    phantoms = PhantomNeighbours(world, cfg.phantom_neighbours, aug_rng)
-    evaluator = Evaluator(world, M, cfg.t_prev, cfg.eval_episodes, eval_seed)
+    # --- algorithm, env groups, evaluators --------------------------------------------------------
+    algo = ALGORITHMS[cfg.algorithm].from_config(cfg, world, device)
+    groups = [EnvGroup(cfg, world, M, algo, env_rng, noise_rng, aug_rng) for M in cfg.n_robots]
+    eval_randomise = cfg.randomise if cfg.randomise_eval else "none"
+    evaluators = [Evaluator(world, M, cfg.eval_episodes, eval_seed, eval_randomise) for M in cfg.n_robots]
+    shares = size_shares(cfg.batch_samples, cfg.n_robots, cfg.size_mix)
+    demo_shares = size_shares(cfg.demo_samples, cfg.n_robots, cfg.size_mix)
     c = Counters()
+    result = RunResult(run_dir, c, "done")
+    prep = Preparation(cfg, world, algo, groups, evaluators, run_dir, progress, log)
 
-    if resume:
-        ck = load_checkpoint(run_dir / "checkpoint.pt")
-        check_resumable(ck, cfg)
-        agent.load_state_dict(ck["agent"])
-        replay.load_state_dict(ck["replay"])
-        env_rng.bit_generator.state = ck["rng"]["env"]
-        noise_rng.bit_generator.state = ck["rng"]["noise"]
-        sample_rng.bit_generator.state = ck["rng"]["replay"]
-        aug_rng.bit_generator.state = ck["rng"]["augment"]
-        torch.set_rng_state(ck["rng"]["torch"])
-        c = Counters(**ck["counters"])
-        log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
-    else:
-        write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
-        write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+    def replays() -> list:
+        return [g.replay for g in groups] + [g.demos for g in groups if g.demos is not None]
 
     def snapshot() -> dict:
-        return {"version": CHECKPOINT_VERSION, "config": cfg.to_dict(), "agent": agent.state_dict(),
-                "replay": replay.state_dict(),
+        return {"version": CHECKPOINT_VERSION, "algorithm": cfg.algorithm, "config": cfg.to_dict(),
+                "agent": algo.state_dict(),
                 "rng": {"env": env_rng.bit_generator.state, "noise": noise_rng.bit_generator.state,
                         "replay": sample_rng.bit_generator.state, "augment": aug_rng.bit_generator.state,
-                        "torch": torch.get_rng_state()},
+                        "demo": demo_rng.bit_generator.state, "torch": torch.get_rng_state()},
                 "counters": vars(c)}
 
+    def save() -> None:
+        t0 = time.perf_counter()
+        c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+        ckpt.save(snapshot(), replays())
+        c.checkpoint_s += time.perf_counter() - t0
+
     def export(name: str, metrics: dict) -> None:
-        save_policy(actor_policy(agent, cfg, world, c, metrics), run_dir / name)
+        from kiloforge.policies import save_policy
 
-    total_steps = cfg.total_episodes * T
+        save_policy(algo.artifact(world, provenance(cfg, algo, c, metrics)), run_dir / name)
+
+    stop = StopRequest()
+    tb = None
     bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total_steps, initial=min(c.env_steps, total_steps), unit="step", dynamic_ncols=True,
-                   desc=run_dir.name[:40], smoothing=0.05)
     session_start = time.perf_counter()
-    wall_at_start = c.wall_s
-    stopped = "done"
+    wall_at_start = 0.0
+    guided = cfg.demo_policy != "none"
+    prepared = False  # the guided phases are done (an interrupt from here on checkpoints)
+    with stop:
+        try:
+            if resume:
+                for g in groups:  # filled from the checkpoint
+                    g.demos = prep.empty_demos(g, algo.replay_t_prev) if guided else None
+                state = ckpt.load(replays())
+                ckpt.clean()  # orphans of a run killed while checkpointing
+                if state.get("version") != CHECKPOINT_VERSION:
+                    raise ConfigError(f"checkpoint version {state.get('version')} is not supported "
+                                      f"(expected {CHECKPOINT_VERSION})")
+                check_resumable(state["config"], cfg)
+                algo.load_state_dict(state["agent"])
+                for rng, name in ((env_rng, "env"), (noise_rng, "noise"), (sample_rng, "replay"),
+                                  (aug_rng, "augment"), (demo_rng, "demo")):
+                    rng.bit_generator.state = state["rng"][name]
+                torch.set_rng_state(state["rng"]["torch"])
+                c = result.counters = Counters(**state["counters"])
+                log(f"resumed {run_dir} at {c.env_steps} transitions, {c.updates} updates")
+            else:
+                ckpt.clean()
+                write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+                write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+                for g in groups:
+                    g.demos = prep.collect(g, demo_rng, stop, algo.replay_t_prev) if guided else None
+                if guided and cfg.bc_updates:
+                    c.best_return = prep.clone(demo_rng, shares, stop, export)
+                if guided and cfg.critic_pretrain:
+                    prep.critic(sample_rng, shares, demo_shares, stop)
+            prepared = True
+            wall_at_start = c.wall_s
+            session_start = time.perf_counter()
+            if cfg.tensorboard:
+                from .tblog import TensorBoardLog
+
+                tb = TensorBoardLog(run_dir, purge_step=c.env_steps if resume else None)
+            if progress:
+                from tqdm import tqdm
+
+                total = cfg.total_episodes * T
+                bar = tqdm(total=total, initial=min(c.env_steps, total), unit="step", dynamic_ncols=True,
+                           desc=run_dir.name[:40], smoothing=0.05)
+            result.stopped = run_loop(cfg, algo, groups, evaluators, c, sample_rng, env_rng, shares, demo_shares,
+                                      stop, bar, tb, run_dir, export, save, log,
+                                      lambda: wall_at_start + (time.perf_counter() - session_start))
+        except (Interrupted, KeyboardInterrupt) as e:
+            result.stopped = "interrupted"
+            result.signal = e.signum if isinstance(e, Interrupted) else 2
+            if prepared and (guided or ckpt.exists() or c.updates or c.env_steps):
+                save()
+                export("policy_last.npz", c.rows[-1] if c.rows else {})
+                log("interrupted: checkpoint written; --resume continues from it")
+            else:
+                log("interrupted before training started: no checkpoint; --resume restarts the run")
+        finally:
+            if bar is not None:
+                bar.close()
+            if tb is not None:
+                tb.close()
+    c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+    write_summary(run_dir, cfg, c, result.stopped)
+    return result
+
+
+def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, shares, demo_shares, stop, bar, tb,
+             run_dir: Path, export, save, log, wall) -> str:
+    """Batches of synchronised episodes until the budget is spent; returns why it stopped."""
+    T = cfg.world_config().episode_steps
+    per_step = sum(g.n_envs for g in groups)  # transitions per control step, all sizes
+    session_start = time.perf_counter()
     last_plot = -math.inf
     train_returns: list[float] = []
-    losses: list[tuple[float, float]] = []
-    try:
-        while c.episodes < cfg.total_episodes:
-            # ---- one batch of B synchronised episodes (Algorithm 4, "for episode") ----------
-            t0 = time.perf_counter()
-            obs, _ = env.reset(seed=int(env_rng.integers(2 ** 31)))
-            noise.reset()
-            phantoms.reset(B)
-            h = history.reset(phantoms(obs))  # (B, M, history_dim): (a_0 = 0, o_1) repeated
-            replay.begin(history.buf[:, :, 0], env.state())
-            learning = c.episodes >= cfg.warmup_episodes
-            ep_return = np.zeros(B)
-            upd_time = 0.0
+    losses: list[tuple[float, float, float]] = []
+
+    def one_update() -> None:
+        parts = []
+        for g, n, nd in zip(groups, shares, demo_shares):
+            parts.append((algo.sample(g.replay, n, sample_rng), False))
+            if nd and g.demos is not None:
+                parts.append((algo.sample(g.demos, nd, sample_rng), True))
+        st = algo.update_parts(parts, cfg.bc_weight, train_actor=c.updates >= cfg.actor_delay)
+        losses.append((st.critic_loss, st.q_mean, st.bc_pass))
+        c.updates += 1
+
+    while c.episodes < cfg.total_episodes:
+        stop.check()
+        t0 = time.perf_counter()
+        upd_time = 0.0
+        for g in groups:
+            g.begin(env_rng)
+        learning = c.episodes >= cfg.warmup_episodes
+        done = 0
+        try:
             for t in range(T):
-                a = np.clip(agent.act(h) + noise.sample(), 0.0, 1.0).astype(np.float32)  # (B, M, 2)
-                obs, reward, _, truncated, _ = env.step(a)
-                obs = phantoms(obs)
-                h = history.push(a, obs)
-                effort = np.mean(np.sum(a * a, axis=-1), axis=-1)  # (B,) (1/M) Σ_i ||a_i||²
-                r_learn = reward - world.reward_scale * cfg.extra_action_penalty * effort
-                replay.add(np.concatenate([a, obs], axis=-1), env.state(), r_learn)
-                ep_return += reward
-                c.env_steps += B
+                for g in groups:
+                    truncated = g.step()
+                done += 1
+                c.env_steps += per_step
                 if learning:
-                    c.update_debt += B * cfg.updates_per_step
-                    u0 = time.perf_counter()
-                    while c.update_debt >= 1.0:
-                        st = agent.update(replay.sample(cfg.batch_size, sample_rng))
-                        losses.append((st.critic_loss, st.q_mean))
-                        c.update_debt -= 1.0
-                        c.updates += 1
-                    upd_time += time.perf_counter() - u0
+                    c.update_debt += per_step * cfg.updates_per_step
+                    if (t + 1) % cfg.update_every == 0 or t == T - 1:
+                        u0 = time.perf_counter()
+                        n = int(c.update_debt)
+                        for _ in range(n):
+                            one_update()
+                        c.update_debt -= n
+                        upd_time += time.perf_counter() - u0
                 if bar is not None:
-                    bar.update(B)
-            assert np.all(truncated), "the env did not truncate after episode_steps steps"
-            c.episodes += B
-            train_returns.extend(ep_return.tolist())
-            elapsed = time.perf_counter() - t0
+                    bar.update(per_step)
+                stop.check()
+        except (Interrupted, KeyboardInterrupt):
+            for g in groups:  # the unfinished episodes are dropped: the checkpoint ends at an episode boundary
+                g.replay.drop_active()
+            c.env_steps -= done * per_step
             c.update_s += upd_time
-            c.env_s += elapsed - upd_time
-            c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+            c.env_s += time.perf_counter() - t0 - upd_time
+            raise
+        assert np.all(truncated), "the env did not truncate after episode_steps steps"
+        c.episodes += per_step
+        for g in groups:
+            train_returns.extend(g.ep_return.tolist())
+        c.update_s += upd_time
+        c.env_s += time.perf_counter() - t0 - upd_time
+        c.wall_s = wall()
 
-            # ---- evaluation, logging, checkpoint ----------------------------------------------
-            over_time = cfg.max_minutes > 0 and (time.perf_counter() - session_start) >= 60 * cfg.max_minutes
-            last = c.episodes >= cfg.total_episodes or over_time
-            if c.env_steps >= c.next_eval or last:
-                plot = last or time.perf_counter() - last_plot >= PLOT_EVERY_S
-                evaluate_and_log(cfg, agent, evaluator, c, train_returns, losses, run_dir, export, log, bar, plot)
-                last_plot = time.perf_counter() if plot else last_plot
-                train_returns, losses = [], []
-                while c.next_eval <= c.env_steps:
-                    c.next_eval += cfg.eval_every
-                if last or (cfg.checkpoint_every and c.evals % cfg.checkpoint_every == 0):
-                    c.wall_s = wall_at_start + (time.perf_counter() - session_start)
-                    save_checkpoint(snapshot(), run_dir / "checkpoint.pt")
-            if over_time:
-                stopped = "time"
-                break
-    except KeyboardInterrupt:
-        stopped = "interrupted"
-        log("interrupted: policy_last.npz holds the current actor; --resume continues from the last checkpoint")
-        export("policy_last.npz", c.rows[-1] if c.rows else {})
-    finally:
-        if bar is not None:
-            bar.close()
-    c.wall_s = wall_at_start + (time.perf_counter() - session_start)
-    write_summary(run_dir, cfg, c, stopped)
-    return RunResult(run_dir, c, stopped)
+        # ---- evaluation, logging, checkpoint --------------------------------------------------
+        over_time = cfg.max_minutes > 0 and (time.perf_counter() - session_start) >= 60 * cfg.max_minutes
+        last = c.episodes >= cfg.total_episodes or over_time
+        if c.env_steps >= c.next_eval or last:
+            e0 = time.perf_counter()
+            plot = last or time.perf_counter() - last_plot >= PLOT_EVERY_S
+            evaluate_and_log(cfg, algo, evaluators, c, train_returns, losses, run_dir, export, log, bar, tb, plot,
+                             demos=any(g.demos is not None for g in groups))
+            last_plot = time.perf_counter() if plot else last_plot
+            train_returns, losses = [], []
+            while c.next_eval <= c.env_steps:
+                c.next_eval += cfg.eval_every
+            c.eval_s += time.perf_counter() - e0
+            if last or (cfg.checkpoint_every and c.evals % cfg.checkpoint_every == 0):
+                save()
+        if over_time:
+            return "time"
+    return "done"
 
 
-def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: Counters,
-                     train_returns: list[float], losses: list, run_dir: Path, export, log, bar,
-                     plot: bool = True) -> None:
-    """Evaluate deterministically, append a metrics row, export best/last, redraw the curve when ``plot``."""
+def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, run_dir: Path, export, log, bar, tb,
+                     plot: bool = True, demos: bool = False) -> None:
+    """Evaluate every swarm size deterministically, append a metrics row (eval_* = mean over sizes, and
+    per size when there are several), export best/last, log, redraw the curve when ``plot``."""
     from .plots import plot_learning_curves
 
-    metrics = metrics_row(evaluator(agent.act))
+    world = evaluators[0].world
+    per_size = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, world))) for ev in evaluators}
+    keys = next(iter(per_size.values())).keys()
+    metrics = {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys}
     row = {"env_steps": c.env_steps, "episodes": c.episodes, "updates": c.updates, "wall_s": round(c.wall_s, 2),
            **metrics,
            "train_return": float(np.mean(train_returns)) if train_returns else float("nan"),
@@ -249,6 +281,11 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
            "q_mean": float(np.mean([x[1] for x in losses])) if losses else float("nan"),
            "env_steps_per_s": c.env_steps / c.env_s if c.env_s > 0 else float("nan"),
            "updates_per_s": c.updates / c.update_s if c.update_s > 0 else float("nan")}
+    if demos:
+        row["bc_pass"] = mean_finite([x[2] for x in losses])  # NaN while the actor waits
+    if len(per_size) > 1:
+        for M, m in per_size.items():
+            row.update({f"{k}_m{M}": v for k, v in m.items()})
     c.rows.append(row)
     c.evals += 1
     export("policy_last.npz", row)
@@ -256,9 +293,10 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
     write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    if tb is not None:
+        tb.row(row)
     if plot:
-        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
-                             title=f"MAGDDPG, {cfg.n_robots} robots, T_prev {cfg.t_prev} ({cfg.world} world)")
+        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png", title=curve_title(cfg, algo))
     msg = (f"return {row['eval_return']:.1f}  final cov {row['eval_final_coverage']:.2f}  "
            f"find {row['eval_time_to_find']:.0f}")
     if bar is not None:
@@ -267,88 +305,104 @@ def evaluate_and_log(cfg: TrainConfig, agent: MAGDDPG, evaluator: Evaluator, c: 
         log(f"[{c.env_steps} steps, {c.updates} updates, {c.wall_s:.0f} s] {msg}")
 
 
-def rows_to_csv(rows: list[dict]) -> str:
-    """CSV of metric rows: METRIC_COLUMNS, then any extra columns a trainer adds (e.g. MAGRDPG's bc_pass)."""
-    buf = io.StringIO()
-    extra = list(dict.fromkeys(k for r in rows for k in r if k not in METRIC_COLUMNS))  # first-seen order
-    w = csv.DictWriter(buf, fieldnames=list(METRIC_COLUMNS) + extra, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    return buf.getvalue()
+def curve_title(cfg: ExperimentConfig, algo) -> str:
+    robots = "/".join(map(str, cfg.n_robots))
+    return f"{algo.name}, {robots} robots, {algo.describe()} ({cfg.world} world)"
 
 
-def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """metrics.csv of a run directory as a list of float dicts."""
-    path = Path(run_dir) / "metrics.csv"
-    if not path.is_file():
-        raise ConfigError(f"'{run_dir}' has no metrics.csv; is it a training run directory?")
-    with open(path, newline="") as f:
-        return [{k: float(v) if v not in ("", None) else float("nan") for k, v in r.items()}
-                for r in csv.DictReader(f)]
+def mean_finite(xs: list[float]) -> float:
+    """Mean of the finite values (NaN when there are none)."""
+    v = [x for x in xs if math.isfinite(x)]
+    return float(np.mean(v)) if v else float("nan")
 
 
-def actor_policy(agent: MAGDDPG, cfg: TrainConfig, world, c: Counters, metrics: dict) -> MLPPolicy:
-    """The current actor as a :class:`kiloforge.actors.mlp.MLPPolicy` with provenance."""
-    layers = agent.actor.layers()
-    provenance = {
-        "trainer": "kiloforge.learn MAGDDPG", "config": cfg.to_dict(), "seed": cfg.seed,
-        "git": git_hash(), "torch": torch.__version__, "trained_robots": cfg.n_robots,
-        "env_steps": c.env_steps, "updates": c.updates, "wall_s": round(c.wall_s, 1),
-        "eval": finite_or_none(dict(metrics)),
-    }
-    return MLPPolicy(weights=[w for w, _, _ in layers], biases=[b for _, b, _ in layers],
-                     activations=[a for _, _, a in layers], t_prev=cfg.t_prev, world=world, provenance=provenance)
+def provenance(cfg: ExperimentConfig, algo, c: Counters, metrics: dict) -> dict:
+    """What a policy artifact records about the run that made it."""
+    robots = cfg.n_robots[0] if len(cfg.n_robots) == 1 else list(cfg.n_robots)
+    return {"trainer": f"kiloforge.learn {algo.name}", "config": cfg.to_dict(), "seed": cfg.seed, "git": git_hash(),
+            "torch": torch.__version__, "trained_robots": robots, "env_steps": c.env_steps, "updates": c.updates,
+            "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(metrics))}
 
 
-def prepare_run_dir(run_dir: Path, resume: bool) -> None:
-    """Create the run directory; refuse to overwrite a run, or to resume one that has no checkpoint."""
-    if resume:
-        if not (run_dir / "checkpoint.pt").is_file():
-            raise ConfigError(f"cannot resume: '{run_dir}' has no checkpoint.pt")
-        return
-    if (run_dir / "config.json").exists() or (run_dir / "checkpoint.pt").exists():
-        raise ConfigError(f"'{run_dir}' already holds a run; use --resume to continue it or choose another --out")
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"cannot create run directory '{run_dir}': {e.strerror or e}") from None
+class Preparation:
+    """The guided phases before reinforcement learning: demonstrations, behaviour cloning, critic pre-training."""
 
+    def __init__(self, cfg, world, algo, groups, evaluators, run_dir: Path, progress: bool, log) -> None:
+        self.cfg, self.world, self.algo, self.groups, self.evaluators = cfg, world, algo, groups, evaluators
+        self.run_dir, self.progress, self.log = run_dir, progress, log
 
-#: fields that may differ between a checkpoint and a resumed run (budgets and speed knobs)
-RESUME_MAY_CHANGE = ("episodes", "max_minutes", "threads", "checkpoint_every")
+    def bar(self, total: int, unit: str, desc: str):
+        """A transient tqdm bar for one phase (a silent no-op bar without ``progress``)."""
+        from tqdm import tqdm
 
+        return tqdm(total=total, unit=unit, desc=desc, dynamic_ncols=True, leave=False, disable=not self.progress)
 
-def check_resumable(ck: dict, cfg: TrainConfig) -> None:
-    if ck.get("version") != CHECKPOINT_VERSION:
-        raise ConfigError(f"checkpoint version {ck.get('version')} is not supported (expected {CHECKPOINT_VERSION})")
-    saved = ck["config"]
-    now = cfg.to_dict()
-    diff = sorted(k for k in now if k not in RESUME_MAY_CHANGE and saved.get(k) != now[k])
-    if diff:
-        raise ConfigError(f"cannot resume with a different {', '.join(diff)}; only "
-                          f"{', '.join(RESUME_MAY_CHANGE)} may change")
+    def empty_demos(self, g: EnvGroup, t_prev: int) -> EpisodeReplay:
+        """A demonstration replay of the shape :meth:`collect` fills (to load from a checkpoint)."""
+        T, B = self.world.episode_steps, self.cfg.n_envs
+        episodes = -(-self.cfg.demo_episodes // B) * B
+        return EpisodeReplay(episodes * T, T, g.n_robots, self.world.tuple_dim, self.world.state_dim(g.n_robots),
+                             t_prev, self.algo.device, self.cfg.critic_obs)
 
+    def collect(self, g: EnvGroup, rng: np.random.Generator, stop: StopRequest, t_prev: int):
+        """The demonstrator's episodes for one swarm size (regenerated identically on resume: same stream)."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
 
-def write_summary(run_dir: Path, cfg: TrainConfig, c: Counters, stopped: str) -> None:
-    best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else {}
-    summary = {
-        "stopped": stopped, "env_steps": c.env_steps, "episodes": c.episodes, "updates": c.updates,
-        "wall_s": round(c.wall_s, 1), "env_s": round(c.env_s, 1), "update_s": round(c.update_s, 1),
-        "env_steps_per_s": round(c.env_steps / c.env_s, 1) if c.env_s else None,
-        "updates_per_s": round(c.updates / c.update_s, 1) if c.update_s else None,
-        "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
-        "seed": cfg.seed, "git": git_hash(),
-    }
-    write_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
+        def tick(n: int) -> None:
+            bar.update(n)
+            stop.check()
 
+        with self.bar(cfg.demo_episodes, "episode", f"demonstrations, {g.n_robots} robots") as bar:
+            demos = collect_demos(self.world, g.n_robots, cfg.demo_episodes, cfg.n_envs, rng, tick, t_prev,
+                                  self.algo.device, cfg.critic_obs)
+        self.log(f"demonstrations: {int((demos.filled > 0).sum())} episodes of the {cfg.demo_policy} with "
+                 f"{g.n_robots} robots in {time.perf_counter() - t0:.0f} s")
+        return demos
 
-def finite_or_none(obj):
-    """JSON-safe copy: NaN and infinities become None (null)."""
-    if isinstance(obj, dict):
-        return {k: finite_or_none(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [finite_or_none(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
+    def clone(self, rng: np.random.Generator, shares: list[int], stop: StopRequest, export) -> float:
+        """Behaviour cloning of the actor (and its target); evaluate, keep as policy_bc.npz and as the best
+        so far (RL must beat it). Returns the clone's evaluation return."""
+        cfg, algo = self.cfg, self.algo
+        t0 = time.perf_counter()
+
+        def tick(k: int, loss: float) -> None:
+            bar.update(1)
+            stop.check()
+
+        with self.bar(cfg.bc_updates, "update", "behaviour cloning") as bar:
+            loss = bc_pretrain(algo, [g.demos for g in self.groups], shares, cfg.bc_updates, cfg.bc_lr, rng, tick)
+        algo.actor_target.load_state_dict(algo.actor.state_dict())
+        bc_s = time.perf_counter() - t0
+        demo_m = {ev.n_robots: metrics_row(ev(demonstrator(self.world))) for ev in self.evaluators}
+        bc_m = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, self.world))) for ev in self.evaluators}
+        mean = {k: float(np.mean([m[k] for m in bc_m.values()])) for k in next(iter(bc_m.values()))}
+        first = next(iter(bc_m))
+        info = {"demo_policy": cfg.demo_policy,
+                "demo_episodes": int(sum((g.demos.filled > 0).sum() for g in self.groups)),
+                "bc_updates": cfg.bc_updates, "bc_loss": loss, "bc_s": round(bc_s, 1),
+                "eval_demonstrator": finite_or_none(demo_m[first]), "eval_after_bc": finite_or_none(bc_m[first]),
+                "per_size": {str(M): {"demonstrator": finite_or_none(demo_m[M]), "after_bc": finite_or_none(bc_m[M])}
+                             for M in bc_m}}
+        write_atomic(self.run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
+        export("policy_bc.npz", mean)
+        export("policy_best.npz", mean)
+        sizes = ", ".join(f"{M} robots {bc_m[M]['eval_final_coverage']:.3f} (demonstrator "
+                          f"{demo_m[M]['eval_final_coverage']:.3f})" for M in bc_m)
+        self.log(f"behaviour cloning: loss {loss:.4f} in {bc_s:.0f} s; evaluation return {mean['eval_return']:.1f}, "
+                 f"final coverage {sizes}")
+        return mean["eval_return"]
+
+    def critic(self, rng: np.random.Generator, shares: list[int], demo_shares: list[int], stop: StopRequest) -> None:
+        """Critic-only updates on demonstration samples: Q of the (cloned) actor before the actor may move."""
+        cfg, algo = self.cfg, self.algo
+        t0 = time.perf_counter()
+        qs = []
+        with self.bar(cfg.critic_pretrain, "update", "critic on demonstrations") as bar:
+            for _ in range(cfg.critic_pretrain):
+                parts = [(algo.sample(g.demos, n + nd, rng), False) for g, n, nd in zip(self.groups, shares, demo_shares)]
+                qs.append(algo.update_parts(parts, train_actor=False).q_mean)
+                bar.update(1)
+                stop.check()
+        self.log(f"critic pre-training: {cfg.critic_pretrain} updates on demonstrations in "
+                 f"{time.perf_counter() - t0:.0f} s, mean Q {np.mean(qs[-100:]):.1f}")

@@ -9,9 +9,11 @@ import torch
 
 from kiloforge.policies import load_policy
 from kiloforge.actors.gru import GRUPolicy
-from learn.demos import bc_pretrain, collect_demos, demonstrator, episode_sequences
-from learn.magrdpg import MAGRDPG, RecurrentConfig, concat_windows, main_train_recurrent, sample_windows
-from learn.recurrent import GRUActor
+from learn.cli import main_train_recurrent
+from learn.config import RecurrentConfig
+from learn.demos import bc_pretrain, collect_demos, demonstrator
+from learn.magrdpg import MAGRDPG
+from learn.replay import concat
 from sim.baselines import HandWrittenSearcher, SearcherParams
 from sim.config import OBS_RBF, preset
 from sim.env import SwarmEnv
@@ -43,13 +45,11 @@ def test_demo_episodes_are_the_demonstrators_rollouts():
     """collect_demos stores [a_{t-1}, o_t] tuples, states and rewards exactly as the demonstrator ran them."""
     rep = collect_demos(WORLD, 2, 5, 4, np.random.default_rng(0))
     assert rep.n_slots == 8 and int((rep.filled == WORLD.episode_steps).sum()) == 8  # rounded up to 2 batches of 4
-    x = rep.tuples[:8]  # (E, T + 1, M, D)
+    x = rep.tuples[:8].numpy().transpose(0, 2, 1, 3)  # (E, T + 1, M, D)
     assert np.all(x[:, 0, :, :2] == 0)  # a_0 = 0
     assert set(np.unique(x[:, 1:, :, :2])) <= {0.0, 1.0}  # the searcher's commands: stop, turn, straight
-    assert np.all(np.isfinite(x)) and np.all(np.isfinite(rep.states[:8])) and np.all(np.isfinite(rep.rewards[:8]))
-    X, A = episode_sequences(rep)
-    assert X.shape == (16, 30, WORLD.tuple_dim) and A.shape == (16, 30, 2)
-    torch.testing.assert_close(X[:, 1:, :2], A[:, :-1])  # the input's previous action is the last target
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(rep.states[:8].numpy()))
+    assert np.all(np.isfinite(rep.rewards[:8].numpy()))
     # the stored rewards are what the env paid: replay the first batch's actions in a fresh env
     rng = np.random.default_rng(0)  # collect_demos draws the env seed, then each batch's reset seed
     env = SwarmEnv(WORLD, 4, 2, seed=int(rng.integers(2 ** 31)))
@@ -59,7 +59,7 @@ def test_demo_episodes_are_the_demonstrators_rollouts():
     for t in range(WORLD.episode_steps):
         obs, r, *_ = env.step(x[:4, t + 1, :, :2].astype(np.float64))
         rewards.append(r)
-    np.testing.assert_array_equal(np.stack(rewards, 1), rep.rewards[:4])
+    np.testing.assert_array_equal(np.stack(rewards, 1), rep.rewards[:4].numpy())
     np.testing.assert_array_equal(obs.astype(np.float32)[..., OBS_RBF:], x[:4, -1, :, 2 + OBS_RBF:])
 
 
@@ -71,18 +71,17 @@ def test_demonstrator_searches_as_well_as_the_hand_written_searcher():
 
 
 def test_behaviour_cloning_fits_the_demonstrations():
-    """bc_pretrain lowers the squared error of the actor's commands on the demo episodes."""
+    """bc_pretrain lowers the squared error of the GRU's commands on the demo episodes (unrolled from zero)."""
     rep = collect_demos(WORLD, 2, 8, 8, np.random.default_rng(1))
     torch.manual_seed(0)
-    actor = GRUActor(WORLD.tuple_dim, 16)
-    X, A = episode_sequences(rep)
+    agent = MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 16, (16,), 0.9, 0.1, 1e-3, 1e-3)
 
     def mse() -> float:
         with torch.no_grad():
-            return float(torch.mean((actor(X, actor.initial_state(X.shape[0]))[0] - A) ** 2))
+            return float(agent.bc_loss(rep, 64, np.random.default_rng(5)))
 
     before = mse()
-    bc_pretrain(actor, rep, 150, 8, 3e-3, np.random.default_rng(0))
+    bc_pretrain(agent, [rep], [8], 150, 3e-3, np.random.default_rng(0))
     assert mse() < 0.5 * before, (before, mse())
 
 
@@ -105,7 +104,7 @@ def test_q_filtered_bc_pulls_the_actor_towards_demonstrations_where_the_critic_p
     rng = np.random.default_rng(3)
     torch.manual_seed(3)
     agent = MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (32,), 0.5, 0.01, 1e-2, 1e-3, burn_in=3)
-    w = concat_windows(sample_windows(rep, 4, 3, 5, rng), sample_windows(rep, 4, 3, 5, rng))
+    w = concat(rep.sample_windows(4, 3, 5, rng), rep.sample_windows(4, 3, 5, rng))
     assert w.x.shape[0] == 8 and w.s.shape[:2] == (8, 5)
     actor0 = [p.detach().clone() for p in agent.actor.parameters()]
     st = agent.update(w, n_demo=4, bc_weight=1.0, train_actor=False)
@@ -115,14 +114,13 @@ def test_q_filtered_bc_pulls_the_actor_towards_demonstrations_where_the_critic_p
     agent.critic, agent.critic_target = StepCritic(), StepCritic()
     plain, guided = copy.deepcopy(agent), copy.deepcopy(agent)
     # the actor's own commands on the demo steps (rows n*U + t of the last 4 windows), before the update
-    from learn.magrdpg import Windows  # noqa: F401 (layout documented there)
-    X = torch.from_numpy(np.ascontiguousarray(w.x[4:].transpose(0, 2, 1, 3)).reshape(8, -1, WORLD.tuple_dim))
-    off = torch.from_numpy(np.repeat(w.off[4:], 2))
+    X = w.x[4:].reshape(8, -1, WORLD.tuple_dim)  # (windows x robots, L, D), layout of learn.replay.Windows
+    off = w.off[4:].repeat_interleave(2)
     pos = off[:, None] + torch.arange(5)
     with torch.no_grad():
         a_own, _ = agent.actor(X[torch.arange(8)[:, None], pos], agent.burn_in_state(X, off))  # (8, 5, 2)
     own = a_own.reshape(4, 2, 5, 2).permute(0, 2, 1, 3).reshape(20, 2, 2).sum(dim=(1, 2))
-    demo = torch.from_numpy(w.a[4:].reshape(20, 2, 2)).sum(dim=(1, 2))
+    demo = w.a[4:].reshape(20, 2, 2).sum(dim=(1, 2))
     prefer = (demo > 0.5) & (own <= 0.5)  # Q(demo) = 1 > Q(own) = 0
     expected_pass = float(prefer.float().mean())
     assert 0.0 < expected_pass, "the test needs demo steps that the critic prefers"
@@ -134,7 +132,7 @@ def test_q_filtered_bc_pulls_the_actor_towards_demonstrations_where_the_critic_p
         with torch.no_grad():
             a, _ = ag.actor(X[torch.arange(8)[:, None], pos], ag.burn_in_state(X, off))
         a = a.reshape(4, 2, 5, 2).permute(0, 2, 1, 3).reshape(20, 2, 2)
-        return float(((a - torch.from_numpy(w.a[4:].reshape(20, 2, 2))) ** 2)[prefer].mean())
+        return float(((a - w.a[4:].reshape(20, 2, 2)) ** 2)[prefer].mean())
 
     assert all(torch.equal(a, b) for a, b in zip(plain.actor.parameters(), actor0))  # flat critic: no step
     assert demo_error(guided) < demo_error(plain)
@@ -143,7 +141,7 @@ def test_q_filtered_bc_pulls_the_actor_towards_demonstrations_where_the_critic_p
 def test_guided_config_validation():
     """Bad guidance values raise one-line ConfigErrors; the guided preset enables the demonstrator."""
     from learn.config import ConfigError
-    from learn.magrdpg import PRESETS
+    from learn.config import RECURRENT_PRESETS as PRESETS
     for bad in ({"demo_policy": "oracle"}, {"demo_episodes": 0}, {"bc_weight": -1.0}, {"bc_lr": 0.0},
                 {"actor_delay": -1}, {"critic_pretrain": -5}, {"action_gradient": "tanh"}):
         with pytest.raises(ConfigError) as ei:
@@ -213,7 +211,7 @@ class LessIsBetterCritic(torch.nn.Module):
 def test_clip_action_gradient_leaves_saturated_commands_alone():
     """action_gradient='clip': commands beyond a bound get no gradient; 'invert' pushes them back inside."""
     rep = collect_demos(WORLD, 2, 4, 4, np.random.default_rng(4))
-    w = sample_windows(rep, 4, 3, 5, np.random.default_rng(5))
+    w = rep.sample_windows(4, 3, 5, np.random.default_rng(5))
     out = {}
     for mode in ("clip", "invert"):
         torch.manual_seed(6)
@@ -229,3 +227,44 @@ def test_clip_action_gradient_leaves_saturated_commands_alone():
     assert out["clip"] == 0.0 and out["invert"] > 0.0, out
     with pytest.raises(AssertionError, match="action_gradient"):
         MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (16,), 0.5, 0.01, 1e-2, 1e-3, action_gradient="tanh")
+
+
+def test_guided_mlp_cloning_reaches_the_demonstrator(tmp_path):
+    """MLP behaviour cloning on T_prev histories (as the firmware builds them): on fresh episodes the clone
+    (policy_bc.npz, run by sim's HistoryActor) reaches 90 % of the left-turning searcher's final coverage."""
+    from kiloforge.policies import swarm_policy
+    from learn.config import TrainConfig
+    from learn.train import train
+    from sim.baselines import make_policy
+    cfg = TrainConfig(n_robots=2, t_prev=10, episode_steps=100, n_envs=16, demo_policy="searcher", demo_episodes=64,
+                      bc_updates=300, warmup_episodes=0, episodes=0, batch_size=256, replay_size=1600,
+                      eval_episodes=10, seed=1)
+    train(cfg, tmp_path / "bc", progress=False, log=lambda m: None)
+    p = load_policy(tmp_path / "bc" / "policy_bc.npz")
+    assert p.kind == "mlp" and p.t_prev == 10 and p.hidden == [32, 32]
+    env = SwarmEnv(p.world, 50, 2, seed=777)
+    cover = {name: rollout(env, pol, 100, seed=777).metrics().final_coverage.mean()
+             for name, pol in (("clone", swarm_policy(p)), ("demonstrator", demonstrator(p.world)),
+                               ("random", make_policy("random", p.world)))}
+    assert cover["clone"] >= 0.9 * cover["demonstrator"] and cover["clone"] > 3 * cover["random"], cover
+    info = json.loads((tmp_path / "bc" / "demos.json").read_text())
+    assert info["eval_after_bc"]["eval_final_coverage"] > 0.5
+
+
+def test_guided_mlp_cli_clones_learns_and_resumes(tmp_path, capsys):
+    """`learn train --preset guided`: demonstrations, cloning, critic pre-training, Q-filtered RL, resume."""
+    from learn.__main__ import main
+    out = tmp_path / "run"
+    argv = ["train", "--preset", "guided", "--robots", "2", "--history", "3", "--out", str(out), "--quiet",
+            "--episode-steps", "20", "--n-envs", "2", "--demo-episodes", "4", "--bc-updates", "20",
+            "--critic-pretrain", "3", "--actor-delay", "5", "--warmup-episodes", "2", "--episodes", "4",
+            "--eval-every", "40", "--eval-episodes", "2", "--replay-size", "400", "--batch-size", "8",
+            "--demo-transitions", "4", "--actor-hidden", "8", "--critic-hidden", "16", "--seed", "3"]
+    assert main(argv) == 0
+    log = capsys.readouterr().out
+    assert "behaviour cloning: loss" in log and "critic pre-training: 3 updates" in log
+    assert load_policy(out / "policy_bc.npz").kind == "mlp"
+    header = (out / "metrics.csv").read_text().splitlines()[0]
+    assert header.endswith(",bc_pass")
+    assert main(["train", "--out", str(out), "--resume", "--quiet", "--episodes", "6"]) == 0
+    assert "resumed" in capsys.readouterr().out

@@ -141,3 +141,82 @@ def test_actor_layers_export_order():
         if a == "elu":
             y = np.where(y > 0, y, np.expm1(y))
     np.testing.assert_allclose(y, actor(torch.from_numpy(x)).detach().numpy(), rtol=1e-5, atol=1e-6)
+
+
+def _actor_grads(agent, part, rows, sel):
+    """The gradient the actor optimiser sees for one part, with the robot subset forced to ``sel``."""
+    seen = {}
+    agent.robot_subset = lambda n, m: sel
+    agent.actor_opt.step = lambda: seen.update(g=[p.grad.clone() for p in agent.actor.parameters()])
+    agent.actor_step_parts([(part, False)], [rows], len(part))
+    return seen["g"]
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_actor_objective_on_robot_subsets_is_unbiased(kind):
+    """With actor_robots = K the gradient from K robots, scaled by M/K, averages over a partition of the robots
+    to the full gradient (MLP transitions and GRU windows)."""
+    from learn.ddpg import Rows
+    from learn.magrdpg import MAGRDPG
+    from learn.replay import Batch, Windows
+    N, M, S, H = 3, 4, 2 + 3 * 4, 5
+    gen = torch.Generator().manual_seed(4)
+    torch.manual_seed(5)
+    if kind == "mlp":
+        agent = MAGDDPG(H, S, M, (6,), (8,), 0.9, 0.1, 1e-3, 1e-3, actor_robots=2)
+        part = Batch(s=torch.rand(N, S, generator=gen), h=torch.rand(N, M, H, generator=gen), a=None, r=None,
+                     s2=None, h2=None)
+        rows = Rows(s=part.s, a=None, r=None, s2=None)
+    else:
+        agent = MAGRDPG(H, S, M, 6, (8,), 0.9, 0.1, 1e-3, 1e-3, burn_in=2, unroll=3, actor_robots=2)
+        U = 3
+        part = Windows(x=torch.rand(N, M, 2 + U + 1, H, generator=gen), off=torch.tensor([0, 1, 2]),
+                       s=torch.rand(N, U, S, generator=gen), a=torch.rand(N, U, M, 2, generator=gen),
+                       r=torch.rand(N, U, generator=gen), s2=torch.rand(N, U, S, generator=gen))
+        rows = agent.rows(part)
+    with torch.no_grad():  # outputs on both sides of the bounds: the inverting branch is exercised too
+        out = agent.actor.net[-1] if kind == "mlp" else agent.actor.out
+        out.weight.mul_(300.0)
+        out.bias.fill_(0.5)
+    full = _actor_grads(agent, part, rows, None)
+    first = _actor_grads(agent, part, rows, torch.tensor([[0, 1]] * N))
+    second = _actor_grads(agent, part, rows, torch.tensor([[2, 3]] * N))
+    for f, a, b in zip(full, first, second):
+        torch.testing.assert_close((a + b) / 2, f, rtol=1e-4, atol=1e-6)
+    assert any(not torch.allclose(a, f) for a, f in zip(first, full))  # a subset alone is not the full gradient
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_actor_others_from_the_replay(kind):
+    """actor_others='replay': Q sees the chosen robot's current action and the other robots' replayed ones."""
+    from learn.magrdpg import MAGRDPG
+    from learn.replay import Batch, Windows
+    N, M, S, H, U = 3, 4, 2 + 3 * 4, 5, 3
+    gen = torch.Generator().manual_seed(6)
+    torch.manual_seed(7)
+    if kind == "mlp":
+        agent = MAGDDPG(H, S, M, (6,), (8,), 0.9, 0.1, 1e-3, 1e-3, actor_robots=1, actor_others="replay")
+        part = Batch(s=torch.rand(N, S, generator=gen), h=torch.rand(N, M, H, generator=gen),
+                     a=torch.rand(N, M, 2, generator=gen), r=torch.rand(N, generator=gen),
+                     s2=torch.rand(N, S, generator=gen), h2=torch.rand(N, M, H, generator=gen))
+        own = agent.actor(part.h).detach()  # (N, M, 2)
+    else:
+        agent = MAGRDPG(H, S, M, 6, (8,), 0.9, 0.1, 1e-3, 1e-3, burn_in=2, unroll=U, actor_robots=1,
+                        actor_others="replay")
+        part = Windows(x=torch.rand(N, M, 2 + U + 1, H, generator=gen), off=torch.tensor([0, 1, 2]),
+                       s=torch.rand(N, U, S, generator=gen), a=torch.rand(N, U, M, 2, generator=gen),
+                       r=torch.rand(N, U, generator=gen), s2=torch.rand(N, U, S, generator=gen))
+        own = agent.policy_actions(part, None).detach()  # (N·U, M, 2)
+    rows = agent.rows(part)
+    sel = torch.tensor([[1], [3], [0]])
+    agent.robot_subset = lambda n, m: sel
+    seen = []
+    critic = agent.critic
+    agent.critic = lambda s, a: (seen.append(a.detach().clone()), critic(s, a))[1]
+    agent.actor_step_parts([(part, False)], [rows], len(rows.s))
+    a_q = seen[0]  # the actions the actor step evaluated Q at
+    chosen = sel.repeat_interleave(a_q.shape[0] // N, dim=0)[:, 0]  # (N',) robot chosen in each row
+    mask = torch.zeros(a_q.shape[:2], dtype=torch.bool)
+    mask[torch.arange(a_q.shape[0]), chosen] = True
+    torch.testing.assert_close(a_q[~mask], rows.a[~mask])
+    torch.testing.assert_close(a_q[mask], own[mask], rtol=1e-5, atol=1e-6)

@@ -9,7 +9,10 @@ import torch
 
 from kiloforge.policies import load_policy
 from kiloforge.actors.gru import GRU, GRUPolicy
-from learn.magrdpg import MAGRDPG, RecurrentConfig, main_train_recurrent, sample_windows, torch_swarm_policy
+from learn.cli import main_train_recurrent
+from learn.config import RecurrentConfig
+from learn.evaluate import LearnerPolicy
+from learn.magrdpg import MAGRDPG
 from learn.recurrent import GRUActor, gru_params, mlp_params
 from learn.replay import EpisodeReplay
 from sim.config import preset
@@ -63,15 +66,16 @@ def test_windows_cut_episodes_correctly():
     rep = filled_replay()
     rng = np.random.default_rng(1)
     B, U = 5, 4
-    w = sample_windows(rep, 400, B, U, rng)
-    assert w.x.shape == (400, B + U + 1, 2, WORLD.tuple_dim) and w.s.shape == (400, U, WORLD.state_dim(2))
-    ep = (w.x[:, 0, 0, 0] // 1000).astype(int)
-    k = np.rint(w.x[:, :, 0, 0] - 1000 * ep[:, None]).astype(int)  # (N, L) tuple index of each position
+    w = rep.sample_windows(400, B, U, rng)
+    assert w.x.shape == (400, 2, B + U + 1, WORLD.tuple_dim) and w.s.shape == (400, U, WORLD.state_dim(2))
+    x, off = w.x.numpy(), w.off.numpy()
+    ep = (x[:, 0, 0, 0] // 1000).astype(int)
+    k = np.rint(x[:, 0, :, 0] - 1000 * ep[:, None]).astype(int)  # (N, L) tuple index of each position
     k0 = k[:, 0]
-    ts = k0 + w.off
-    assert np.all(k0 >= 0) and np.all((w.off == B) | (k0 == 0)) and np.all(w.off <= B)
+    ts = k0 + off
+    assert np.all(k0 >= 0) and np.all((off == B) | (k0 == 0)) and np.all(off <= B)
     assert np.all(ts + U <= 30) and ts.min() == 0 and ts.max() == 30 - U
-    valid = np.arange(B + U + 1)[None, :] <= (w.off + U)[:, None]
+    valid = np.arange(B + U + 1)[None, :] <= (off + U)[:, None]
     np.testing.assert_array_equal(np.where(valid, k - k0[:, None], 0), np.where(valid, np.arange(B + U + 1), 0))
     e_slot = ep  # episodes were stored in slots 0, 1, 2
     ref = rep.gather(np.repeat(e_slot, U), (ts[:, None] + np.arange(U)).ravel())
@@ -102,7 +106,7 @@ def test_update_learns_a_fixed_batch_and_moves_targets_softly():
     rng = np.random.default_rng(2)
     torch.manual_seed(2)
     agent = MAGRDPG(WORLD.tuple_dim, WORLD.state_dim(2), 2, 8, (32, 32), 0.5, 0.01, 1e-3, 1e-2, burn_in=3)
-    w = sample_windows(rep, 16, 3, 5, rng)
+    w = rep.sample_windows(16, 3, 5, rng)
     before = [p.clone() for p in agent.actor_target.parameters()]
     first = agent.update(w).critic_loss
     for _ in range(30):
@@ -116,7 +120,7 @@ def test_update_learns_a_fixed_batch_and_moves_targets_softly():
 def test_config_validation_and_presets():
     """Bad values raise one-line ConfigErrors; presets and from_dict compose."""
     from learn.config import ConfigError
-    from learn.magrdpg import PRESETS
+    from learn.config import RECURRENT_PRESETS as PRESETS
     assert RecurrentConfig().validate().hidden == 32
     for bad in ({"hidden": 0}, {"hidden": 300}, {"unroll": 0}, {"unroll": 500}, {"tau": 0.0}, {"world": "mars"},
                 {"exp_name": "a b"}):
@@ -126,6 +130,9 @@ def test_config_validation_and_presets():
     with pytest.raises(ConfigError, match="unknown"):
         RecurrentConfig.from_dict({"t_prev": 3})
     assert RecurrentConfig.from_dict(PRESETS["quick"]).max_minutes == 5.0
+    from learn.config import CELLS
+    from learn.recurrent import RECURRENT_ACTORS
+    assert set(CELLS) == set(RECURRENT_ACTORS)  # every cell the config accepts has an actor
 
 
 def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
@@ -148,7 +155,6 @@ def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
     assert isinstance(p, GRUPolicy) and p.hidden_size == 6 and p.provenance["trainer"] == "kiloforge.learn MAGRDPG"
     assert p.provenance["updates"] > 0
     # the artifact is the actor: same evaluation episodes, same rewards
-    from learn.magrdpg import actor_artifact  # noqa: F401 (documented pairing)
     env = SwarmEnv(p.world, 2, 2, seed=0)
     float_run = rollout(env, GRU.swarm_policy(p), 2, seed=5)
     agent = MAGRDPG(p.in_dim, p.world.state_dim(2), 2, 6, (16,), 0.9, 0.1, 1e-3, 1e-3)
@@ -157,7 +163,7 @@ def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
         for name, t in (("w_ih", g.weight_ih_l0), ("w_hh", g.weight_hh_l0), ("b_ih", g.bias_ih_l0),
                         ("b_hh", g.bias_hh_l0), ("w_out", agent.actor.out.weight), ("b_out", agent.actor.out.bias)):
             t.copy_(torch.from_numpy(np.array(getattr(p, name))))
-    torch_run = rollout(env, torch_swarm_policy(agent, p.world), 2, seed=5)
+    torch_run = rollout(env, LearnerPolicy(agent, p.world), 2, seed=5)
     np.testing.assert_allclose(float_run.rewards, torch_run.rewards, atol=1e-4)
     # resume continues, a changed field is refused
     assert main_train_recurrent(["--out", str(out), "--resume", "--quiet", "--episodes", "6"]) == 0
@@ -184,3 +190,25 @@ def test_learns_the_two_robot_task(tmp_path):
     assert main_train_recurrent(["--robots", "2", "--out", str(out), "--quiet", "--max-minutes", "10"]) == 0
     best = max(float(r.split(",")[4]) for r in (out / "metrics.csv").read_text().splitlines()[1:])
     assert best > 300.0, best
+
+
+@pytest.mark.parametrize("cell", ["gru", "lstm"])
+def test_one_loop_resumes_recurrent_runs_exactly(tmp_path, cell):
+    """learn.train.train runs MAGRDPG (GRU and LSTM): stopping after 2 learning episodes and resuming to 4
+    equals one run; the artifact is of the cell's kind."""
+    from learn.checkpoint import load_checkpoint
+    from learn.train import train
+    tiny = dict(n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=4, eval_every=40, eval_episodes=2,
+                replay_size=400, batch_windows=4, unroll=4, burn_in=3, hidden=6, critic_hidden=(16,), seed=4, cell=cell)
+    quiet = lambda m: None  # noqa: E731
+    full = train(RecurrentConfig(**tiny), tmp_path / "full", progress=False, log=quiet)
+    train(RecurrentConfig(**{**tiny, "episodes": 2}), tmp_path / "split", progress=False, log=quiet)
+    resumed = train(RecurrentConfig(**tiny), tmp_path / "split", resume=True, progress=False, log=quiet)
+    assert resumed.counters.updates == full.counters.updates > 0
+    a, b = load_checkpoint(tmp_path / "full"), load_checkpoint(tmp_path / "split")
+    for part in ("actor", "critic", "actor_target", "critic_target"):
+        for k in a["agent"][part]:
+            torch.testing.assert_close(a["agent"][part][k], b["agent"][part][k], rtol=0, atol=0)
+    np.testing.assert_array_equal(a["replay"][0]["tuples"], b["replay"][0]["tuples"])
+    assert a["rng"]["replay"] == b["rng"]["replay"] and a["rng"]["noise"] == b["rng"]["noise"]
+    assert load_policy(tmp_path / "split" / "policy_last.npz").kind == cell

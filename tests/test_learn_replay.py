@@ -1,10 +1,22 @@
 """Replay memory: shapes, histories as sim.history.History builds them, uniform sampling, wrap-around."""
-import numpy as np
+import dataclasses
+from types import SimpleNamespace
 
-from learn.replay import EpisodeReplay
-from sim.history import History
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from learn.replay import EpisodeReplay  # noqa: E402
+from sim.history import History  # noqa: E402
 
 M, D, S, TP = 3, 5, 7, 4  # robots, tuple width (2 actions + 3 obs), state width, t_prev
+
+
+def as_numpy(batch) -> SimpleNamespace:
+    """A sampled minibatch's tensors as NumPy arrays."""
+    return SimpleNamespace(**{f.name: None if getattr(batch, f.name) is None else getattr(batch, f.name).numpy()
+                              for f in dataclasses.fields(batch)})
 
 
 def _fill(rp: EpisodeReplay, B: int, steps: int, rng: np.random.Generator, start_id: float = 0.0):
@@ -35,7 +47,7 @@ def test_shapes_and_histories_match_history_buffer():
     for slot in range(B):
         e = np.full(T, rp.active[slot])
         t = np.arange(T)
-        b = rp.gather(e, t)
+        b = as_numpy(rp.gather(e, t))
         assert b.s.shape == (T, S) and b.h.shape == (T, M, TP * D) and b.a.shape == (T, M, 2)
         assert b.r.shape == (T,) and b.s2.shape == (T, S) and b.h2.shape == (T, M, TP * D)
         for k in range(T):
@@ -57,7 +69,7 @@ def test_sampling_is_uniform_over_stored_transitions():
     n_stored = 4 * T + 2 * 3
     assert len(rp) == n_stored
     n = 52_000
-    b = rp.sample(n, np.random.default_rng(2))
+    b = as_numpy(rp.sample(n, np.random.default_rng(2)))
     # identify each transition by (state id, first coordinate of h) — unique here
     keys = np.round(b.s[:, 0]).astype(int) * 10_000 + np.floor(b.h[:, 0, -1] * 9999).astype(int)
     _, counts = np.unique(keys, return_counts=True)
@@ -77,13 +89,13 @@ def test_wrap_around_overwrites_oldest_episodes():
     for k in range(5):
         _fill(rp, 1, T, rng, start_id=1000.0 * k)
     assert len(rp) == 3 * T
-    b = rp.sample(2000, np.random.default_rng(4))
+    b = as_numpy(rp.sample(2000, np.random.default_rng(4)))
     episode_of = np.floor(b.s[:, 0] / 1000).astype(int)
     assert set(np.unique(episode_of)) == {2, 3, 4}
     # a batch of parallel episodes that wraps past the end of the ring
     _fill(rp, 2, T, rng, start_id=9000.0)
     assert sorted(rp.active.tolist()) == [0, 2] and rp.next_slot == 1
-    b = rp.sample(2000, np.random.default_rng(5))
+    b = as_numpy(rp.sample(2000, np.random.default_rng(5)))
     assert set(np.unique(np.floor(b.s[:, 0] / 1000).astype(int))) == {4, 9}
 
 
@@ -95,7 +107,39 @@ def test_state_dict_round_trip():
     _fill(rp, 3, T, rng)
     rp2 = EpisodeReplay(capacity=40, episode_steps=T, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
     rp2.load_state_dict(rp.state_dict())
-    a, b = rp.sample(64, np.random.default_rng(7)), rp2.sample(64, np.random.default_rng(7))
+    a, b = as_numpy(rp.sample(64, np.random.default_rng(7))), as_numpy(rp2.sample(64, np.random.default_rng(7)))
     for name in ("s", "h", "a", "r", "s2", "h2"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert rp.state_dict()["tuples"].shape[0] == 3  # only the used slots are saved
+
+
+def test_one_gather_histories_are_overlapping_views_of_one_buffer():
+    """h and h' of a sample share one gathered window (h' is h shifted by one tuple); repeated samples reuse it."""
+    rng = np.random.default_rng(8)
+    rp = EpisodeReplay(capacity=60, episode_steps=6, n_robots=M, tuple_dim=D, state_dim=S, t_prev=TP)
+    _fill(rp, 3, 6, rng)
+    b = rp.sample(32, np.random.default_rng(9))
+    assert b.h.untyped_storage().data_ptr() == b.h2.untyped_storage().data_ptr()
+    torch.testing.assert_close(b.h[..., D:], b.h2[..., :-D], rtol=0, atol=0)  # t_prev - 1 shared tuples
+    torch.testing.assert_close(b.a, b.h2[..., -D:-D + 2], rtol=0, atol=0)  # a_t is the newest tuple's action
+    ptr = b.h.data_ptr()
+    assert rp.sample(32, np.random.default_rng(10)).h.data_ptr() == ptr  # no new allocation per minibatch
+
+
+def test_windows_and_blocks_round_trip():
+    """Windows cut from a replay restored block by block equal the original's; only written blocks are dirty."""
+    rng = np.random.default_rng(11)
+    rp = EpisodeReplay(capacity=200, episode_steps=5, n_robots=M, tuple_dim=D, state_dim=S)
+    rp.block_slots = 3  # small blocks for the test
+    rp.dirty = np.zeros(rp.n_blocks, bool)
+    _fill(rp, 4, 5, rng)
+    assert rp.dirty.tolist() == [True, True] + [False] * (rp.n_blocks - 2) and rp.used_blocks() == [0, 1]
+    rp2 = EpisodeReplay(capacity=200, episode_steps=5, n_robots=M, tuple_dim=D, state_dim=S)
+    rp2.block_slots = 3
+    rp2.dirty = np.zeros(rp2.n_blocks, bool)
+    rp2.load_meta(rp.meta())
+    for k in rp.used_blocks():
+        rp2.load_block(k, rp.block(k))
+    w1, w2 = rp.sample_windows(20, 2, 2, np.random.default_rng(12)), rp2.sample_windows(20, 2, 2, np.random.default_rng(12))
+    for f in ("x", "off", "s", "a", "r", "s2"):
+        torch.testing.assert_close(getattr(w1, f), getattr(w2, f), rtol=0, atol=0)

@@ -71,7 +71,7 @@ def test_resume_continues_exactly(tmp_path):
     for k in a["agent"]["actor_opt"]["state"]:
         torch.testing.assert_close(a["agent"]["actor_opt"]["state"][k]["exp_avg"],
                                    b["agent"]["actor_opt"]["state"][k]["exp_avg"], rtol=0, atol=0)
-    np.testing.assert_array_equal(a["replay"]["tuples"], b["replay"]["tuples"])
+    np.testing.assert_array_equal(a["replay"][0]["tuples"], b["replay"][0]["tuples"])
     assert a["rng"]["replay"] == b["rng"]["replay"]
 
 
@@ -157,3 +157,31 @@ def test_cli_smoke_train_plot_evaluate(tmp_path, capsys):
     for name in ("reward_over_time_3.png", "returns_box_3.png", "coverage_3.png", "episode_run1_policy_best_3.gif"):
         assert (ev / name).stat().st_size > 500, name
     assert main(["evaluate", "--policy", str(tmp_path / "missing.npz"), "--out", str(ev)]) == 2
+
+
+def test_tensorboard_logs_every_metrics_row(tmp_path):
+    """--tensorboard writes event files under the run directory with one scalar per metrics column and row."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    run = tmp_path / "tb"
+    assert main(["train", *TINY_ARGS, "--tensorboard", "--out", str(run)]) == 0
+    assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+    acc = EventAccumulator(str(run / "tensorboard"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"eval_return", "eval_final_coverage", "critic_loss", "updates", "updates_per_s"} <= tags
+    rows = read_metrics(run)
+    ev = acc.Scalars("eval_return")
+    assert [e.step for e in ev] == [int(r["env_steps"]) for r in rows]
+    np.testing.assert_allclose([e.value for e in ev], [r["eval_return"] for r in rows], rtol=1e-4, atol=1e-6)
+    assert main(["train", *TINY_ARGS, "--out", str(tmp_path / "plain")]) == 0
+    assert not (tmp_path / "plain" / "tensorboard").exists()  # off by default
+
+
+def test_device_option(tmp_path, capsys):
+    """--device cpu trains end to end; --device cuda without a GPU is one line, exit 2."""
+    assert main(["train", *TINY_ARGS, "--device", "cpu", "--episodes", "2", "--out", str(tmp_path / "cpu")]) == 0
+    if not torch.cuda.is_available():
+        assert main(["train", *TINY_ARGS, "--device", "cuda", "--out", str(tmp_path / "gpu")]) == 2
+        err = capsys.readouterr().err
+        assert "no CUDA GPU" in err and err.count("\n") == 1
+        assert not (tmp_path / "gpu").exists()

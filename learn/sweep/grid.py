@@ -174,9 +174,9 @@ def _axis_values(trainer: str, key: str, value: Any, where: str) -> list:
         raise ConfigError(f"{where}: '{key}' has its own option: use {RESERVED[key]}")
     if typing.get_origin(tr.field_types(trainer)[key]) is tuple and isinstance(value, list):
         if value and all(isinstance(v, str) for v in value):  # command line: 32x32,64x32
-            value = [v.split("x") for v in value]
-        elif not any(isinstance(v, list) for v in value):  # a flat list of widths is one value
-            value = [value]
+            value = [v if key == "n_robots" and "x" not in v else v.split("x") for v in value]
+        elif key != "n_robots" and not any(isinstance(v, list) for v in value):  # a flat list of widths is one value
+            value = [value]  # (n_robots: a flat list is an axis of swarm sizes; [4, 16] inside it trains both)
     values = _as_list(value)
     if not values:
         raise ConfigError(f"{where}: '{key}' has no values")

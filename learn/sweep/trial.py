@@ -49,9 +49,10 @@ def _trainer(trainer: str):
 
         return TrainConfig, TRAIN_PRESETS, train
     if trainer == "magrdpg":
-        from ..magrdpg import PRESETS, RecurrentConfig, train_recurrent
+        from ..config import RECURRENT_PRESETS, RecurrentConfig
+        from ..train import train
 
-        return RecurrentConfig, PRESETS, train_recurrent
+        return RecurrentConfig, RECURRENT_PRESETS, train
     raise ConfigError(f"unknown trainer '{trainer}'; choose one of {', '.join(TRAINERS)}")
 
 
@@ -77,9 +78,10 @@ def check_field(trainer: str, key: str, where: str) -> None:
 
 def coerce_value(trainer: str, key: str, value: Any) -> Any:
     """``value`` as field ``key``'s type, in JSON form (tuples as lists); one-line error naming the field."""
-    cfg = _trainer(trainer)[0].from_dict({key: value})
-    v = getattr(cfg, key)
-    return list(v) if isinstance(v, tuple) else v
+    from ..config import parse_text
+
+    cls = _trainer(trainer)[0]
+    return cls.from_dict({key: parse_text(cls, key, value)}).to_dict()[key]
 
 
 def resolve_config(trainer: str, preset: str, overrides: dict[str, Any]):
@@ -93,7 +95,8 @@ def resolve_config(trainer: str, preset: str, overrides: dict[str, Any]):
 def short_name(trainer: str, cfg) -> str:
     """The readable part of a trial's directory name."""
     arch = f"t{cfg.t_prev}" if trainer == "magddpg" else f"gru{cfg.hidden}"
-    return f"{cfg.world}-m{cfg.n_robots}-{arch}"
+    robots = "-".join(map(str, cfg.n_robots))
+    return f"{cfg.world}-m{robots}-{arch}"
 
 
 def read_json(path: Path) -> dict | None:

@@ -1,0 +1,173 @@
+"""``python -m learn train`` (MAGDDPG) and ``train-recurrent`` (MAGRDPG): every config field is a flag (tyro).
+
+    python -m learn train --robots 4 --history 20 --preset fast --world kilobot --out runs/NAME
+    python -m learn train-recurrent --preset guided --robots 2 --out runs/NAME
+    python -m learn train --out runs/NAME --resume [--episodes N] [--max-minutes M]
+
+Besides the config fields (``--help`` lists them with their docs; ``--robots`` = ``--n-robots``,
+``--history`` = ``--t-prev``): ``--preset`` (training preset), ``--config`` (JSON file of fields),
+``--out`` (run directory), ``--resume`` (continue ``--out`` from its checkpoint; a run directory
+without one restarts), ``--quiet`` (no progress bar). Precedence: defaults < ``--preset`` <
+``--config`` < flags; with ``--resume`` the run's config.json, then flags (only budgets and speed
+knobs may change). User errors print one line and exit 2; an interrupted run exits 130 / 143.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import io
+import json
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import tyro
+
+from sim.config import PRESETS as WORLD_PRESETS
+
+from .config import PRESETS, ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
+
+_BOX = re.compile(r"[╭╮╰╯│]")
+
+
+#: the run options of both commands: (name, type, default, help)
+RUN_OPTIONS = (("preset", Optional[str], None, "training preset (the world is --world)"),
+               ("config", Optional[str], None, "JSON file of config fields"),
+               ("out", Optional[str], None, "run directory (default runs/<task>__<exp>__<seed>__<time>)"),
+               ("resume", bool, False, "continue the run in --out from its checkpoint (one without a checkpoint restarts)"),
+               ("quiet", bool, False, "no progress bar; one line per evaluation"))
+
+
+def _args_class(cls: type[ExperimentConfig]) -> type:
+    """The CLI of one config class: its fields (no prefix), then the run options."""
+    fields = [("cfg", Annotated[cls, tyro.conf.arg(name="")])]
+    fields += [(name, Annotated[typ, tyro.conf.arg(help=doc)], dataclasses.field(default=default))
+               for name, typ, default, doc in RUN_OPTIONS]
+    Args = dataclasses.make_dataclass("Args", fields)
+    Args.__doc__ = cls.__doc__
+    return Args
+
+
+def read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"'{path}' does not exist") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ConfigError(f"cannot read '{path}': {e}") from None
+
+
+def base_config(cls: type[ExperimentConfig], preset: str | None, config: str | None, resume: bool,
+                out: str | None, default_preset: str) -> ExperimentConfig:
+    """defaults < preset < config file; with ``resume`` the run's own config.json."""
+    if resume:
+        if not out:
+            raise ConfigError("--resume needs --out RUN_DIR")
+        path = Path(out) / "config.json"
+        if not path.is_file():
+            raise ConfigError(f"cannot resume: '{path}' does not exist")
+        return cls.from_dict(read_json(path))
+    presets = PRESETS[cls.algorithm]
+    name = preset or default_preset
+    if name not in presets:
+        hint = f"'{name}' is a world: use --world {name}; " if name in WORLD_PRESETS else ""
+        raise ConfigError(f"--preset: {hint}training presets are {', '.join(presets)}")
+    cfg = cls.from_dict(presets[name])
+    if config:
+        cfg = cls.from_dict(read_json(Path(config)), base=cfg)
+    return cfg
+
+
+def _tyro_error(text: str) -> str:
+    """The first message of tyro's boxed error output, as one line."""
+    lines = []
+    for raw in text.splitlines():
+        line = _BOX.sub("", raw).strip()
+        if line.startswith("─"):  # the box's title or a separator
+            if lines:
+                break
+            continue
+        if line:
+            lines.append(line)
+    msg = " ".join(lines) or "bad arguments (see --help)"
+    m = re.match(r"Error parsing (--[\w-]+): (.*)", msg)
+    if m:  # name the config field, as the JSON errors do
+        msg = f"{m.group(1)[2:].replace('-', '_')} ({m.group(1)}): {m.group(2)}"
+    return msg
+
+
+def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, default_preset: str):
+    """(config, run directory, resume, quiet) from the command line; ConfigError (one line) on bad input."""
+    meta = argparse.ArgumentParser(add_help=False)
+    for flag in ("--preset", "--config", "--out"):
+        meta.add_argument(flag, default=None)
+    meta.add_argument("--resume", action="store_true")
+    known, _ = meta.parse_known_args(argv)
+    base = base_config(cls, known.preset, known.config, known.resume, known.out, default_preset)
+    Args = _args_class(cls)
+    default = Args(cfg=base, preset=known.preset, config=known.config, out=known.out, resume=known.resume)
+    err = io.StringIO()
+    columns = os.environ.get("COLUMNS")
+    if not {"-h", "--help"} & set(argv):
+        os.environ["COLUMNS"] = "400"  # tyro's rich error boxes: one message per line
+    try:
+        with contextlib.redirect_stderr(err):
+            args = tyro.cli(Args, args=argv, default=default, prog=prog, config=(tyro.conf.OmitArgPrefixes,))
+    except SystemExit as e:
+        if e.code:
+            raise ConfigError(_tyro_error(err.getvalue())) from None
+        raise
+    finally:
+        if columns is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = columns
+    cfg = args.cfg.validate()
+    if args.out:
+        out = Path(args.out)
+    else:
+        from .rundir import run_name
+
+        out = Path("runs") / run_name(cfg)
+    return cfg, out, args.resume, args.quiet
+
+
+def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = TrainConfig,
+               prog: str = "python -m learn train", default_preset: str = "default") -> int:
+    """CLI entry point of one algorithm; returns the exit status."""
+    from kiloforge.errors import KiloforgeError
+
+    from .train import train
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)
+        note = cfg.budget_note()
+        if note:
+            print(f"note: {note}; it trains, but the exporter will refuse it", file=sys.stderr)
+        res = train(cfg, out, resume=resume, progress=not quiet)
+    except (ConfigError, KiloforgeError, ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    c = res.counters
+    best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
+    print(f"run: {res.run_dir}  ({res.stopped})")
+    print(f"  {c.env_steps} transitions, {c.updates} updates in {c.wall_s:.0f} s: "
+          f"{c.env_steps / c.env_s if c.env_s else float('nan'):.0f} env steps/s while collecting, "
+          f"{c.updates / c.update_s if c.update_s else float('nan'):.0f} updates/s while updating")
+    if best:
+        print(f"  best evaluation at {best['env_steps']:.0f} transitions: return {best['eval_return']:.1f}, "
+              f"final coverage {best['eval_final_coverage']:.3f}, time to find {best['eval_time_to_find']:.1f}")
+    pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
+            if (res.run_dir / n).is_file()]
+    print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
+    return res.exit_status
+
+
+def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:
+    """``python -m learn train-recurrent``: MAGRDPG (default preset ``fast``)."""
+    return main_train(argv, RecurrentConfig, prog, "fast")
+

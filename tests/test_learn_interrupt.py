@@ -1,0 +1,113 @@
+"""Interrupted and damaged runs: SIGINT/SIGTERM checkpoint and exit 130/143, restarts, truncated files, orphans."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from learn.__main__ import main  # noqa: E402
+from learn.checkpoint import load_checkpoint  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden", "16",
+        "--n-envs", "2", "--warmup-episodes", "2", "--batch-size", "8", "--replay-size", "400",
+        "--updates-per-step", "0.5", "--eval-every", "40", "--eval-episodes", "2", "--quiet"]
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([sys.executable, "-m", "learn", *args], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 240.0) -> None:
+    t0 = time.time()
+    while not path.exists():
+        assert proc.poll() is None, f"the run ended early: {proc.communicate()}"
+        assert time.time() - t0 < timeout, f"{path} did not appear"
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_checkpoints_and_exits_128_plus_signal(tmp_path, sig, status):
+    """A signal mid-run: exit 128 + signal, a checkpoint at an episode boundary holding the learning so far,
+    summary 'interrupted'; --resume continues from it."""
+    out = tmp_path / "run"
+    proc = _start(["train", *TINY, "--episodes", "100000", "--out", str(out)])
+    _wait_for(out / "metrics.csv", proc)
+    time.sleep(1.0)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=240)
+    assert proc.returncode == status, err
+    ck = load_checkpoint(out)
+    c = ck["counters"]
+    assert c["env_steps"] == c["episodes"] * 20 and c["episodes"] % 2 == 0  # whole episode batches only
+    assert json.loads((out / "summary.json").read_text())["stopped"] == "interrupted"
+    done = c["episodes"]
+    assert main(["train", "--out", str(out), "--resume", "--quiet", "--episodes", str(done + 4 - 2)]) == 0
+    assert load_checkpoint(out)["counters"]["episodes"] == done + 4
+
+
+def test_interrupted_before_the_first_checkpoint_restarts(tmp_path, capsys):
+    """SIGINT during behaviour cloning: exit 130 and no checkpoint; the run directory refuses a plain restart
+    with a hint, and --resume restarts it from scratch."""
+    out = tmp_path / "run"
+    proc = _start(["train", *TINY, "--episodes", "4", "--demo-policy", "searcher", "--demo-episodes", "4",
+                   "--bc-updates", "1000000", "--out", str(out)])
+    t0 = time.time()
+    line = ""
+    while "demonstrations:" not in line:  # cloning has started
+        line = proc.stdout.readline()
+        assert line or proc.poll() is None, proc.communicate()
+        assert time.time() - t0 < 240
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=240)
+    assert proc.returncode == 130
+    assert (out / "config.json").is_file() and not (out / "checkpoint.pt").exists()
+    assert main(["train", *TINY, "--episodes", "4", "--out", str(out)]) == 2
+    assert "--resume restarts it" in capsys.readouterr().err
+    assert main(["train", "--out", str(out), "--resume", "--quiet", "--bc-updates", "3"]) == 0
+    assert "restarting it from scratch" in capsys.readouterr().out
+    assert load_checkpoint(out)["counters"]["episodes"] == 6
+
+
+def test_truncated_or_altered_checkpoint_is_one_line(tmp_path, capsys):
+    """A truncated checkpoint.pt or replay block, or an altered byte, is refused with one line and exit 2;
+    orphan temporary files and unreferenced blocks are removed when a run resumes."""
+    out = tmp_path / "run"
+    assert main(["train", *TINY, "--episodes", "2", "--out", str(out)]) == 0
+    ck, block = out / "checkpoint.pt", next((out / "replay").iterdir())
+    good_ck, good_block = ck.read_bytes(), block.read_bytes()
+    for path, data, words in ((ck, good_ck[:-100], "truncated"), (block, good_block[:200], "truncated"),
+                              (block, good_block[:-1] + bytes([good_block[-1] ^ 1]), "does not match its hash"),
+                              (ck, b"not a checkpoint", "not a kiloforge checkpoint")):
+        path.write_bytes(data)
+        capsys.readouterr()
+        assert main(["train", "--out", str(out), "--resume", "--quiet", "--episodes", "4"]) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1 and "Traceback" not in err, err
+        ck.write_bytes(good_ck)
+        block.write_bytes(good_block)
+    orphans = [out / ".checkpoint.pt.abc.tmp", out / "replay" / "g0_b0_999.pt", out / "replay" / ".g0_b1_7.pt.x.tmp"]
+    for p in orphans:
+        p.write_bytes(b"x")
+    assert main(["train", "--out", str(out), "--resume", "--quiet", "--episodes", "4"]) == 0
+    assert not any(p.exists() for p in orphans)
+
+
+def test_evaluate_error_leaves_no_output_directory(tmp_path, capsys):
+    """`learn evaluate` failing mid-way (too many robots for the arena) exits 2 and creates no --out."""
+    out = tmp_path / "run"
+    assert main(["train", *TINY, "--episodes", "0", "--world", "kilobot", "--out", str(out)]) == 0
+    ev = tmp_path / "sub" / "eval"
+    assert main(["evaluate", "--policy", str(out / "policy_best.npz"), "--robots", "2", "1000", "--episodes", "1",
+                 "--steps", "5", "--n-envs", "1", "--no-gif", "--out", str(ev), "--quiet"]) == 2
+    assert "spawn area" in capsys.readouterr().err
+    assert not ev.exists() and not ev.parent.exists() and not list(tmp_path.glob(".*tmp"))
