@@ -2,8 +2,10 @@
 
 ``load_policy`` reads a file with the checks every artifact shares, looks its kind up in the
 registry and lets the kind validate its arrays (shapes against the world's tuple width, finite
-values, ...), then checks the stored hash; every problem is a one-line
-:class:`~kiloforge.errors.PolicyError` naming the file.
+values, ...), refuses meta fields the kind does not write, then checks the stored hash, which is
+mandatory; every problem is a one-line :class:`~kiloforge.errors.PolicyError` naming the file.
+``rehash_policy`` re-writes a file one trusts with the hash of its contents
+(``python -m export rehash FILE``).
 """
 from __future__ import annotations
 
@@ -18,23 +20,43 @@ from .actors.registry import kind_named, kind_of
 from .artifact import file_error, read_artifact, world_of
 from .errors import OutputError, PolicyError
 from .io import write_atomic
+from .validate import quote
 
 
-def load_policy(path: str | os.PathLike) -> FloatPolicy:
-    """Read and validate a policy artifact of any registered kind; raises :class:`PolicyError`."""
-    path = Path(path)
+def _policy_of(path: Path, arrays: dict, meta: dict) -> FloatPolicy:
     bad = file_error(path)
-    arrays, meta = read_artifact(path)
     try:
         kind = kind_named(meta.get("kind"))
         policy = kind.from_arrays(arrays, meta, world_of(meta), meta.get("provenance", {}))
     except PolicyError as e:
         raise bad(str(e).removeprefix("policy: ")) from None
-    stored = meta.get("policy_hash")
-    if stored is not None and stored != policy.hash:
-        raise bad(f"policy_hash {str(stored)[:12]}... does not match the contents ({policy.hash[:12]}...); "
-                  "the file was modified")
+    unknown = sorted(set(meta) - set(policy.meta()) - {"policy_hash"})
+    if unknown:
+        raise bad(f"meta has field(s) a '{policy.kind}' policy does not have: {', '.join(map(quote, unknown[:8]))}")
     return policy
+
+
+def load_policy(path: str | os.PathLike) -> FloatPolicy:
+    """Read and validate a policy artifact of any registered kind; raises :class:`PolicyError`."""
+    path = Path(path)
+    arrays, meta = read_artifact(path)
+    policy = _policy_of(path, arrays, meta)
+    stored = meta["policy_hash"]
+    if stored != policy.hash:
+        raise file_error(path)(f"policy_hash {stored[:12]}... does not match the contents ({policy.hash[:12]}...); "
+                               "the file was modified or damaged")
+    return policy
+
+
+def rehash_policy(path: str | os.PathLike, out: str | os.PathLike | None = None) -> tuple[FloatPolicy, str | None]:
+    """Re-write a policy file one trusts with the hash of its contents (atomically, to ``out`` or in
+    place); returns the policy and the hash the file had (None when it had none). Every other check
+    of :func:`load_policy` still applies."""
+    path = Path(path)
+    arrays, meta = read_artifact(path, require_hash=False)
+    policy = _policy_of(path, arrays, meta)
+    save_policy(policy, path if out is None else out)
+    return policy, meta.get("policy_hash")
 
 
 def save_policy(policy: FloatPolicy, path: str | os.PathLike) -> Path:
