@@ -13,18 +13,22 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
+import os
 import sys
-import tempfile
 from pathlib import Path
 
-from kiloforge.errors import PolicyError
-from kiloforge.io import write_files_atomic
+from kiloforge import io
+from kiloforge.errors import KiloforgeError, PolicyError, printable
+from kiloforge.interrupts import exit_status, terminate_raises
+from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
+from kiloforge.validate import int_arg, seed_arg
 
-from .config import PRESETS, preset
+from .config import MAX_EPISODE_STEPS, PRESETS, preset
 
 EXIT_USAGE = 2
+MAX_ROBOTS = 1024
+MAX_EPISODES = 100_000
 OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
 
 
@@ -42,14 +46,16 @@ def build_parser() -> argparse.ArgumentParser:
                 "trajectory plot, coverage plot and an animated GIF.")
     p.add_argument("--preset", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: thesis, "
                    "or the artifact's world)")
-    p.add_argument("--robots", type=int, default=4, help="searching robots per env (default 4)")
-    p.add_argument("--seed", type=int, default=0, help="root seed; same seed, same result (default 0)")
+    p.add_argument("--robots", type=int_arg(1, MAX_ROBOTS), default=4, help="searching robots per env (default 4)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
     p.add_argument("--policy", default="baseline",
                    help="'random', 'baseline' (hand-written searcher) or a policy artifact file (.npz)")
     p.add_argument("--out", required=True, help="output folder (created if needed)")
-    p.add_argument("--episodes", type=int, default=20, help="episodes to run (default 20)")
-    p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the world's)")
-    p.add_argument("--envs", type=int, default=None, help="envs simulated at once (default: min(episodes, 32))")
+    p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
+    p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
+                   help="steps per episode (default: the world's)")
+    p.add_argument("--envs", type=int_arg(1, MAX_EPISODES), default=None,
+                   help="envs simulated at once (default: min(episodes, 32))")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -57,16 +63,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_args(a: argparse.Namespace) -> None:
     if a.preset is not None and a.preset not in PRESETS:
         raise UserError(f"unknown preset '{a.preset}'; choose one of: {', '.join(sorted(PRESETS))}")
-    if not 1 <= a.robots <= 1024:
-        raise UserError(f"--robots must be between 1 and 1024, got {a.robots}")
-    if a.seed < 0:
-        raise UserError(f"--seed must be >= 0, got {a.seed}")
-    if a.episodes < 1:
-        raise UserError(f"--episodes must be >= 1, got {a.episodes}")
-    if a.steps is not None and a.steps < 1:
-        raise UserError(f"--steps must be >= 1, got {a.steps}")
-    if a.envs is not None and a.envs < 1:
-        raise UserError(f"--envs must be >= 1, got {a.envs}")
 
 
 def _load_policy(a: argparse.Namespace):
@@ -83,7 +79,7 @@ def _load_policy(a: argparse.Namespace):
             desc["params"] = dataclasses.asdict(pol.p)
         return world, pol, desc, None
     path = Path(a.policy)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise UserError(f"--policy must be 'random', 'baseline' or a policy file; '{a.policy}' is neither")
     try:
         art = load_policy(path)
@@ -94,24 +90,11 @@ def _load_policy(a: argparse.Namespace):
         art_world = dataclasses.replace(art_world, episode_steps=a.steps)
     note = None
     if a.preset is not None and art_world != world:
-        note = (f"note: {path.name} was trained in world '{art.world.name}', which differs from preset "
+        note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from preset "
                 f"'{a.preset}'; using the policy's world")
     desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
             "hash": art.hash, "layer_sizes": art.layer_sizes}
     return art_world, swarm_policy(art, art_world), desc, note
-
-
-def _prepare_out(out: str) -> tuple[Path, bool]:
-    """Create the output folder; (path, created). Unusable folders are a user error."""
-    path = Path(out)
-    existed = path.is_dir()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-", delete=True)
-        probe.close()
-    except OSError as e:
-        raise UserError(f"cannot write to output folder '{out}': {e.strerror or e}") from None
-    return path, not existed
 
 
 def run(a: argparse.Namespace) -> dict:
@@ -130,9 +113,11 @@ def run(a: argparse.Namespace) -> dict:
         env = SwarmEnv(world, n_envs, a.robots, seed=a.seed)
     except ValueError as e:  # e.g. too many discs for the arena
         raise UserError(str(e)) from None
-    out, created = _prepare_out(a.out)
-    staging = Path(tempfile.mkdtemp(dir=out, prefix=".sim-"))  # all files appear together or not at all
-    try:
+    out = Path(a.out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out must be a folder; '{out}' is a file")
+    # all files appear together or not at all; metrics.json, last, is the set's record
+    with staged_files(out, OUTPUT_FILES, create=True) as staging:
         res = rollout(env, policy, a.episodes, seed=a.seed, record=1, progress=a.episodes > 1 and not a.quiet)
         m = res.metrics()
         name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
@@ -155,13 +140,6 @@ def run(a: argparse.Namespace) -> dict:
         render.plot_coverage({name: res.coverage}, staging / "coverage.png",
                              title=f"{world.name}: {a.robots} robots, {a.episodes} episodes")
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-        write_files_atomic({out / f: (staging / f).read_bytes() for f in OUTPUT_FILES})
-    except BaseException:
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     print(compare({name: m}))
     print(f"wrote {out}/: {' '.join(OUTPUT_FILES)}")
     return report
@@ -170,16 +148,21 @@ def run(a: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    mark = io.published_count()
     try:
-        a = build_parser().parse_args(argv)
-        a.argv = argv
-        run(a)
-    except UserError as e:
-        print(f"python -m sim: error: {e}", file=sys.stderr)
+        with terminate_raises():
+            a = build_parser().parse_args(argv)
+            a.argv = argv
+            run(a)
+    except (UserError, KiloforgeError) as e:
+        print(f"python -m sim: error: {printable(e)}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("python -m sim: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        written = io.published_since(mark)
+        what = f"after writing {', '.join(map(str, written))} (complete)" if written else \
+            "; nothing written (files from an earlier run are unchanged)"
+        print(f"python -m sim: interrupted {what}".replace(" ;", ";"), file=sys.stderr)
+        return exit_status(e)
     except SystemExit as e:  # --help
         return int(e.code or 0) if not isinstance(e.code, str) else EXIT_USAGE
     return 0
