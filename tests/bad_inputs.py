@@ -52,18 +52,14 @@ def _patch_sizes(raw: bytes, member: str, size: int) -> bytes:
     """Set a member's uncompressed size in its local header and its central directory entry."""
     b = bytearray(raw)
     name = member.encode()
-    lh = b.find(b"PK\x03\x04")
-    while lh >= 0:
-        n = struct.unpack_from("<H", b, lh + 26)[0]
-        if bytes(b[lh + 30:lh + 30 + n]) == name:
-            struct.pack_into("<I", b, lh + 22, size)
-        lh = b.find(b"PK\x03\x04", lh + 4)
-    cd = b.find(b"PK\x01\x02")
-    while cd >= 0:
-        n = struct.unpack_from("<H", b, cd + 28)[0]
-        if bytes(b[cd + 46:cd + 46 + n]) == name:
-            struct.pack_into("<I", b, cd + 24, size)
-        cd = b.find(b"PK\x01\x02", cd + 4)
+    # (signature, offset of the name length, of the name, of the uncompressed size)
+    for sig, len_at, name_at, size_at in ((b"PK\x03\x04", 26, 30, 22), (b"PK\x01\x02", 28, 46, 24)):
+        at = b.find(sig)
+        while at >= 0:
+            n = struct.unpack_from("<H", b, at + len_at)[0]
+            if bytes(b[at + name_at:at + name_at + n]) == name:
+                struct.pack_into("<I", b, at + size_at, size)
+            at = b.find(sig, at + 4)
     return bytes(b)
 
 
