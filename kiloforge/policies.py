@@ -2,7 +2,8 @@
 
 ``load_policy`` reads a file with the checks every artifact shares, looks its kind up in the
 registry and lets the kind validate its arrays (shapes against the world's tuple width, finite
-values, ...), refuses meta fields the kind does not write, then checks the stored hash, which is
+values, ...), refuses meta that differs from what the kind writes (a field added, left out or
+written differently), then checks the stored hash, which is
 mandatory; every problem is a one-line :class:`~kiloforge.errors.PolicyError` naming the file.
 ``rehash_policy`` re-writes a file one trusts with the hash of its contents
 (``python -m export rehash FILE``).
@@ -17,10 +18,10 @@ from sim.config import WorldConfig
 
 from .actors.base import FloatPolicy
 from .actors.registry import kind_named, kind_of
-from .artifact import file_error, read_artifact, world_of
+from .artifact import canonical_json, file_error, read_artifact, world_of
 from .errors import OutputError, PolicyError
 from .io import write_atomic
-from .validate import quote
+from .validate import quote, show
 
 
 def _policy_of(path: Path, arrays: dict, meta: dict) -> FloatPolicy:
@@ -30,10 +31,26 @@ def _policy_of(path: Path, arrays: dict, meta: dict) -> FloatPolicy:
         policy = kind.from_arrays(arrays, meta, world_of(meta), meta.get("provenance", {}))
     except PolicyError as e:
         raise bad(str(e).removeprefix("policy: ")) from None
-    unknown = sorted(set(meta) - set(policy.meta()) - {"policy_hash"})
-    if unknown:
-        raise bad(f"meta has field(s) a '{policy.kind}' policy does not have: {', '.join(map(quote, unknown[:8]))}")
+    _same_meta(bad, {k: v for k, v in meta.items() if k != "policy_hash"}, policy.meta(), policy.kind)
     return policy
+
+
+def _same_meta(bad, given: dict, derived: dict, kind: str, where: str = "meta") -> None:
+    """The file's meta must be exactly what its policy writes: no field missing, added or written differently
+    (a field left out would otherwise silently take a default)."""
+    if canonical_json(given) == canonical_json(derived):
+        return
+    unknown = sorted(set(given) - set(derived))
+    if unknown:
+        raise bad(f"{where} has field(s) a '{kind}' policy does not have: {', '.join(map(quote, unknown[:8]))}")
+    missing = sorted(set(derived) - set(given))
+    if missing:
+        raise bad(f"{where} lacks {', '.join(map(quote, missing[:8]))}")
+    for k in sorted(given):
+        if isinstance(given[k], dict) and isinstance(derived[k], dict):
+            _same_meta(bad, given[k], derived[k], kind, f"{where} {k}")
+        elif canonical_json(given[k]) != canonical_json(derived[k]):
+            raise bad(f"{where} field {quote(k)} is {show(given[k])}, which reads back as {show(derived[k])}")
 
 
 def load_policy(path: str | os.PathLike) -> FloatPolicy:

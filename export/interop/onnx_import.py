@@ -55,6 +55,7 @@ META_ACTION = "kiloforge.action"  #: "clip01" (informative)
 MAX_PARAMS = 1_000_000  #: more float parameters than this cannot be a Kilobot policy (32 KB flash)
 MAX_FILE_BYTES = 64 * 1024 * 1024  #: refuse to parse larger files (a Kilobot MLP is a few KB)
 MAX_NODES = 10_000
+MIN_OPSET = 7  #: older opsets give Gemm, Add and Dropout other semantics (and onnxruntime runs opset >= 7 only)
 MAX_WORLD_JSON_BYTES = 1 << 20  #: a world JSON file or metadata entry (a full WorldConfig is under 1 KB)
 
 _FLOAT_TYPES = {1: "float32", 10: "float16", 11: "float64", 16: "bfloat16"}  # TensorProto codes
@@ -74,14 +75,14 @@ def _need_onnx() -> Any:
 
 
 # --- world metadata ----------------------------------------------------------------------------
-def _world_from_obj(obj: Any, where: str) -> tuple[WorldConfig, int]:
+def _world_from_obj(obj: Any, where: str, t_prev_text: bool = False) -> tuple[WorldConfig, int]:
     """``{"world": dict | preset name, "t_prev": int}`` or WorldConfig fields + ``t_prev``."""
     if not isinstance(obj, dict):
         raise OnnxImportError(f"{where}: expected a JSON object with 'world' and 't_prev', got {type(obj).__name__}")
     obj = dict(obj)
     if "t_prev" not in obj:
         raise OnnxImportError(f"{where}: missing 't_prev' (the number of history tuples the actor reads)")
-    t_prev = _parse_t_prev(obj.pop("t_prev"), where)
+    t_prev = _parse_t_prev(obj.pop("t_prev"), where, t_prev_text)
     if "world" in obj:
         world_obj: Any = obj.pop("world")
         if obj:
@@ -108,10 +109,12 @@ def _world_from_obj(obj: Any, where: str) -> tuple[WorldConfig, int]:
         raise OnnxImportError(f"{where}: bad world config: {str(e).splitlines()[0]}") from None
 
 
-def _parse_t_prev(v: Any, where: str) -> int:
-    """An integer in 1..MAX_T_PREV (metadata_props hold it as decimal text, a JSON file as a number)."""
-    if isinstance(v, str) and re.fullmatch(r"\+?[0-9]{1,6}", v.strip()):
-        v = int(v.strip())
+def _parse_t_prev(v: Any, where: str, text: bool) -> int:
+    """An integer in 1..MAX_T_PREV: decimal text in metadata_props (``text``), a JSON integer in a file."""
+    if text:
+        if not (isinstance(v, str) and re.fullmatch(r"[0-9]{1,6}", v)):
+            raise OnnxImportError(f"{where}: t_prev must be a decimal integer, got {quote(v)}")
+        v = int(v)
     try:
         return check_int(v, f"{where}: t_prev", 1, MAX_T_PREV)
     except InputError as e:
@@ -136,7 +139,7 @@ def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig,
         world_obj = parse_json(meta[META_WORLD], f"{where}: metadata '{META_WORLD}'", max_bytes=MAX_WORLD_JSON_BYTES)
     except InputError as e:
         raise OnnxImportError(str(e)) from None
-    return _world_from_obj({"world": world_obj, "t_prev": meta[META_T_PREV]}, f"{where}: metadata")
+    return _world_from_obj({"world": world_obj, "t_prev": meta[META_T_PREV]}, f"{where}: metadata", t_prev_text=True)
 
 
 def default_world_json_path(model_path: str | os.PathLike) -> Path:
@@ -333,6 +336,9 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
 
     opsets = {o.domain or "ai.onnx": o.version for o in model.opset_import}
     opset = opsets.get("ai.onnx", 0)
+    if opset < MIN_OPSET:
+        raise err(f"opset {opset} is older than {MIN_OPSET}, the oldest whose Gemm, Dropout and broadcasting rules "
+                  "the importer models (re-export with a newer opset)")
     meta = {p.key: p.value for p in model.metadata_props}
 
     # ---- constants --------------------------------------------------------------------------
