@@ -27,39 +27,24 @@ COUNTS = {"policy_bytes": 2500, "policy_meta": 2500, "policy_arrays": 1500, "wor
 
 
 def run_target(name: str, n: int, root: Path, fx: ft.Fixtures, tally: ft.Tally) -> None:
+    """``n`` generated inputs of one target, every outcome counted (nothing stops the run)."""
     work = root / name
     work.mkdir()
+    strategy, check = {
+        "policy_bytes": (ft.policy_byte_mutation(), lambda c: ft.check_policy_file(c[0], work, c[1])),
+        "policy_meta": (ft.policy_meta_mutation(), lambda c: ft.check_policy_file(c[0], work, c[1])),
+        "policy_arrays": (ft.policy_array_mutation(), lambda c: ft.check_policy_file(c[0], work, c[1])),
+        "world_json": (ft.world_json_text(), lambda text: ft.check_world_json(text, work, fx.onnx_bare)),
+        "onnx": (ft.onnx_mutation(), lambda data: ft.check_onnx(data, work)),
+        "cli_export": (ft.st.data(), lambda data: ft.cli_case("export", data, fx, work / "out")),
+        "cli_sim": (ft.st.data(), lambda data: ft.cli_case("sim", data, fx, work / "out")),
+    }[name]
 
-    def record(outcome: tuple[str, str]) -> None:
-        tally.add(name, *outcome)
-
-    if name == "policy_bytes":
-        @given(case=ft.policy_byte_mutation())
-        def t(case):
-            record(ft.check_policy_file(case[0], work, case[1]))
-    elif name == "policy_meta":
-        @given(case=ft.policy_meta_mutation())
-        def t(case):
-            record(ft.check_policy_file(case[0], work, case[1]))
-    elif name == "policy_arrays":
-        @given(case=ft.policy_array_mutation())
-        def t(case):
-            record(ft.check_policy_file(case[0], work, case[1]))
-    elif name == "world_json":
-        @given(text=ft.world_json_text())
-        def t(text):
-            record(ft.check_world_json(text, work, fx.onnx_bare))
-    elif name == "onnx":
-        @given(data=ft.onnx_mutation())
-        def t(data):
-            record(ft.check_onnx(data, work))
-    elif name in ("cli_export", "cli_sim"):
-        @given(data=ft.st.data())
-        def t(data):
-            record(ft.cli_case(name[4:], data, fx, work / "out"))
-    else:
-        raise SystemExit(f"unknown target {name}")
-    ft.fuzz_settings(n)(t)()
+    @ft.fuzz_settings(n)
+    @given(case=strategy)
+    def t(case):
+        tally.add(name, *check(case))
+    t()
 
 
 def main() -> int:
