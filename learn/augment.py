@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.config import OBS_RBF, WorldConfig
-from sim.events import rbf
+from sim.radio import rbf_fast
 
 
 class PhantomNeighbours:
@@ -40,7 +40,8 @@ class PhantomNeighbours:
         d = np.sqrt(self.rng.uniform(lo2, hi2, int(k.sum())))  # (K,) uniform over the annulus' area
         if cfg.dist_integer:
             d = np.round(d)
-        hist = np.zeros((B * M, cfg.n_rbf))
-        np.add.at(hist, np.repeat(np.arange(B * M), k), rbf(cfg, d))
-        obs[..., OBS_RBF:] += hist.reshape(B, M, cfg.n_rbf).astype(obs.dtype)
+        n = cfg.n_rbf
+        slot = np.repeat(np.arange(B * M) * n, k)[:, None] + np.arange(n)  # (K, n_rbf) flat (robot, bin)
+        hist = np.bincount(slot.ravel(), weights=rbf_fast(cfg, d).ravel(), minlength=B * M * n)  # sums in draw order
+        obs[..., OBS_RBF:] += hist.reshape(B, M, n).astype(obs.dtype)
         return obs

@@ -10,18 +10,21 @@ Two presets:
 ``thesis``
     The world of the thesis (§4.1–4.3), converted with 1 unit = 1 cm = 10 mm: arena ±100 mm,
     communication radius 40 mm, 11 RBF centres equally spaced over [0, 40] mm with σ = 2.5 mm,
-    10 mm/s, 45 deg/s, ΔT = 1 s, point robots without collisions, 200-step episodes, the reward of
-    §4.2. Messages: every robot within the radius is heard exactly once per control period, with
+    10 mm/s, 45 deg/s, ΔT = 1 s, point robots without collisions and a fixed target, 200-step
+    episodes, the reward of §4.2. Messages: every robot within the radius is heard exactly once per control period, with
     the exact (float) distance, no loss.
 
 ``kilobot``
     What real Kilobots see (``../shared/reference/kilobot-platform.md``): 33 mm discs that cannot
-    overlap, distances as ``estimate_distance`` reports them (integer mm, ≥ 33, ≤ 255), an IR range of
-    85 mm (platform notes: 70–100 mm, surface dependent), one message per robot every 16 kilo_ticks
-    (≈1.9/s) with a random phase and loss, Gaussian distance noise, a control period of 31 kilo_ticks
-    (30.52 Hz ⇒ 1.016 s), motion by the straight / pivot motor schedule of :mod:`sim.motion`, and a
-    500 × 500 mm arena (a common Kilobot table size; 5.9 communication radii wide, close to the
-    thesis's 5 radii).
+    overlap, distances as ``estimate_distance`` reports them (integer mm, ≥ 33, ≤ 255), an IR range
+    of 85 mm (platform notes: 70–100 mm, surface dependent), one message per robot every 16
+    kilo_ticks (≈1.9/s) with a random phase and loss, Gaussian distance noise, a control period of
+    31 kilo_ticks (30.52 Hz ⇒ 1.016 s), motion by the straight / pivot motor schedule of
+    :mod:`sim.motion`, and a 500 × 500 mm arena (a common Kilobot table size; 5.9 communication
+    radii wide, close to the thesis's 5 radii). The target beacon is a Kilobot too, and searchers
+    that bump into it push it (``beacon_mobility = 1``): on a real table nothing holds the beacon,
+    and an independent Kilobot simulator running our firmware saw it pushed 26–127 mm per 300 s
+    run. A taped-down beacon, the thesis's fixed target, is ``beacon_mobility = 0``.
 """
 from __future__ import annotations
 
@@ -61,6 +64,10 @@ class WorldConfig:
     arena_half_mm: float = 100.0  #: the arena is the square [-a, a]²; robot centres stay inside
     robot_radius_mm: float = 0.0  #: 0 = point robots (thesis); 16.5 = Kilobot discs
     collisions: bool = False  #: True: discs never overlap (pushed apart after every move)
+    #: how collisions move the target beacon's disc, relative to a searcher's: 0 = fixed (taped
+    #: down; a searcher touching it takes the whole push), 1 = pushed like any robot (a Kilobot
+    #: beacon standing on the table). Collision worlds only; the task follows the beacon's position
+    beacon_mobility: float = 0.0
     # --- motion -----------------------------------------------------------------------------
     v_max_mm_s: float = 10.0  #: straight speed at k_linear = 1 (thesis v_linear,max = 1 cm/s)
     omega_max_rad_s: float = math.pi / 4  #: turn rate at |k_angular| = 1 (thesis 45 deg/s)
@@ -109,6 +116,7 @@ class WorldConfig:
         need(0 < self.arena_half_mm <= MAX_ARENA_HALF_MM,
              f"arena_half_mm must be in (0, {MAX_ARENA_HALF_MM}], got {self.arena_half_mm}")
         need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
+        need(0.0 <= self.beacon_mobility <= 1.0, f"beacon_mobility must be in [0, 1], got {self.beacon_mobility}")
         need(self.spawn_margin_mm >= 0 and self.spawn_margin_mm < self.arena_half_mm,
              f"spawn_margin_mm must be in [0, arena_half_mm), got {self.spawn_margin_mm}")
         need(self.v_max_mm_s >= 0, f"v_max_mm_s must be >= 0, got {self.v_max_mm_s}")
@@ -177,7 +185,13 @@ class WorldConfig:
 
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """All fields, except later additions at the value that reproduces the older world (so the
+        worlds, and hashes, of artifacts written before a field existed stay the same)."""
+        d = dataclasses.asdict(self)
+        for k, legacy in _LATER_FIELDS.items():
+            if d[k] == legacy:
+                del d[k]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "WorldConfig":
@@ -192,6 +206,9 @@ class WorldConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
 
+#: fields added after policy artifacts were first written, and the value that older worlds had
+_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0}
+
 THESIS = WorldConfig()
 
 KILOBOT = WorldConfig(
@@ -199,6 +216,7 @@ KILOBOT = WorldConfig(
     arena_half_mm=250.0,
     robot_radius_mm=16.5,  # 33 mm body (platform notes)
     collisions=True,
+    beacon_mobility=1.0,  # the beacon is a Kilobot standing on the table (see the module doc)
     v_max_mm_s=10.0,  # ≈1 cm/s (platform notes)
     omega_max_rad_s=math.pi / 4,  # ≈45 deg/s pivot (platform notes)
     control_period_s=31 / KILO_TICK_HZ,

@@ -5,7 +5,8 @@ One control period per :meth:`SwarmEnv.step`:
 1. **Act.** Thesis worlds: the thesis kinematics on the float command (:func:`sim.kinematics.thesis_move`).
    Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
    motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
-   collision worlds are pushed apart (the target is a fixed disc).
+   collision worlds are pushed apart, the target beacon's disc too (``cfg.beacon_mobility``: 0 =
+   fixed, 1 = pushed like a robot). Everything that follows uses the beacon's current position.
 2. **Hear.** The radio stage of :mod:`sim.radio` (thesis or tick-level mode) gives the period's
    messages; messages carry each sender's ``sensing`` flag of its last control step.
 3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
@@ -13,6 +14,10 @@ One control period per :meth:`SwarmEnv.step`:
 4. **Reward** (thesis §4.2): ``scale * ((Σ_i δ_i / M)² - (1/M) Σ_i penalty · ||a_i||²)`` with δ_i =
    true robot–target distance <= comm radius after the move and a_i the command actually applied
    (the float action in thesis worlds, q / 255 in tick-level worlds and in :meth:`step_u8`).
+
+Domain randomisation (``randomise=``, :mod:`sim.variants`): each env draws its own speed, turn
+rates, per-robot calibration, motor model, message period and success, distance noise, light
+zones and beacon mobility at every reset, from its init stream after the spawn.
 
 Random numbers: every env owns three generators (init, radio, light) from its own
 ``SeedSequence``; env e of ``SwarmEnv(..., seed=s)`` uses ``SeedSequence(s, spawn_key=(e,))``
@@ -30,6 +35,7 @@ import numpy as np
 from .config import OBS_WALL, WorldConfig
 from .kinematics import Collider, thesis_move, tick_move, wrap_angle
 from .motion import action_to_u8
+from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
 
@@ -140,14 +146,18 @@ class StepInfo(dict):
 class SwarmEnv:
     """B synchronised envs of M searchers and a target (see the module doc for one step).
 
-    Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm,
+    Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
+    beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
+    ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
+    own world parameters at every reset from its init stream (``world_draw`` holds them).
     ``fast_observe=False`` forces the general events path (for tests); ``neighbour_method``
     ('auto', 'dense', 'grid') picks the neighbour search.
     """
 
     def __init__(self, cfg: WorldConfig, n_envs: int, n_robots: int, seed: Any = None, *,
-                 fast_observe: bool = True, neighbour_method: str = "auto") -> None:
+                 randomise: Randomisation | None = None, fast_observe: bool = True,
+                 neighbour_method: str = "auto") -> None:
         if not isinstance(cfg, WorldConfig):
             raise ValueError(f"cfg must be a WorldConfig (e.g. sim.config.preset('thesis')), got {type(cfg).__name__}")
         for name, v in (("n_envs", n_envs), ("n_robots", n_robots)):
@@ -155,12 +165,19 @@ class SwarmEnv:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
         if neighbour_method not in ("auto", "dense", "grid"):
             raise ValueError(f"neighbour_method must be auto, dense or grid, got {neighbour_method!r}")
+        if randomise is not None:
+            if not isinstance(randomise, Randomisation):
+                raise ValueError(f"randomise must be a sim.variants.Randomisation, got {type(randomise).__name__}")
+            randomise.check(cfg)
         self.cfg = cfg
+        self.randomise = randomise
+        self.world_draw = WorldDraw()  #: this episode's drawn parameters (all None without randomise)
         self.n_envs, self.n_robots = int(n_envs), int(n_robots)
         self.fast_observe = fast_observe
         self.neighbour_method = neighbour_method
         self._check_spawn_room()
         self._collider = Collider(cfg) if cfg.collisions and cfg.robot_radius_mm > 0 else None
+        self._mobility: float | np.ndarray = cfg.beacon_mobility  # scalar, or (B,) per env
         self._seed(seed)
         self.pos: np.ndarray | None = None
         self.heading: np.ndarray | None = None
@@ -178,6 +195,11 @@ class SwarmEnv:
     @property
     def state_dim(self) -> int:
         return self.cfg.state_dim(self.n_robots)
+
+    @property
+    def _pushable(self) -> bool:
+        """True when collisions can move the beacon (so the radio needs its position per tick)."""
+        return self._collider is not None and bool(np.any(np.asarray(self._mobility) > 0))
 
     @property
     def tick_level_radio(self) -> bool:
@@ -250,14 +272,16 @@ class SwarmEnv:
             self._seed(seed)
         B, M = self.n_envs, self.n_robots
         self.target, self.pos, self.heading = self._spawn()
+        if self.randomise is not None:  # after the spawn: spawns equal the nominal world's
+            self.world_draw = self.randomise.draw(self.cfg, M, self._rng_init)
+        w = self.world_draw
+        self._mobility = self.cfg.beacon_mobility if w.beacon_mobility is None else w.beacon_mobility
         self.sensing = np.zeros((B, M), np.uint8)
         self._prev_wall = np.zeros((B, M), np.float32)
         self.t = 0
         self._tick0 = 0
         if self.tick_level_radio:
-            self.phase = draw_phases(self._rng_radio, M, self.cfg)
-        if self._collider is not None:
-            self._collider.invalidate()
+            self.phase = draw_phases(self._rng_radio, M, self.cfg, w.msg_period)
         P = self.cfg.period_ticks
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
         dt = target_distance(self.pos, self.target)
@@ -309,19 +333,23 @@ class SwarmEnv:
             raise RuntimeError(f"the episode ended after {self.cfg.episode_steps} steps; call reset()")
         cfg = self.cfg
         B, M = self.n_envs, self.n_robots
-        record = None
+        record = beacon = None
+        P = cfg.period_ticks
         if cfg.tick_level:
             assert q is not None
-            record = np.empty((cfg.period_ticks, B, M, 2)) if self.tick_level_radio else None
-            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record)
+            if self.tick_level_radio:
+                record = np.empty((P, B, M, 2))
+                beacon = np.empty((P, B, 2)) if self._pushable else None
+            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record,
+                      target_record=beacon, motion=self.world_draw.motion, beacon_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
-                self._collider.resolve(self.pos, self.target)
+                self._collider.resolve(self.pos, self.target, beacon_mobility=self._mobility)
             if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
-                record = np.broadcast_to(self.pos, (cfg.period_ticks, B, M, 2))
+                record = np.broadcast_to(self.pos, (P, B, M, 2))
         dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
-        obs, info = self._sense(self._hear(record, dt), dt)
+        obs, info = self._sense(self._hear(record, dt, beacon), dt)
         cover = info["coverage"]  # (B,) Σ δ_i / M
         effort = np.sum(u * u, axis=(1, 2)) / M  # (B,) (1/M) Σ_i ||a_i||²
         reward = (cfg.reward_scale * (cover * cover - cfg.action_penalty * effort)).astype(np.float32)
@@ -331,15 +359,17 @@ class SwarmEnv:
         terminated = np.zeros(B, bool)
         return obs, reward, terminated, truncated, info
 
-    def _hear(self, record: np.ndarray | None, dt: np.ndarray) -> RadioPeriod:
+    def _hear(self, record: np.ndarray | None, dt: np.ndarray, beacon: np.ndarray | None = None) -> RadioPeriod:
         if self.tick_level_radio:
+            w = self.world_draw
             return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
-                              self._rng_radio, self.neighbour_method)
+                              self._rng_radio, self.neighbour_method, target_ticks=beacon,
+                              msg_period=w.msg_period, msg_loss=w.msg_loss, dist_noise_mm=w.dist_noise_mm)
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 
     def _sense(self, period: RadioPeriod, dt: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        light = light_readings(self.pos, self.cfg, self._rng_light)
+        light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
         self.sensing = flags
         self._prev_wall = obs[..., OBS_WALL].copy()

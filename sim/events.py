@@ -20,7 +20,7 @@ Per receiver and control period (semantics shared with the firmware):
    - target: ``min(d / comm_radius, 1)`` when the target was heard this period, else -1;
    - neighbour senses target: 1 when any table entry's latest flag is set;
    - RBF bin k: ``Σ ψ_k(d) / rbf_norm`` over table entries with ``d <= comm_radius``, where
-     ``ψ_k(d) = exp(-(d - μ_k)² / (2σ²))``.
+     ``ψ_k(d) = exp(-(d - μ_k)² / (2σ²))`` (summed in sender order; the firmware sums integers).
 5. The robot's own "I sense the target" flag for the next period's messages is
    ``target was heard this period``.
 """
@@ -83,7 +83,7 @@ class PeriodSummary:
 
     target_heard: np.ndarray  # (B, M) bool
     target_dist_mm: np.ndarray  # (B, M) float, valid where target_heard
-    table_env: np.ndarray  # (K,) int, env of each kept (receiver, sender) entry
+    table_env: np.ndarray  # (K,) int, env of each kept (receiver, sender) entry, in (env, rx, sender) order
     table_rx: np.ndarray  # (K,) int
     table_sender: np.ndarray  # (K,) int
     table_dist_mm: np.ndarray  # (K,) float, latest distance
@@ -116,18 +116,18 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
     pair = g_s * (M + 1) + snd_s  # (Ns,) unique per (receiver, sender)
     if pair.size:
         first = _first_index_per_key(pair)  # positions (in arrival order) of each pair's first message
-        last = _last_index_per_key(pair)
-        # sort pairs by first arrival; arrival order is grouped by receiver already
+        last = _last_index_per_key(pair)  # both in (receiver, sender) order
+        # rank each sender within its receiver by first arrival (arrival order is grouped by receiver)
         by_first = np.argsort(first, kind="stable")
-        first, last = first[by_first], last[by_first]
-        g_pair = g_s[first]
-        # rank within receiver = index - index of the receiver's first pair
+        g_pair = g_s[first[by_first]]
         starts = np.r_[0, np.flatnonzero(np.diff(g_pair)) + 1]
         run_len = np.diff(np.r_[starts, g_pair.size])
         rank = np.arange(g_pair.size) - np.repeat(starts, run_len)
-        keep = rank < cfg.neighbour_table_size
-        first, last, g_pair = first[keep], last[keep], g_pair[keep]
-        t_env, t_rx = g_pair // M, g_pair % M
+        keep = np.empty(first.size, bool)
+        keep[by_first] = rank < cfg.neighbour_table_size  # table entries, back in (receiver, sender) order
+        first, last = first[keep], last[keep]
+        g_keep = g_s[first]
+        t_env, t_rx = g_keep // M, g_keep % M
         t_snd, t_d, t_f = snd_s[first], d_s[last], f_s[last]
     else:
         t_env = t_rx = t_snd = np.zeros(0, np.int64)

@@ -9,40 +9,60 @@ Thesis (§4.1), once per control period ΔT::
 The heading turns first and the robot then moves along the *new* heading, as written in the thesis.
 
 Kilobot (``tick_level`` worlds), once per kilo_tick for ``period_ticks`` ticks: the motor mode of
-:func:`sim.motion.mode_at_tick` on the uint8 commands. STRAIGHT moves ``v_max · tick_s`` along the
-heading; LEFT / RIGHT turn by ``± ω_max · tick_s``; STOP does nothing. Simplification: a pivot is
-modelled as a rotation about the robot's centre (a real Kilobot pivots about one leg, so its centre
-also shifts by a few mm per quarter turn).
+:func:`sim.motion.schedule` on the uint8 commands. STRAIGHT moves ``v_max · tick_s`` along the
+heading; LEFT / RIGHT turn by ``± ω_max · tick_s``; STOP does nothing (per-robot factors:
+:class:`MotionParams`). Simplification: a pivot is modelled as a rotation about the robot's centre
+(a real Kilobot pivots about one leg, so its centre also shifts by a few mm per quarter turn).
 
-Headings are wrapped to (-π, π]. Walls: robot centres are clipped to ``[-a + r, a - r]`` (a =
-``arena_half_mm``, r = ``robot_radius_mm``). Collisions (``cfg.collisions``): after each move, every
-pair of overlapping discs is pushed apart symmetrically along the line between the centres, in
-over-relaxed Jacobi sweeps (:data:`RELAX_OMEGA`), until no pair overlaps by more than
-:data:`OVERLAP_TOL_MM` at the end of a move (:data:`TICK_OVERLAP_TOL_MM` between the ticks of a
-period). The target beacon is a disc of the same size that does not move: a searcher overlapping it
-takes the whole push (robots also spawn clear of it).
+Headings are wrapped to (-π, π]. Walls: robot centres are clipped to ``[-a + r, a - r]`` after every
+tick (a = ``arena_half_mm``, r = ``robot_radius_mm``). Collisions (``cfg.collisions``): after each
+tick's move, every pair of overlapping discs is pushed apart along the line between the centres,
+in over-relaxed Jacobi sweeps (:data:`RELAX_OMEGA`, aiming at :data:`RELAX_MARGIN_MM` of gap), until
+no pair overlaps by more than :data:`TICK_OVERLAP_TOL_MM` or for :data:`TICK_SWEEPS` sweeps, and,
+after the period's last moving tick, until no pair overlaps by more than :data:`OVERLAP_TOL_MM`.
+Inside a period contacts are thus slightly soft: in a robot pushing into a jam, what the sweeps of
+one tick leave is resolved with the next tick's (worst overlap between ticks ≈ 0.6 mm in a
+32-robot jam, where sweeping to 0.01 mm every tick took ~20 sweeps per tick); at the end of every
+period no discs overlap. Robot pairs share a push equally; the beacon disc takes ``m / (1 + m)`` of a push with its
+robot (mobility m: 0 = taped down, the robot takes the whole push; 1 = pushed like a robot).
 
-Trigonometry for the moves is evaluated in float32 (:func:`unit`), ~1e-7 relative, i.e. below
-1e-5 mm per thesis step; everything else is float64.
+How a period is computed (same model as stepping every robot tick by tick, without a Python loop
+over ticks where nothing touches): a robot's period is ``turn`` pivot ticks, then ``straight``
+ticks, then stop, so its collision-free path is closed form, for every tick at once: the heading
+after the pivots, then n straight steps along it (``curve``: a geometric sum of rotated steps).
+Walls too: clipping a coordinate tick by tick equals clipping the unclipped path whenever that
+coordinate moves in one direction during the period (always true for straight runs; a curved path
+that meets a wall and turns back is run tick by tick). Only the envs in which two discs on these
+paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
+the period start) are re-run tick by tick from the first such tick, with the collision resolution.
+
+Trigonometry: thesis moves use float32 (:func:`unit`, ~1e-7 relative, below 1e-5 mm per step);
+Kilobot moves take one float64 ``exp(iφ)`` per robot and period. Everything else is float64.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import grid
 from .config import WorldConfig
-from .motion import MODE_LEFT, MODE_RIGHT, MODE_STRAIGHT, mode_at_tick, schedule
+from .motion import MODE_LEFT, schedule
 
 TWO_PI = 2.0 * math.pi
-OVERLAP_TOL_MM = 1e-6  #: discs never end a move overlapping by more than this
-TICK_OVERLAP_TOL_MM = 0.01  #: looser tolerance inside a control period (ticks before the last move)
-MAX_RELAX_ITERS = 200  #: relaxation sweeps per move at most (dense jams against walls)
+OVERLAP_TOL_MM = 1e-6  #: discs never end a period overlapping by more than this
+TICK_OVERLAP_TOL_MM = 0.01  #: between the ticks of a period: sweep until overlaps are below this ...
+TICK_SWEEPS = 4  #: ... or for this many sweeps (soft contacts inside a period; see the module doc)
+MAX_RELAX_ITERS = 200  #: relaxation sweeps per resolution at most (dense jams against walls)
 #: over-relaxation: a sweep separates an overlapping pair by RELAX_OMEGA x its overlap. Plain Jacobi
 #: (1.0) converges slowly in clusters of pushing robots (~0.7x per sweep); 1.5 needs ~4 sweeps and
 #: leaves a gap of at most half the resolved overlap (< 0.2 mm per tick at Kilobot speed).
 RELAX_OMEGA = 1.5
+#: pushes aim at a separation of 2r + this: the small gap absorbs what later sweeps push back, so a
+#: 32-robot jam reaches OVERLAP_TOL_MM in ~15 sweeps instead of ~120 (measured on captured jams)
+RELAX_MARGIN_MM = 0.05
+MIN_SKIN_FRAC = 0.25  #: candidate pairs within 2r + skin; the skin is at least this x 2r
 
 
 def wrap_angle(phi: np.ndarray) -> np.ndarray:
@@ -83,118 +103,333 @@ def thesis_move(pos: np.ndarray, heading: np.ndarray, u: np.ndarray, cfg: WorldC
     clip_walls(pos, cfg)
 
 
-class Collider:
-    """Disc-overlap resolution with a Verlet candidate list (pairs within 2r + skin).
+@dataclass
+class MotionParams:
+    """Per-robot motion factors, each (B, M): what a robot's motors really do in each mode.
 
-    The list is rebuilt whenever some disc has moved more than skin/2 since the last build, so it
-    always holds every pair that can overlap. Pairs are kept sorted by (env, i, j), so pushes are
-    summed in the same order whatever the batch size (a batch equals its single-env runs).
+    ``speed`` scales v_max on straight ticks, ``turn_left`` / ``turn_right`` scale ω_max on left /
+    right pivot ticks, ``curve`` is the heading change (rad, + = counter-clockwise) per straight
+    tick (a robot whose calibrated "straight" is not quite straight). The nominal robot is
+    ``1, 1, 1, 0``; :mod:`sim.variants` draws these.
     """
 
-    def __init__(self, cfg: WorldConfig, skin_mm: float | None = None) -> None:
+    speed: np.ndarray
+    turn_left: np.ndarray
+    turn_right: np.ndarray
+    curve: np.ndarray | None = None  #: None: every straight is straight
+
+
+class _Contacts:
+    """Candidate disc pairs of a batch of envs (flat complex positions, ``n_disc`` per env).
+
+    Per env, the pairs within ``2r + skin`` of a build; an env's list is rebuilt (and its relaxation
+    repeated) when one of its discs has moved more than skin / 2 since that env's build, so the list
+    always holds every pair that can overlap. Pairs are sorted by (env, i, j), pushes are summed in
+    that order, and everything is decided per env, so a batch equals its single-env runs.
+    """
+
+    def __init__(self, z: np.ndarray, n_env: int, n_disc: int, cfg: WorldConfig, skin: float,
+                 mobility: np.ndarray | None) -> None:
+        self.n_env, self.n_disc = n_env, n_disc
+        self.diam = 2.0 * cfg.robot_radius_mm
+        self.lim = cfg.arena_half_mm - cfg.robot_radius_mm
+        self.extent = cfg.arena_half_mm
+        self.skin = skin
+        self.mobility = mobility  # (n_env,) beacon mobility, or None: no beacon disc (last disc is a robot)
+        self.pe, self.fi, self.fj, self.wi, self.wj = self._pairs(z, np.arange(n_env))
+        self.built_at = z.copy()
+
+    def _pairs(self, z: np.ndarray, envs: np.ndarray) -> tuple:
+        """(env, flat i, flat j, share i, share j) of the candidate pairs of ``envs`` (ascending)."""
+        N = self.n_disc
+        zz = z.reshape(self.n_env, N)[envs]
+        p = grid.pairs_within(zz.view(np.float64).reshape(envs.size, N, 2), self.diam + self.skin, self.extent)
+        pe = envs.take(p.env)
+        fi, fj = pe * N + p.i, pe * N + p.j  # i < j, so the beacon is always j
+        if self.mobility is None:
+            return pe, fi, fj, None, None  # every pair shares its push equally
+        # robot-beacon pairs: shares by mobility (robot 1, beacon m): 1 / (1 + m) and m / (1 + m)
+        m = np.where(p.j == N - 1, self.mobility.take(pe), 1.0)
+        return pe, fi, fj, 2.0 / (1.0 + m), 2.0 * m / (1.0 + m)  # relative to an equal share
+
+    def _rebuild(self, z: np.ndarray, envs: np.ndarray) -> None:
+        stale = np.zeros(self.n_env, bool)
+        stale[envs] = True
+        keep = ~stale.take(self.pe)
+        new = self._pairs(z, envs)
+        order = np.argsort(np.concatenate((self.pe[keep], new[0])), kind="stable")
+        old = (self.pe, self.fi, self.fj, self.wi, self.wj)
+        self.pe, self.fi, self.fj, self.wi, self.wj = (
+            None if o is None else np.concatenate((o[keep], n)).take(order) for o, n in zip(old, new))
+        zb = self.built_at.reshape(self.n_env, self.n_disc)
+        zb[envs] = z.reshape(self.n_env, self.n_disc)[envs]
+
+    def relax(self, z: np.ndarray, limit: np.ndarray, capped: np.ndarray | None = None,
+              cap: int = MAX_RELAX_ITERS) -> int:
+        """Push overlapping discs of ``z`` (flat complex, in place) apart until, in each env e, no pair
+        is closer than ``limit[e]`` (2r - tolerance; a negative limit leaves the env alone), envs with
+        ``capped[e]`` stopping after ``cap`` sweeps. Returns the number of sweeps."""
+        sweeps = self._sweeps(z, limit, capped, cap)
+        while True:
+            moved = np.abs(z - self.built_at)
+            if moved.max(initial=0.0) <= 0.5 * self.skin:
+                return sweeps
+            moved = moved.reshape(self.n_env, self.n_disc).max(axis=1) > 0.5 * self.skin  # (n_env,)
+            over = (moved & (limit > 0)).nonzero()[0]
+            if not over.size:
+                return sweeps
+            self._rebuild(z, over)  # discs left the skin: pairs may be missing; rebuild, relax again
+            sweeps += self._sweeps(z, np.where(moved, limit, -1.0), capped, cap)
+
+    def _sweeps(self, z: np.ndarray, limit_env: np.ndarray, capped: np.ndarray | None, cap: int) -> int:
+        lim = self.lim
+        target = self.diam + RELAX_MARGIN_MM
+        fi, fj, wi, wj, pe = self.fi, self.fj, self.wi, self.wj, self.pe
+        limit = limit_env.take(pe)  # (K,) a pair overlaps too much when closer than this
+        zf = z.view(np.float64)
+        compact_at = 1
+        for sweep in range(MAX_RELAX_ITERS):
+            if sweep == cap and capped is not None and capped.any():  # capped envs are done
+                limit = np.where(capped.take(pe), -1.0, limit)
+            dz = z.take(fi) - z.take(fj)  # (K,) from j to i
+            d = np.abs(dz)
+            hit = (d < limit).nonzero()[0]
+            if hit.size == 0:
+                return sweep
+            if sweep == compact_at:  # from now on only the pairs of envs that still have overlaps
+                compact_at *= 3
+                active = np.zeros(self.n_env, bool)
+                active[pe.take(hit)] = True
+                keep = active.take(pe).nonzero()[0]
+                if keep.size < 0.7 * pe.size:
+                    fi, fj, pe, dz, d, limit = (v.take(keep) for v in (fi, fj, pe, dz, d, limit))
+                    if wi is not None:
+                        wi, wj = wi.take(keep), wj.take(keep)
+                    hit = (d < limit).nonzero()[0]
+            dh = d.take(hit)
+            # each disc's equal share of the push; + 1e-300 separates coincident centres along x
+            push = (dz.take(hit) + 1e-300) * ((target - dh) * (0.5 * RELAX_OMEGA) / np.maximum(dh, 1e-300))
+            if wi is None:
+                np.add.at(z, fi.take(hit), push)  # sequential, in pair order
+                np.subtract.at(z, fj.take(hit), push)
+            else:
+                np.add.at(z, fi.take(hit), push * wi.take(hit))
+                np.subtract.at(z, fj.take(hit), push * wj.take(hit))
+            np.minimum(zf, lim, out=zf)  # walls (robots and beacon)
+            np.maximum(zf, -lim, out=zf)
+        return MAX_RELAX_ITERS
+
+
+class Collider:
+    """Disc-overlap resolution for one world: symmetric pushes along the centre line in over-relaxed
+    Jacobi sweeps (:data:`RELAX_OMEGA`) until no pair overlaps by more than a tolerance."""
+
+    def __init__(self, cfg: WorldConfig) -> None:
         assert cfg.robot_radius_mm > 0, "collisions need robot_radius_mm > 0"
         self.cfg = cfg
         self.diam = 2.0 * cfg.robot_radius_mm
-        self.skin = skin_mm if skin_mm is not None else 0.5 * self.diam  # rebuild every ~25 ticks
-        self.invalidate()
+        #: candidate-pair skin: twice the longest straight run of a period at nominal speed
+        self.skin = max(2.0 * cfg.period_ticks * cfg.v_max_mm_s * cfg.tick_s, MIN_SKIN_FRAC * self.diam)
 
-    def invalidate(self) -> None:
-        """Forget the candidate list (call after teleporting robots, e.g. at reset)."""
-        self._built_at: np.ndarray | None = None
-
-    def _candidates(self, allpos: np.ndarray, has_target: bool) -> None:
-        if self._built_at is not None and self._built_at.shape == allpos.shape:
-            moved = allpos - self._built_at
-            if np.max(moved[..., 0] ** 2 + moved[..., 1] ** 2) <= (0.5 * self.skin) ** 2:
-                return
-        B, n_all, _ = allpos.shape
-        p = grid.pairs_within(allpos, self.diam + self.skin, self.cfg.arena_half_mm)
-        self._fi = p.env * n_all + p.i  # (K,) flat ids; i < j, so a fixed target is always j
-        self._fj = p.env * n_all + p.j
-        fixed = (p.j == n_all - 1) if has_target else np.zeros(len(p), bool)
-        self._wi = np.where(fixed, 1.0, 0.5)  # share of the push each disc takes
-        self._wj = np.where(fixed, 0.0, 0.5)
-        self._built_at = allpos.copy()
-
-    def resolve(self, pos: np.ndarray, target: np.ndarray | None, tol: float = OVERLAP_TOL_MM) -> int:
+    def resolve(self, pos: np.ndarray, target: np.ndarray | None, tol: float = OVERLAP_TOL_MM,
+                beacon_mobility: float | np.ndarray = 0.0) -> int:
         """Push overlapping discs apart in place until no pair overlaps by more than ``tol`` mm.
 
-        pos (B, M, 2) robots; target (B, 2) a fixed disc, or None. Returns the number of sweeps.
-        Positions are handled as complex numbers x + iy (a view), halving the NumPy calls per sweep.
+        pos (B, M, 2) robots; target (B, 2) the beacon disc (moved in place when its mobility is
+        > 0), or None. Returns the number of sweeps.
         """
-        B, M, _ = pos.shape
-        parts = [pos] if target is None else [pos, target[:, None, :]]
-        allpos = np.concatenate(parts, axis=1)  # (B, n_all, 2) contiguous working copy
-        n_all = allpos.shape[1]  # M or M + 1; index M is the fixed target
-        self._candidates(allpos, target is not None)
-        if self._fi.size == 0:
-            return 0
-        z = allpos.view(np.complex128).reshape(-1)  # (B * n_all,) x + iy, shares memory with allpos
-        lim = self.cfg.arena_half_mm - self.cfg.robot_radius_mm
-        limit = self.diam - tol  # overlap > tol  <=>  d < 2r - tol
-        fi, fj = self._fi, self._fj
-        sweeps = 0
-        for _ in range(MAX_RELAX_ITERS):
-            dz = z.take(fi) - z.take(fj)  # (K,) from j to i
-            d = np.abs(dz)
-            hit = np.flatnonzero(d < limit)
-            if hit.size == 0:
-                break
-            sweeps += 1
-            dh = d.take(hit)
-            u = dz.take(hit) / np.maximum(dh, 1e-300)  # unit vector j -> i
-            zero = dh == 0.0
-            if zero.any():  # coincident centres: separate along x
-                u[zero] = 1.0
-            push = u * ((self.diam - dh) * RELAX_OMEGA)  # each disc takes its share
-            np.add.at(z, fi.take(hit), push * self._wi.take(hit))  # sequential, in pair order
-            np.add.at(z, fj.take(hit), push * -self._wj.take(hit))
-            for part in (z.real, z.imag):  # walls (the fixed target sits inside them: unaffected)
-                np.minimum(part, lim, out=part)
-                np.maximum(part, -lim, out=part)
-        pos[...] = allpos[:, :M]
+        B = pos.shape[0]
+        allz = _discs(pos, target)
+        mob = None if target is None else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,))
+        flat = allz.reshape(-1)
+        sweeps = _Contacts(flat, B, allz.shape[1], self.cfg, self.skin, mob).relax(flat, np.full(B, self.diam - tol))
+        _store(allz, pos, target)
         return sweeps
 
 
+def _discs(pos: np.ndarray, target: np.ndarray | None) -> np.ndarray:
+    """(B, N) complex disc centres: the robots, then the beacon (N = M + 1) when given."""
+    B, M, _ = pos.shape
+    z = np.empty((B, M + (target is not None)), np.complex128)
+    z.real[:, :M], z.imag[:, :M] = pos[..., 0], pos[..., 1]
+    if target is not None:
+        z.real[:, M], z.imag[:, M] = target[:, 0], target[:, 1]
+    return z
+
+
+def _store(z: np.ndarray, pos: np.ndarray, target: np.ndarray | None) -> None:
+    M = pos.shape[1]
+    pos[..., 0], pos[..., 1] = z.real[:, :M], z.imag[:, :M]
+    if target is not None:
+        target[:, 0], target[:, 1] = z.real[:, M], z.imag[:, M]
+
+
 def max_overlap(pos: np.ndarray, target: np.ndarray | None, cfg: WorldConfig) -> float:
-    """Largest disc overlap (mm) among robots (and the fixed target), 0 when none. For tests."""
+    """Largest disc overlap (mm) among robots (and the beacon), 0 when none. For tests."""
     allpos = pos if target is None else np.concatenate([pos, target[:, None, :]], axis=1)
     p = grid.pairs_within(allpos, 2.0 * cfg.robot_radius_mm, cfg.arena_half_mm)
     return float(np.max(2.0 * cfg.robot_radius_mm - p.dist)) if len(p) else 0.0
 
 
 def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldConfig,
-              collider: Collider | None, target: np.ndarray | None,
-              record: np.ndarray | None = None) -> None:
-    """One control period of Kilobot motion, tick by tick, in place.
+              collider: Collider | None, target: np.ndarray | None, record: np.ndarray | None = None, *,
+              target_record: np.ndarray | None = None, motion: MotionParams | None = None,
+              beacon_mobility: float | np.ndarray = 0.0) -> None:
+    """One control period of Kilobot motion in place (see the module doc for the scheme).
 
     q (B, M, 2) uint8 motor commands. ``record`` (P, B, M, 2), if given, receives the positions
-    after each tick (used by the radio model, which needs who was where when a message flew).
+    after each tick (the radio model needs who was where when a message flew); ``target_record``
+    (P, B, 2) the beacon's. ``target`` (B, 2) is the beacon disc (collision worlds), pushed in place
+    with ``beacon_mobility`` (0 = taped down, 1 = like a robot; scalar or (B,)). ``motion``: per-robot
+    motion factors (None = nominal).
     """
+    B, M = heading.shape
     P = cfg.period_ticks
-    turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)  # (B, M) each
-    dphi = cfg.omega_max_rad_s * cfg.tick_s
-    dl = cfg.v_max_mm_s * cfg.tick_s
-    last_turn = int(turn.max()) if turn.size else 0
-    last_move = int((turn.astype(np.int32) + straight).max()) if turn.size else 0
-    loose = False  # a loose-tolerance resolution happened since the last strict one
-    for k in range(P):  # loop over ticks; everything inside is vectorised over (B, M)
-        if k < last_move:
-            mode = mode_at_tick(turn, tmode, straight, k)  # (B, M)
-            if k < last_turn:
-                turning = (mode == MODE_LEFT).astype(np.float64) - (mode == MODE_RIGHT)
-                heading[...] = wrap_angle(heading + turning * dphi)
-            go = (mode == MODE_STRAIGHT) * dl  # (B, M) mm this tick
-            moved = bool(go.any())  # pivots about the centre move no centre
-            if moved:
-                c, s = unit(heading)
-                pos[..., 0] += go * c
-                pos[..., 1] += go * s
-                clip_walls(pos, cfg)
-            last = k == last_move - 1
-            if collider is not None and (moved or (last and loose)):
-                # loose tolerance inside the period, strict at its last moving tick
-                collider.resolve(pos, target, OVERLAP_TOL_MM if last else TICK_OVERLAP_TOL_MM)
-                loose = not last
-        if record is not None:
-            record[k] = pos
+    lim = cfg.arena_half_mm - cfg.robot_radius_mm
+    turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)
+    t, s = turn.astype(np.int64), straight.astype(np.int64)
+    dphi, dl = cfg.omega_max_rad_s * cfg.tick_s, cfg.v_max_mm_s * cfg.tick_s
+    left = tmode == MODE_LEFT
+    kappa = None
+    if motion is None:
+        theta, step = np.where(left, dphi, -dphi), dl
+    else:
+        theta = np.where(left, dphi * motion.turn_left, -dphi * motion.turn_right)
+        step = dl * motion.speed
+        if motion.curve is not None and np.any(motion.curve != 0):
+            kappa = motion.curve
+    phi_s = heading + t * theta  # heading when the straight ticks start
+    k = np.arange(P).reshape(P, 1, 1)
+    n = np.clip(k + 1 - t, 0, s)  # (P, B, M) straight ticks done by the end of tick k
+    go = (k >= t) & (k < t + s)  # (P, B, M) tick k is a straight tick
+    z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
+    if kappa is None:
+        e = step * np.exp(1j * phi_s)  # (B, M) displacement of one straight tick
+        inc = None
+        disp = n * e
+        heading[...] = wrap_angle(phi_s)
+    else:  # each straight tick turns by kappa, then moves along the new heading
+        inc = go * (step * np.exp(1j * (phi_s + n * kappa)))
+        disp = np.cumsum(inc, axis=0)
+        heading[...] = wrap_angle(phi_s + s * kappa)
+    if record is not None and record.dtype == np.float64 and record.flags.c_contiguous:
+        zk = record.view(np.complex128).reshape(P, B, M)  # write the ticks straight into the record
+        np.add(z0, disp, out=zk)
+    else:
+        zk = z0 + disp
+    zkf = zk.view(np.float64)
+    np.minimum(zkf, lim, out=zkf)  # walls: exact for monotone coordinates (see the module doc)
+    np.maximum(zkf, -lim, out=zkf)
+
+    k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
+    if kappa is not None:  # a curved path along a wall whose coordinate turns back: clip per tick
+        out = (np.abs((z0 + disp).view(np.float64)) > lim).reshape(P, B, M, 2).any(axis=0)  # (B, M, 2)
+        ir, ii = inc.real, inc.imag
+        turns = np.stack([(ir > 0).any(0) & (ir < 0).any(0), (ii > 0).any(0) & (ii < 0).any(0)], -1)
+        k0[(out & turns).any(axis=(1, 2))] = 0
+    has_beacon = collider is not None and target is not None
+    zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
+    if collider is not None:
+        np.minimum(k0, _first_contacts(z0, zk, zb, s * step, cfg), out=k0)
+    if (k0 < P).any():
+        _per_tick(zk, zb, z0, go, inc if inc is not None else go * e, k0, cfg, collider,
+                  None if not has_beacon else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)),
+                  target_record)
+    elif target_record is not None:
+        target_record[...] = target  # the beacon stays put
+    pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
+    if has_beacon:
+        target[:, 0], target[:, 1] = zb.real, zb.imag
+    if record is not None and not np.shares_memory(record, zk):
+        record[...] = zk.view(np.float64).reshape(P, B, M, 2)
+
+
+def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, travel: np.ndarray,
+                    cfg: WorldConfig) -> np.ndarray:
+    """(B,) first tick at which two discs on their collision-free paths ``zk`` (P, B, M) come closer
+    than 2r - OVERLAP_TOL_MM in each env (P: never)."""
+    P, B, M = zk.shape
+    first = np.full(B, P, np.int64)
+    diam = 2.0 * cfg.robot_radius_mm
+    allz = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N)
+    tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
+    reach_max = 2.0 * float(tr.max()) if tr.size else 0.0
+    cand = grid.pairs_within(allz.view(np.float64).reshape(B, -1, 2), diam + reach_max + 1e-9, cfg.arena_half_mm)
+    if not len(cand):
+        return first
+    e, i, j = cand.env, cand.i, cand.j
+    reach = tr[e, i] + tr[e, j]
+    near = np.flatnonzero(((reach > 0) & (cand.dist < diam + reach)) | (cand.dist < diam - OVERLAP_TOL_MM))
+    if not near.size:
+        return first
+    e, i, j = e.take(near), i.take(near), j.take(near)
+    zi = zk[:, e, i]  # (P, K)
+    if zb is None:
+        zj = zk[:, e, j]
+    else:
+        beacon = j == M
+        zj = zk[:, e, np.minimum(j, M - 1)]
+        zj[:, beacon] = zb[e[beacon]]  # the beacon stays put unless pushed
+    touch = np.abs(zi - zj) < diam - OVERLAP_TOL_MM  # (P, K)
+    hit = touch.any(axis=0).nonzero()[0]
+    if hit.size:
+        np.minimum.at(first, e.take(hit), touch[:, hit].argmax(axis=0))
+    return first
+
+
+def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndarray, inc: np.ndarray,
+              k0: np.ndarray, cfg: WorldConfig, collider: Collider | None, mobility: np.ndarray | None,
+              target_record: np.ndarray | None) -> None:
+    """Re-run the envs with ``k0[e] < P`` tick by tick from their tick k0[e]: move, walls, resolve
+    collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb."""
+    P, B, M = zk.shape
+    sel = (k0 < P).nonzero()[0]
+    Bs = sel.size
+    ks = k0.take(sel)  # (Bs,) tick at which each env leaves its closed form
+    kmin = int(ks.min())
+    lim = cfg.arena_half_mm - cfg.robot_radius_mm
+    N = M + (zb is not None)
+    zs = np.empty((Bs, N), np.complex128)
+    zs[:, :M] = z0[sel] if kmin == 0 else zk[kmin - 1, sel]
+    if zb is not None:
+        zs[:, M] = zb[sel]
+    inc_s = inc[:, sel]  # (P, Bs, M)
+    moving_env = go[:, sel].any(axis=2)  # (P, Bs)
+    ticks = np.arange(P)[:, None]
+    last = np.where(moving_env.any(axis=0), P - np.argmax(moving_env[::-1], axis=0), 0)  # (Bs,) last moving tick + 1
+    last = np.maximum(last, ks + 1)  # an env with contacts resolves strictly at least once
+    k_end = int(last.max())
+    moving = moving_env.any(axis=1).tolist()
+    starts = {k: (ks == k).nonzero()[0] for k in np.unique(ks).tolist() if k > kmin}  # later envs join here
+    if collider is not None:
+        contacts = _Contacts(zs.reshape(-1), Bs, N, cfg, collider.skin, None if zb is None else mobility[sel])
+        diam = collider.diam
+        strict = ticks == last - 1
+        active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
+        limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
+        resolving = active.any(axis=1).tolist()
+    flat = zs.reshape(-1)
+    zsf = flat.view(np.float64)
+    body = zs[:, :M]
+    rec = np.empty((k_end - kmin, Bs, N), np.complex128)
+    for k in range(kmin, k_end):  # loop over ticks; everything inside is vectorised over (envs, robots)
+        if k in starts:  # envs joining now start from their closed-form positions
+            j = starts[k]
+            body[j] = zk[k - 1, sel.take(j)]
+        if moving[k]:
+            body += inc_s[k]
+            np.minimum(zsf, lim, out=zsf)
+            np.maximum(zsf, -lim, out=zsf)
+        if collider is not None and resolving[k]:
+            contacts.relax(flat, limit[k], ~strict[k], TICK_SWEEPS)
+        rec[k - kmin] = zs
+    mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1): an env's own ticks
+    zk[kmin:k_end, sel] = np.where(mine, rec[..., :M], zk[kmin:k_end, sel])
+    zk[k_end:, sel] = body
+    if zb is not None:
+        if target_record is not None:  # the beacon rests until the first contact
+            bz = np.concatenate([np.broadcast_to(zb[sel], (kmin, Bs)), rec[..., M],
+                                 np.broadcast_to(zs[:, M], (P - k_end, Bs))])
+            target_record[...] = np.stack([zb.real, zb.imag], -1)[None]
+            target_record[:, sel, 0], target_record[:, sel, 1] = bz.real, bz.imag
+        zb[sel] = zs[:, M]

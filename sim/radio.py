@@ -10,9 +10,10 @@ Thesis mode (``msg_period_ticks == 0``, :func:`thesis_radio`)
 Tick-level mode (``msg_period_ticks >= 1``, :func:`tick_radio`)
     Every transmitter (the M searchers and the target) has a phase in ``[0, msg_period_ticks)``,
     drawn at reset; it sends at the global ticks ``g`` with ``(g - phase) % msg_period_ticks == 0``.
-    Each robot within the communication radius at that tick (true distance, positions after that
-    tick's move) hears it. Events carry the tick within the period (0 .. P-1) and are in arrival
-    order: by tick, then sender index with the target first.
+    Each robot within the communication radius at that tick (true distance, positions of robots
+    and beacon after that tick's move) hears it. Events carry the tick within the period (0 .. P-1);
+    :meth:`RadioPeriod.events` lists them in arrival order: by tick, then sender index with the
+    target first.
 
 In both modes, when configured: each message is lost independently at each receiver with
 probability ``msg_loss``; the measured distance is ``clip(round_half_up(true + N(0, σ)), dist_min,
@@ -22,14 +23,19 @@ carries its sender's ``sensing`` flag as of the sender's last control step; the 
 Random numbers come from one ``numpy.random.Generator`` per env (the env's radio stream), drawn per
 env in a fixed order, so an env of a batch sees exactly what it would see alone. Per env and
 period: thesis mode draws loss uniforms then noise normals over [searcher messages, target
-messages]; tick-level mode draws them over the period's candidate messages in arrival order.
+messages]; tick-level mode draws them over the period's in-range messages in (receiver, sender,
+tick) order, the target counting as sender M.
 
 Light (:func:`light_readings`): ``light_wall`` when the robot centre is at most ``wall_sense_mm``
-from the nearest wall, else ``light_floor``; with probability ``light_dropout`` the reading is -1.
+from the nearest wall (or per-wall zones: uneven light), else ``light_floor``; with probability
+``light_dropout`` the reading is -1.
 
-Observations: :func:`observe_period` uses :func:`sim.events.observe` on the period's events, or,
-when every (receiver, sender) pair occurs at most once (thesis mode), :func:`observe_fast`, which
-computes the same numbers straight from the message arrays without sorting (tested equal).
+Per-env and per-transmitter variations (:mod:`sim.variants`: message period, loss, noise) are
+optional arguments of :func:`tick_radio`; without them everything comes from ``cfg``.
+
+Observations: :func:`observe_period` uses :func:`sim.events.observe` on the period's events, or
+:func:`observe_fast`, which computes the same numbers straight from the message arrays, without
+building the sorted event list (tested equal bit for bit).
 """
 from __future__ import annotations
 
@@ -48,9 +54,9 @@ from .events import HeardEvents, observe
 class RadioPeriod:
     """Messages received in one control period, as searcher and target message arrays.
 
-    Searcher messages (``s_*``, shape (Ns,)) and target messages (``t_*``, shape (Nt,)) are each in
-    arrival order (env, receiver, tick, sender). ``single`` is True when every (receiver, sender)
-    pair occurs at most once, which makes :func:`observe_fast` valid.
+    Searcher messages (``s_*``, shape (Ns,)) are in pair order (env, receiver, sender, tick), target
+    messages (``t_*``, shape (Nt,)) in (env, receiver, tick) order. ``single`` is True when every
+    (receiver, sender) pair occurs at most once.
     """
 
     n_envs: int
@@ -93,15 +99,17 @@ class RadioPeriod:
         return self._events
 
 
-def measure(true_mm: np.ndarray, z: np.ndarray | None, cfg: WorldConfig) -> np.ndarray:
+def measure(true_mm: np.ndarray, z: np.ndarray | None, cfg: WorldConfig,
+            sigma: np.ndarray | None = None) -> np.ndarray:
     """Measured distance: true + σ·z, rounded half up with ``dist_integer``, clipped to the range.
 
-    ``true_mm`` are distances of heard messages, so within [0, comm radius]: without noise or
-    rounding, a range that holds [0, comm radius] cannot clip anything and ``true_mm`` is returned as is.
+    σ is ``cfg.dist_noise_mm``, or per message ``sigma`` when given. ``true_mm`` are distances of
+    heard messages, so within [0, comm radius]: without noise or rounding, a range that holds
+    [0, comm radius] cannot clip anything and ``true_mm`` is returned as is.
     """
     if z is None and not cfg.dist_integer and cfg.dist_min_mm <= 0.0 and cfg.dist_max_mm > 1.001 * cfg.comm_radius_mm:
         return true_mm
-    d = true_mm if z is None else true_mm + cfg.dist_noise_mm * z
+    d = true_mm if z is None else true_mm + (cfg.dist_noise_mm if sigma is None else sigma) * z
     if cfg.dist_integer:
         d = np.floor(d + 0.5)
     return np.clip(d, cfg.dist_min_mm, cfg.dist_max_mm)
@@ -179,66 +187,93 @@ def thesis_radio(pos: np.ndarray, target: np.ndarray, flags: np.ndarray, cfg: Wo
         s_udist=s_udist, s_uidx=s_uidx)
 
 
-def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldConfig) -> np.ndarray:
-    """Transmit phases (B, M + 1) in [0, msg_period_ticks); column M is the target."""
-    return np.stack([rng.integers(0, cfg.msg_period_ticks, n_robots + 1) for rng in rngs]).astype(np.int64)
+def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldConfig,
+                periods: np.ndarray | None = None) -> np.ndarray:
+    """Transmit phases (B, M + 1) in [0, period); column M is the target. ``periods`` (B, M + 1):
+    each transmitter's own ticks between sends (default ``cfg.msg_period_ticks``)."""
+    if periods is None:
+        return np.stack([rng.integers(0, cfg.msg_period_ticks, n_robots + 1) for rng in rngs]).astype(np.int64)
+    return np.stack([rng.integers(0, T) for rng, T in zip(rngs, periods)]).astype(np.int64)
 
 
 def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, tick0: int,
                flags: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
-               method: str = "auto") -> RadioPeriod:
+               method: str = "auto", *, target_ticks: np.ndarray | None = None,
+               msg_period: np.ndarray | None = None, msg_loss: np.ndarray | None = None,
+               dist_noise_mm: np.ndarray | None = None) -> RadioPeriod:
     """Tick-level messages of the period covering global ticks ``tick0 .. tick0 + P - 1``.
 
-    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) (fixed);
-    phases (B, M + 1); flags (B, M) uint8 senders' flags.
+    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) the beacon, or
+    its positions after each tick ``target_ticks`` (P, B, 2) when it moves; phases (B, M + 1);
+    flags (B, M) uint8 senders' flags. Per-env or per-transmitter variations (None = ``cfg``'s):
+    ``msg_period`` (B, M + 1) ticks between sends, ``msg_loss`` (B,), ``dist_noise_mm`` (B,).
     """
     P, B, M, _ = pos_ticks.shape
-    T, R = cfg.msg_period_ticks, cfg.comm_radius_mm
-    final = pos_ticks[-1]  # (B, M, 2)
-    dev = pos_ticks - final  # (P, B, M, 2) how far each robot was from its final position
-    reach = float(np.sqrt(np.max(dev[..., 0] ** 2 + dev[..., 1] ** 2))) if dev.size else 0.0
-    allpos = np.concatenate([final, target[:, None, :]], axis=1)  # (B, M + 1, 2), M = target
-    # every pair within R at some tick is within R + 2 * reach at the end
-    cand = grid.pairs_within(allpos, R + 2.0 * reach + 1e-3, cfg.arena_half_mm, method, ordered=True,
-                             dtype=PAIR_DTYPE)  # the 1e-3 mm margin also covers float32 rounding
-    m = cand.i < M  # the target only sends
-    e, rx, snd = cand.env[m], cand.i[m], cand.j[m]
-    k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
+    R = cfg.comm_radius_mm
+    Z = np.empty((P, B, M + 1), np.complex128)  # robots and (column M) the beacon, after each tick
+    Z.real[..., :M], Z.imag[..., :M] = pos_ticks[..., 0], pos_ticks[..., 1]
+    tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
+    Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
+    final = Z[-1]
+    reach = np.abs(Z - final).max(axis=0)  # (B, M + 1) farthest each transmitter was from its end
+    # a pair within R at some tick is within R + reach_i + reach_j at the end
+    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * float(reach.max()) + 1e-3,
+                             cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)
+    ri, rj = reach[cand.env, cand.i], reach[cand.env, cand.j]
+    m = np.flatnonzero((cand.i < M) & (cand.dist <= R + ri + rj + 1e-3))  # the target only sends
+    e, rx, snd = cand.env.take(m), cand.i.take(m), cand.j.take(m)  # (K,) sorted by (env, rx, snd)
+    moved = (ri.take(m) > 0) | (rj.take(m) > 0)  # (K,) else the distance is the same at every tick
+    if msg_period is None:
+        T = cfg.msg_period_ticks
+        k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
+    else:
+        T = msg_period[e, snd]
+        k0 = (phases[e, snd] - tick0) % T
     nsend = np.where(k0 < P, (P - 1 - k0) // T + 1, 0)
     tot = int(nsend.sum())
     first = np.cumsum(nsend) - nsend
+    d = np.repeat(cand.dist.take(m), nsend)
+    moved = np.repeat(moved, nsend)
     e, rx, snd, k0 = (np.repeat(v, nsend) for v in (e, rx, snd, k0))
-    k = k0 + T * (np.arange(tot, dtype=np.int64) - np.repeat(first, nsend))  # (tot,) send tick
-    is_t = snd == M
-    rxp = pos_ticks[k, e, rx]  # (tot, 2)
-    sp = np.where(is_t[:, None], target[e], pos_ticks[k, e, np.minimum(snd, M - 1)])
-    dx, dy = rxp[:, 0] - sp[:, 0], rxp[:, 1] - sp[:, 1]
-    d = np.sqrt(dx * dx + dy * dy)
-    h = d <= R
-    e, rx, snd, k, d, is_t = e[h], rx[h], snd[h], k[h], d[h], is_t[h]
-    o = np.argsort(((e * M + rx) * P + k) * (M + 1) + np.where(is_t, 0, snd + 1))  # unique keys
-    e, rx, snd, k, d, is_t = e[o], rx[o], snd[o], k[o], d[o], is_t[o]
-    loss, noise = cfg.msg_loss > 0, cfg.dist_noise_mm > 0
+    rounds = np.arange(tot, dtype=np.int64) - np.repeat(first, nsend)
+    k = k0 + (T if msg_period is None else msg_period[e, snd]) * rounds  # (tot,) send tick
+    mv = moved.nonzero()[0]  # messages between transmitters that moved: distance at the send tick
+    base = (k.take(mv) * B + e.take(mv)) * (M + 1)
+    d[mv] = np.abs(Z.reshape(-1).take(base + rx.take(mv)) - Z.reshape(-1).take(base + snd.take(mv)))
+    h = np.flatnonzero(d <= R)  # in range at the send tick; (receiver, sender, tick) order
+    e, rx, snd, k, d = e.take(h), rx.take(h), snd.take(h), k.take(h), d.take(h)
+    loss = cfg.msg_loss > 0 if msg_loss is None else bool(np.any(msg_loss > 0))
+    noise = cfg.dist_noise_mm > 0 if dist_noise_mm is None else bool(np.any(dist_noise_mm > 0))
     u, z = _per_env_draws(rngs, np.bincount(e, minlength=B), loss, noise)
     if loss:
-        ok = u >= cfg.msg_loss
-        e, rx, snd, k, d, is_t = e[ok], rx[ok], snd[ok], k[ok], d[ok], is_t[ok]
-        z = z[ok] if noise else None
-    dm = measure(d, z, cfg)
-    sender = np.where(is_t, -1, snd)
-    flag = np.where(is_t, 0, flags[e, np.minimum(snd, M - 1)]).astype(np.uint8)
-    ev = HeardEvents(e.astype(np.int32), rx.astype(np.int32), sender.astype(np.int32), k.astype(np.int16),
-                     dm, np.where(is_t, ROLE_TARGET, ROLE_SEARCHER).astype(np.uint8), flag)
-    s = ~is_t
-    return RadioPeriod(B, M, P, e[s], rx[s], snd[s], k[s], dm[s], flag[s],
-                       e[is_t], rx[is_t], k[is_t], dm[is_t], single=T >= P, _events=ev)
+        ok = np.flatnonzero(u >= (cfg.msg_loss if msg_loss is None else msg_loss.take(e)))
+        e, rx, snd, k, d = e.take(ok), rx.take(ok), snd.take(ok), k.take(ok), d.take(ok)
+        z = z.take(ok) if noise else None
+    dm = measure(d, z, cfg, None if dist_noise_mm is None or not noise else dist_noise_mm.take(e))
+    is_t = snd == M
+    t, sr = np.flatnonzero(is_t), np.flatnonzero(~is_t)
+    s_env, s_snd = e.take(sr), snd.take(sr)
+    return RadioPeriod(B, M, P, s_env, rx.take(sr), s_snd, k.take(sr), dm.take(sr),
+                       flags.reshape(-1).take(s_env * M + s_snd).astype(np.uint8, copy=False),
+                       e.take(t), rx.take(t), k.take(t), dm.take(t), single=bool(nsend.max(initial=0) <= 1))
 
 
-def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator]) -> np.ndarray:
-    """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout)."""
-    wall_d = cfg.arena_half_mm - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
-    light = np.full(wall_d.shape, cfg.light_floor, np.int16)
-    light[wall_d <= cfg.wall_sense_mm] = cfg.light_wall
+def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
+                   wall_zone_mm: np.ndarray | None = None) -> np.ndarray:
+    """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout).
+
+    ``wall_zone_mm`` (B, 4): per env, how far from the +x, +y, -x, -y walls the reading is high
+    (uneven light); default ``cfg.wall_sense_mm`` for every wall.
+    """
+    a = cfg.arena_half_mm
+    if wall_zone_mm is None:
+        wall_d = a - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
+        lit = wall_d <= cfg.wall_sense_mm
+    else:
+        x, y, z = pos[..., 0], pos[..., 1], wall_zone_mm[:, None, :]
+        lit = (a - x <= z[..., 0]) | (a - y <= z[..., 1]) | (a + x <= z[..., 2]) | (a + y <= z[..., 3])
+    light = np.full(lit.shape, cfg.light_floor, np.int16)
+    light[lit] = cfg.light_wall
     if cfg.light_dropout > 0:
         M = pos.shape[1]
         u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
@@ -290,21 +325,51 @@ def _segment_sums(rows: np.ndarray, starts: np.ndarray, counts: np.ndarray, inde
     return out, o
 
 
+@functools.lru_cache(maxsize=16)
+def _rbf_table(cfg: WorldConfig) -> np.ndarray:
+    """rbf_fast of the integer distances 0..255 (rows), for worlds whose distances are integer mm."""
+    t = rbf_fast(cfg, np.arange(256, dtype=np.float64))
+    t.setflags(write=False)
+    return t
+
+
+def _rbf_rows(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
+    """rbf_fast(cfg, d_mm), by table lookup when distances are integer mm (the same values)."""
+    if cfg.dist_integer and cfg.dist_min_mm >= 0 and cfg.dist_max_mm <= 255:
+        return _rbf_table(cfg).take(d_mm.astype(np.intp), axis=0)
+    return rbf_fast(cfg, d_mm)
+
+
+def _run_ends(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last) index of each run of equal values in a non-decreasing ``key``."""
+    brk = np.flatnonzero(key[1:] != key[:-1]) + 1
+    return np.concatenate(([0], brk)), np.concatenate((brk - 1, [key.size - 1]))
+
+
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`sim.events.observe` for periods where each (receiver, sender) pair occurs at most once.
+    """:func:`sim.events.observe` straight from the period's message arrays (no sorted event list).
 
-    Same float64 operations in the same summation order, so the result is bit-identical.
+    Per (receiver, sender) run of messages: the first tick ranks the sender for the neighbour table,
+    the last message's distance is the one kept; the RBF sums go over table entries in sender order
+    with the same float64 operations as :func:`sim.events.observe`, so the result is bit-identical.
     """
-    assert period.single, "observe_fast needs a period where each sender is heard at most once"
     B, M = light.shape
-    g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing (arrival order)
-    d, f, ui = period.s_dist, period.s_flag, period.s_uidx
-    counts = np.bincount(g, minlength=B * M)  # (B*M,) messages per receiver
+    P = period.period_ticks
+    g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing
+    d, f, ui, snd, tick = period.s_dist, period.s_flag, period.s_uidx, period.s_snd, period.s_tick
+    if not period.single and g.size:  # one entry per (receiver, sender): first tick, latest distance
+        first, last = _run_ends(g * M + snd)
+        g, snd, tick, f, d, ui = g.take(first), snd.take(first), tick.take(first), f.take(first), d.take(last), None
+    counts = np.bincount(g, minlength=B * M)  # (B*M,) table entries per receiver
     if g.size and counts.max() > cfg.neighbour_table_size:  # table full: later senders are dropped
-        rank = np.arange(g.size) - (np.cumsum(counts) - counts)[g]
-        keep = rank < cfg.neighbour_table_size
-        d, f = d[keep], f[keep]
+        over = np.flatnonzero(counts.take(g) > cfg.neighbour_table_size)
+        o = over.take(np.argsort((g.take(over) * P + tick.take(over)) * M + snd.take(over), kind="stable"))
+        go = g.take(o)  # overflowing receivers' entries by (receiver, first tick, sender)
+        rank = np.arange(o.size) - np.searchsorted(go, go)
+        keep = np.ones(g.size, bool)
+        keep[o[rank >= cfg.neighbour_table_size]] = False
+        g, d, f = g[keep], d[keep], f[keep]
         ui = ui[keep] if ui is not None else None
         counts = np.minimum(counts, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
@@ -312,9 +377,11 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
     heard = np.zeros(B * M, bool)
     tdist = np.zeros(B * M)
-    tg = period.t_env * M + period.t_rx
-    heard[tg] = True
-    tdist[tg] = period.t_dist
+    tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
+    if tg.size:
+        _, t_last = _run_ends(tg) if not period.single else (None, np.arange(tg.size))
+        heard[tg] = True
+        tdist[tg.take(t_last)] = period.t_dist.take(t_last)
     obs[..., OBS_TARGET] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0), -1.0).reshape(B, M)
     if d.size:
         rcv = np.flatnonzero(counts)  # receivers with table entries
@@ -322,12 +389,12 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)
         flat = obs.reshape(B * M, cfg.obs_dim)
         # max of the table's 0/1 flags = (their count > 0); one bincount instead of reduceat + scatter
-        n_flags = np.bincount(g if d.size == g.size else np.repeat(rcv, cnt), weights=f, minlength=B * M)
+        n_flags = np.bincount(g, weights=f, minlength=B * M)
         flat[:, OBS_NBR_SENSING] = n_flags > 0
         if ui is None:
-            hist, o = _segment_sums(rbf_fast(cfg, d), starts, cnt, None)
+            hist, o = _segment_sums(_rbf_rows(cfg, d), starts, cnt, None)
         else:  # symmetric distances: ψ once per unordered pair
-            hist, o = _segment_sums(rbf_fast(cfg, period.s_udist), starts, cnt, ui)
+            hist, o = _segment_sums(_rbf_rows(cfg, period.s_udist), starts, cnt, ui)
         flat[rcv.take(o), OBS_RBF:] = hist
     return obs, heard.reshape(B, M).astype(np.uint8)
 
@@ -335,6 +402,6 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
 def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
                    fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and new sensing flags (B, M) uint8 for a period."""
-    if fast and period.single:
+    if fast:
         return observe_fast(period, light, prev_wall, cfg)
     return observe(period.events(), light, prev_wall, cfg)

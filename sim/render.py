@@ -1,10 +1,13 @@
 """Headless plots and animations of swarm episodes (matplotlib Agg; no display, no pyplot state).
 
 * :func:`plot_trajectories` — each robot's path, start cross, end circle, target diamond, the comm
-  radius around the target and the arena border (like thesis Figs 5.9/5.10), to PNG;
+  radius around the target and the arena border (like thesis Figs 5.9/5.10), to PNG; a pushed
+  beacon's path too (dashed, diamond and circle at its final place);
 * :func:`animate_episode` — an animated GIF (matplotlib draws the arena once, Pillow paints the
-  robots and writes the GIF): robots as discs sized by ``robot_radius_mm`` (dots for point robots)
-  with heading ticks, robots within range of the target highlighted, a step counter;
+  robots and the beacon and writes the GIF): robots as discs sized by ``robot_radius_mm`` (dots for
+  point robots) with heading ticks, robots within range of the target highlighted, a step counter;
+
+The target is ``(2,)`` (a fixed beacon) or ``(T+1, 2)`` (its position at every step).
 * :func:`plot_coverage` — fraction of robots in range over time, mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
@@ -38,8 +41,8 @@ def _figure(size_in: float = 5.0) -> Figure:
     return fig
 
 
-def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray):
-    """Axes with the arena border, the target diamond and its comm-radius circle drawn."""
+def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
+    """Axes with the arena border and, when given, the target diamond and its comm-radius circle."""
     ax = fig.add_subplot(1, 1, 1)
     a = cfg.arena_half_mm
     pad = 0.04 * a
@@ -47,21 +50,34 @@ def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray):
     ax.set_ylim(-a - pad, a + pad)
     ax.set_aspect("equal")
     ax.add_patch(Rectangle((-a, -a), 2 * a, 2 * a, fill=False, lw=1.5, ec=C_WALL))
-    ax.add_patch(Circle(tuple(target), cfg.comm_radius_mm, fill=False, ls="--", lw=1.0, ec=C_TARGET))
-    ax.plot([target[0]], [target[1]], marker="D", ms=8, color=C_TARGET, ls="none", label="target")
+    if target is not None:
+        ax.add_patch(Circle(tuple(target), cfg.comm_radius_mm, fill=False, ls="--", lw=1.0, ec=C_TARGET))
+        ax.plot([target[0]], [target[1]], marker="D", ms=8, color=C_TARGET, ls="none", label="target")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
     return ax
 
 
+def _target_track(target: np.ndarray, steps: int) -> np.ndarray:
+    """The target's position at each of ``steps`` steps, (steps, 2), from (2,) or (steps, 2)."""
+    t = np.asarray(target, np.float64)
+    assert t.shape in ((2,), (steps, 2)), f"target must be (2,) or ({steps}, 2), got {t.shape}"
+    return np.broadcast_to(t, (steps, 2))
+
+
 def plot_trajectories(positions: np.ndarray, target: np.ndarray, cfg: WorldConfig, path: str | os.PathLike,
                       title: str | None = None) -> Path:
-    """One episode's paths to PNG. ``positions`` (T+1, M, 2) mm, ``target`` (2,) mm."""
+    """One episode's paths to PNG. ``positions`` (T+1, M, 2) mm, ``target`` (2,) or (T+1, 2) mm."""
     positions = np.asarray(positions, np.float64)
     assert positions.ndim == 3 and positions.shape[-1] == 2, f"positions must be (T+1, M, 2), got {positions.shape}"
     M = positions.shape[1]
+    track = _target_track(target, positions.shape[0])
     fig = _figure()
-    ax = _arena_axes(fig, cfg, np.asarray(target, np.float64))
+    ax = _arena_axes(fig, cfg, track[-1])
+    if np.any(track != track[0]):  # a pushed beacon: its path and where it started
+        ax.plot(track[:, 0], track[:, 1], lw=1.0, ls="--", color=C_TARGET, alpha=0.9)
+        ax.plot([track[0, 0]], [track[0, 1]], marker="D", ms=6, mfc="none", color=C_TARGET, ls="none",
+                label="target start")
     colours = [f"C{i % 10}" for i in range(M)]
     for i in range(M):
         ax.plot(positions[:, i, 0], positions[:, i, 1], lw=0.9, color=colours[i], alpha=0.85)
@@ -109,10 +125,10 @@ def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title:
 class _FramePainter:
     """Paints animation frames fast: matplotlib draws the static arena once, Pillow the robots."""
 
-    def __init__(self, cfg: WorldConfig, target: np.ndarray, title: str, size_in: float, dpi: int) -> None:
+    def __init__(self, cfg: WorldConfig, title: str, size_in: float, dpi: int) -> None:
         fig = _figure(size_in)
         fig.set_dpi(dpi)
-        ax = _arena_axes(fig, cfg, target)
+        ax = _arena_axes(fig, cfg, None)
         ax.set_title(title, fontsize=9)
         fig.tight_layout()
         fig.canvas.draw()
@@ -124,10 +140,11 @@ class _FramePainter:
         self.px_per_mm = float(unit[0] - origin[0])
         r_mm = cfg.robot_radius_mm if cfg.robot_radius_mm > 0 else 0.04 * cfg.arena_half_mm
         self.r_px = max(2.0, r_mm * self.px_per_mm)
+        self.comm_px = cfg.comm_radius_mm * self.px_per_mm
         # one GIF palette for all frames: the background's colours plus the robot colours
         swatch = self.background.copy()
         draw = ImageDraw.Draw(swatch)
-        for k, col in enumerate((C_IN, C_OUT, "black", "white")):
+        for k, col in enumerate((C_IN, C_OUT, C_TARGET, "black", "white")):
             draw.rectangle((k * 8, 0, k * 8 + 7, 7), fill=col)
         self.palette = swatch.quantize(colors=48, method=Image.Quantize.MEDIANCUT)
 
@@ -135,9 +152,15 @@ class _FramePainter:
         """Map a painted frame onto the shared palette (no dithering: flat colours stay flat)."""
         return img.quantize(palette=self.palette, dither=Image.Dither.NONE)
 
-    def paint(self, pos: np.ndarray, heading: np.ndarray, in_range: np.ndarray, label: str) -> Image.Image:
+    def paint(self, pos: np.ndarray, heading: np.ndarray, in_range: np.ndarray, target: np.ndarray,
+              label: str) -> Image.Image:
         img = self.background.copy()
         draw = ImageDraw.Draw(img)
+        (bx, by), = self._to_px(np.asarray(target, np.float64)[None])
+        by = self.height - by
+        c, d = self.comm_px, 1.3 * self.r_px
+        draw.ellipse((bx - c, by - c, bx + c, by + c), outline=C_TARGET, width=1)  # the comm radius
+        draw.polygon([(bx, by - d), (bx + d, by), (bx, by + d), (bx - d, by)], fill=C_TARGET, outline="black")
         xy = self._to_px(np.asarray(pos, np.float64))  # (M, 2) pixels
         xy[:, 1] = self.height - xy[:, 1]  # Pillow's y axis points down
         tip = xy + 1.7 * self.r_px * np.stack([np.cos(heading), -np.sin(heading)], -1)  # (M, 2)
@@ -153,18 +176,19 @@ def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndar
                     cfg: WorldConfig, path: str | os.PathLike, max_frames: int = 80, fps: int = 10,
                     size_in: float = 4.0, dpi: int = 80, title: str | None = None) -> Path:
     """One episode to an animated GIF. ``positions`` (T+1, M, 2), ``headings`` (T+1, M),
-    ``target`` (2,), ``in_range`` (T+1, M) bool. At most ``max_frames`` frames (evenly subsampled,
+    ``target`` (2,) or (T+1, 2), ``in_range`` (T+1, M) bool. At most ``max_frames`` frames (evenly subsampled,
     first and last step always included)."""
     positions = np.asarray(positions, np.float64)
     T1, M, _ = positions.shape
     assert np.shape(headings) == (T1, M) and np.shape(in_range) == (T1, M), "headings / in_range shape mismatch"
     assert max_frames >= 2, "max_frames must be >= 2"
     frames = np.unique(np.linspace(0, T1 - 1, min(max_frames, T1)).round().astype(int))
-    painter = _FramePainter(cfg, np.asarray(target, np.float64), title or f"{cfg.name}: {M} robots", size_in, dpi)
+    track = _target_track(target, T1)
+    painter = _FramePainter(cfg, title or f"{cfg.name}: {M} robots", size_in, dpi)
     images = []
     for t in frames:
         hit = np.asarray(in_range[t], bool)
-        img = painter.paint(positions[t], np.asarray(headings[t], np.float64), hit,
+        img = painter.paint(positions[t], np.asarray(headings[t], np.float64), hit, track[t],
                             f"step {t}/{T1 - 1}   in range {int(hit.sum())}/{M}")
         images.append(painter.to_palette(img))
     with atomic_path(path) as tmp:
@@ -178,7 +202,7 @@ def render_frame(pos: np.ndarray, heading: np.ndarray, target: np.ndarray, in_ra
     """One frame as an (H, W, 3) uint8 RGB array. ``pos`` (M, 2), ``heading`` (M,), ``in_range`` (M,)."""
     pos = np.asarray(pos, np.float64)
     hit = np.asarray(in_range, bool)
-    painter = _FramePainter(cfg, np.asarray(target, np.float64), f"{cfg.name}: {pos.shape[0]} robots", size_in, dpi)
-    img = painter.paint(pos, np.asarray(heading, np.float64), hit,
+    painter = _FramePainter(cfg, f"{cfg.name}: {pos.shape[0]} robots", size_in, dpi)
+    img = painter.paint(pos, np.asarray(heading, np.float64), hit, target,
                         f"step {step}   in range {int(hit.sum())}/{pos.shape[0]}")
     return np.asarray(img, np.uint8)

@@ -79,7 +79,7 @@ class Trajectories:
 
     positions: np.ndarray  # (E, T+1, M, 2) float32 mm, index 0 = after reset
     headings: np.ndarray  # (E, T+1, M) float32 rad
-    target: np.ndarray  # (E, 2) float32 mm (the target beacon does not move)
+    target: np.ndarray  # (E, T+1, 2) float32 mm, the target beacon after each step (pushed ones move)
     in_range: np.ndarray  # (E, T+1, M) bool, true distance <= comm radius (index 0 = at reset)
     actions: np.ndarray  # (E, T, M, 2) float32, the commands sent
 
@@ -124,7 +124,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     Batch k resets the env with a seed drawn from ``SeedSequence(seed)`` stream k and hands the
     policy its own stream, so results depend only on (config, robots, n_envs, policy, seed).
     When ``episodes`` is not a multiple of ``n_envs`` the surplus envs of the last batch are dropped.
-    ``record`` keeps positions, headings, target, in-range flags and actions for rendering: ``True``
+    ``record`` keeps positions, headings, the target's track, in-range flags and actions for rendering: ``True``
     for every episode, an int ``k`` for the first ``k`` episodes only (memory: long runs render one).
     ``progress`` shows a tqdm bar over all steps (on stderr).
     """
@@ -142,7 +142,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)
         head = np.zeros((rec_batches * B, T + 1, M), np.float32)
-        tgt = np.zeros((rec_batches * B, 2), np.float32)
+        tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32)
         inr = np.zeros((rec_batches * B, T + 1, M), bool)
         acts = np.zeros((rec_batches * B, T, M, 2), np.float32)
 
@@ -162,7 +162,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
             if rec:
                 pos[rows, 0] = env.pos
                 head[rows, 0] = env.heading
-                tgt[rows] = env.target
+                tgt[rows, 0] = env.target
                 inr[rows, 0] = _in_range_now(env)
             for t in range(T):
                 a = np.asarray(policy.act(obs), np.float64)
@@ -173,6 +173,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                 if rec:
                     pos[rows, t + 1] = env.pos
                     head[rows, t + 1] = env.heading
+                    tgt[rows, t + 1] = env.target
                     inr[rows, t + 1] = info["in_range"]
                     acts[rows, t] = a
                 if bar is not None:

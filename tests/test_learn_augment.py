@@ -30,3 +30,20 @@ def test_adds_only_to_rbf_bins_with_the_expected_mass():
     got = out[..., OBS_RBF:].sum(-1).mean()
     assert abs(got - want) < 0.05 * want, (got, want)
     assert out[..., OBS_RBF:].min() >= 0
+
+
+def test_histogram_is_the_sum_of_each_robots_phantoms():
+    """Each robot's added bins are exactly the sum of rbf() over its own phantoms (draws replayed)."""
+    cfg = preset("kilobot")
+    B, M = 3, 5
+    ph = PhantomNeighbours(cfg, 4.0, np.random.default_rng(7))
+    ph.reset(B)
+    out = ph(np.zeros((B, M, cfg.obs_dim), np.float32))
+    rng = np.random.default_rng(7)
+    lam = rng.uniform(0.0, 4.0, B)
+    k = rng.poisson(np.repeat(lam, M))
+    d = np.round(np.sqrt(rng.uniform(cfg.dist_min_mm ** 2, cfg.comm_radius_mm ** 2, int(k.sum()))))
+    ends = np.cumsum(k)
+    want = np.stack([rbf(cfg, d[e - n:e]).sum(0) for n, e in zip(k, ends)]).reshape(B, M, -1)
+    np.testing.assert_allclose(out[..., OBS_RBF:], want, rtol=1e-6, atol=1e-7)
+    assert k.sum() > 0

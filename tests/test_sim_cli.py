@@ -135,3 +135,35 @@ def test_python_dash_m_sim_subprocess(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "Traceback" not in bad.stderr
+
+
+SUITE = ["--suite", "robustness", "--robots", "2", "3", "--episodes", "2", "--steps", "10", "--quiet"]
+
+
+@pytest.mark.parametrize("policy", ["baseline", str(ROOT / "export" / "data" / "default_policy.npz")])
+def test_cli_robustness_suite(tmp_path, capsys, policy):
+    """--suite robustness runs a baseline or an .npz policy in every variant at each robot count and
+    writes robustness.json and robustness.md (nothing else)."""
+    out = tmp_path / "rob"
+    assert main(["--policy", policy, "--out", str(out)] + SUITE) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["robustness.json", "robustness.md"]
+    rep = json.loads((out / "robustness.json").read_text())
+    cov = rep["final_coverage"]
+    assert "nominal" in cov and "graded motors" in cov and set(cov["nominal"]) == {"2", "3"}
+    nominal = cov["nominal"]["2"]
+    assert nominal["fraction_of_nominal"] == (1.0 if nominal["mean"] > 0 else None) and rep["robots"] == [2, 3]
+    assert rep["world"]["name"] == "kilobot" and set(rep["variants"]) == set(cov)
+    assert "msg period 15" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--robots", "2", "3"], "one count"),
+    (SUITE + ["--preset", "thesis"], "tick-level"),
+    (SUITE + ["--robots", "400"], "400 robots"),
+])
+def test_cli_suite_bad_input_exit_2(tmp_path, capsys, args, needle):
+    """Several robot counts without --suite, a suite in the thesis world, too many discs: exit 2, one line."""
+    out = tmp_path / "out"
+    assert main(["--out", str(out), "--quiet"] + args) == 2
+    assert needle in _one_line_error(capsys)
+    assert not out.exists()

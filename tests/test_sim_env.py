@@ -8,7 +8,7 @@ import pytest
 
 from sim.config import preset
 from sim.env import SwarmEnv, env_seed_sequences
-from sim.kinematics import RELAX_OMEGA, Collider, max_overlap, thesis_move, tick_move, wrap_angle
+from sim.kinematics import RELAX_MARGIN_MM, RELAX_OMEGA, Collider, max_overlap, thesis_move, tick_move, wrap_angle
 from sim.motion import action_to_u8
 
 
@@ -89,13 +89,13 @@ def test_tick_move_records_every_tick():
 # --- collisions --------------------------------------------------------------------------------
 def test_collider_pushes_symmetrically_and_target_is_fixed():
     """Overlapping discs are pushed apart symmetrically along the centre line (over-relaxed:
-    separated by RELAX_OMEGA x the overlap); a disc on the target takes the whole push."""
+    separated by RELAX_OMEGA x (overlap + margin)); a disc on the target takes the whole push."""
     cfg = preset("kilobot")
     col = Collider(cfg)
     pos = np.array([[[0.0, 0.0], [20.0, 0.0], [100.0, 100.0]]])
     target = np.array([[100.0, 120.0]])
     assert col.resolve(pos, target) == 1
-    half = 13.0 * RELAX_OMEGA / 2  # overlap 33 - 20 = 13 mm
+    half = (13.0 + RELAX_MARGIN_MM) * RELAX_OMEGA / 2  # overlap 33 - 20 = 13 mm
     np.testing.assert_allclose(pos[0, :2], [[-half, 0.0], [20.0 + half, 0.0]], atol=1e-9)
     np.testing.assert_allclose(pos[0, 2], [100.0, 100.0 - 2 * half], atol=1e-9)
     np.testing.assert_array_equal(target, [[100.0, 120.0]])

@@ -115,7 +115,7 @@ def test_rollout_records_consistent_trajectories():
     cfg = preset("thesis", episode_steps=40)
     res = rollout(SwarmEnv(cfg, 2, 5, seed=0), make_policy("baseline", cfg), 2, seed=1, record=True)
     tr = res.trajectories
-    d = np.linalg.norm(tr.positions - tr.target[:, None, None, :], axis=-1)  # (E, T+1, M)
+    d = np.linalg.norm(tr.positions - tr.target[:, :, None, :], axis=-1)  # (E, T+1, M)
     clear = np.abs(d - cfg.comm_radius_mm) > 1e-3  # float32 positions: skip exact-boundary cases
     np.testing.assert_array_equal(tr.in_range[clear], (d <= cfg.comm_radius_mm)[clear])
     assert tr.in_range.any() and not tr.in_range.all()

@@ -4,6 +4,8 @@
     python tests/bench/bench_sim.py --quick    # small sizes only
     python tests/bench/bench_sim.py --goals    # only the three rows the performance goals name
     python tests/bench/bench_sim.py --goals --repeat 10   # ... timed in 10 rounds: best and median
+    python tests/bench/bench_sim.py --kilobot --repeat 3  # kilobot world, 500 mm arena (see below)
+    python tests/bench/bench_sim.py --kilobot --against 81d913c --repeat 3   # A/B against a revision
 
 Worlds:
   thesis/fixed     thesis preset, arena ±100 mm whatever M (density grows with M)
@@ -11,6 +13,15 @@ Worlds:
                    arena_half_mm = 100 * sqrt(M / 32) (≈ 3.3 neighbours per robot)
   kilobot/density  kilobot preset (tick-level motion, collisions, lossy radio), arena scaled to
                    the density of M = 32 in ±250 mm: arena_half_mm = 250 * sqrt(M / 32)
+
+Kilobot rows (``--kilobot``): the kilobot preset in its own 500 mm arena at M = 4, 16, 32 and
+B = 16, 50, driven by random actions and by the hand-written searcher after ``--warm`` steps (then
+most robots crowd the beacon: the expensive case). Only ``SwarmEnv.step`` is timed (env time, not
+the policy's), in blocks of 5 steps; a run reports its best block. Each row runs in a fresh
+subprocess; ``--against REV`` also runs it on the ``sim/``
+of git revision REV (``git archive``), alternating the two trees every round, and prints both and
+the speed-up (best and median over rounds). ``--fixed-beacon`` tapes the beacon down in trees that
+have ``beacon_mobility`` (the physics of older trees).
 
 Timing: random actions, after one warm-up step; each row reports the best of several timed
 blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
@@ -21,10 +32,14 @@ Not a test: nothing is asserted; print a table to paste into docs.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 
@@ -85,6 +100,92 @@ def bench(cfg, B: int, M: int, min_time: float, max_steps: int) -> dict:
     return {"wall": best_wall, "cpu": best_cpu, "peak": peak, "msgs": nbrs, "steps": steps_done}
 
 
+#: one kilobot row, run in a subprocess whose PYTHONPATH is the tree under test (public APIs only)
+_KILOBOT_ROW = r"""
+import json, sys, time
+import dataclasses
+import numpy as np
+from sim.config import WorldConfig, preset
+from sim.env import SwarmEnv
+from sim.baselines import make_policy
+M, B, policy, warm, steps = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
+over = {"beacon_mobility": 0.0} if sys.argv[6] == "fixed" and "beacon_mobility" in {
+    f.name for f in dataclasses.fields(WorldConfig)} else {}
+cfg = preset("kilobot", episode_steps=warm + steps + 5, **over)
+env = SwarmEnv(cfg, B, M, seed=0)
+pol = make_policy(policy, cfg)
+obs, _ = env.reset()
+pol.reset(B, M, np.random.default_rng(0))
+for _ in range(warm):
+    obs, *_ = env.step(pol.act(obs))
+blocks = []  # (wall, cpu) per block of 5 steps: the best block is the least disturbed by other jobs
+for _ in range(max(1, steps // 5)):
+    wall = cpu = 0.0
+    for _ in range(5):
+        a = pol.act(obs)
+        w0, c0 = time.perf_counter(), time.process_time()
+        obs, *_ = env.step(a)
+        wall += time.perf_counter() - w0
+        cpu += time.process_time() - c0
+    blocks.append((wall / 5, cpu / 5))
+import sim
+print(json.dumps({"wall": min(b[0] for b in blocks), "cpu": min(b[1] for b in blocks), "sim": sim.__file__}))
+"""
+
+
+def _kilobot_row(tree: str, M: int, B: int, policy: str, warm: int, steps: int, beacon: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=tree)
+    out = subprocess.run([sys.executable, "-P", "-c", _KILOBOT_ROW, str(M), str(B), policy, str(warm), str(steps),
+                          beacon], env=env, cwd=tree, capture_output=True, text=True, check=True)
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert os.path.realpath(res["sim"]).startswith(os.path.realpath(tree)), f"imported {res['sim']}, not {tree}"
+    return res
+
+
+def _archive(rev: str, dest: str) -> None:
+    """Extract sim/ of git revision ``rev`` into ``dest``."""
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+    tar = subprocess.run(["git", "-C", root, "archive", rev, "sim"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", dest], input=tar, check=True)
+
+
+def kilobot_main(args) -> None:
+    here = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
+    trees = {"this tree": here}
+    tmp = None
+    if args.against:
+        tmp = tempfile.mkdtemp(prefix="kf-bench-")
+        _archive(args.against, tmp)
+        trees[args.against] = tmp
+    rows = [(M, B, pol) for pol in ("random", "baseline") for M in (4, 16, 32) for B in (16, 50)]
+    if args.quick:
+        rows = [(M, 16, pol) for pol in ("random", "baseline") for M in (4, 32)]
+    print(f"# kilobot world, 500 mm arena, {'fixed beacon in both trees' if args.fixed_beacon else 'each tree its own preset'}; "
+          f"ms per SwarmEnv.step (wall), best / median of {args.repeat} rounds; searcher rows after {args.warm} warm-up steps")
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}\n")
+    head = "| policy | M | B | " + " | ".join(f"{t} ms/step best (median)" for t in trees)
+    print(head + (" | speed-up best (median) |" if len(trees) == 2 else " |"))
+    print("|---|---:|---:|" + "---:|" * (len(trees) + (len(trees) == 2)))
+    try:
+        for M, B, pol in rows:
+            res: dict[str, list[dict]] = {t: [] for t in trees}
+            for _ in range(args.repeat):  # alternate the trees every round
+                for t, path in trees.items():
+                    res[t].append(_kilobot_row(path, M, B, pol, args.warm if pol == "baseline" else 5, args.steps,
+                                               "fixed" if args.fixed_beacon else "preset"))
+            best = {t: min(r["wall"] for r in v) for t, v in res.items()}
+            med = {t: float(np.median([r["wall"] for r in v])) for t, v in res.items()}
+            cells = " | ".join(f"{best[t] * 1e3:.2f} ({med[t] * 1e3:.2f})" for t in trees)
+            line = f"| {'searcher' if pol == 'baseline' else pol} | {M} | {B} | {cells} |"
+            if len(trees) == 2:
+                a, b = list(trees)
+                line += f" {best[b] / best[a]:.2f}× ({med[b] / med[a]:.2f}×) |"
+            print(line, flush=True)
+    finally:
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes only")
@@ -94,7 +195,16 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1,
                     help="time every row this many times, in rounds over all rows (a noisy host's quiet "
                          "moments show in the best, its typical load in the median)")
+    ap.add_argument("--kilobot", action="store_true", help="kilobot-world rows (500 mm arena, random and searcher)")
+    ap.add_argument("--against", default=None, help="with --kilobot: also time git revision REV's sim/, alternating")
+    ap.add_argument("--fixed-beacon", action="store_true",
+                    help="with --kilobot: beacon_mobility 0 where the tree has it (same physics as older trees)")
+    ap.add_argument("--warm", type=int, default=300, help="with --kilobot: searcher warm-up steps (crowding)")
+    ap.add_argument("--steps", type=int, default=30, help="with --kilobot: timed steps per row and round")
     args = ap.parse_args()
+    if args.kilobot:
+        kilobot_main(args)
+        return
     Ms = [4, 32, 256] if args.quick else [4, 32, 256, 1024]
     Bs = [1, 64] if args.quick else [1, 64, 1024]
     rows = [("thesis/fixed", M, B) for M in Ms for B in Bs]
