@@ -656,7 +656,7 @@ def sim_argv(draw, fx: Fixtures, out: str) -> list[str]:
              "--policy": ["random", "baseline"] + fx.paths(),
              "--out": [out, str(Path(out).parent / "other"), "/dev/null", str(fx.policy)],
              "--episodes": ["1", "0", "-1", "x", "100001"], "--steps": ["2", "0", "x", "1000001"],
-             "--envs": ["1", "0", "x"], "--quiet": []}
+             "--envs": ["1", "0", "x"], "--quiet": [], "--suite": ["robustness", "bogus", ""]}
     argv = list(CHEAP_SIM) + ["--out", out]
     for _ in range(draw(st.integers(0, 4))):
         if draw(st.integers(0, 9)) == 0:
@@ -733,7 +733,10 @@ def check_cli(which: str, argv: list[str], out_dir: Path, fx: Fixtures) -> tuple
         if problems:
             return "partial_output", f"{problems} {detail}"
     if which == "sim":
-        names = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
+        from sim.__main__ import OUTPUT_FILES, SUITE_FILES
+
+        suite = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--suite"]
+        names = SUITE_FILES if suite and suite[-1] == "robustness" else OUTPUT_FILES
         out_rel = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"][-1]
         rel = Path(out_rel).relative_to(out_dir) if Path(out_rel).is_relative_to(out_dir) else None
         if rel is None or any(str(rel / n) not in after for n in names):
