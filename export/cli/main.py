@@ -1,4 +1,4 @@
-"""``python -m export [budget | verify] ...``: dispatch to the sub-commands and keep the error contract.
+"""``python -m export [budget | verify | rehash] ...``: dispatch to the sub-commands and keep the error contract.
 
 Exit status: 0 done / fits; 1 does not fit (or a verification failed); 2 bad input (a missing or
 corrupt policy, an unwritable output path, ...); 130 / 143 interrupted by SIGINT / SIGTERM (with
