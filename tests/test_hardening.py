@@ -385,3 +385,13 @@ def test_control_characters_in_world_name_are_refused_and_escaped(tmp_path, caps
     assert sim_main(["--policy", str(path), "--out", str(tmp_path / "o"), "--episodes", "1", "--steps", "3"]) == 2
     assert "control characters" in assert_one_clean_line(capsys.readouterr().err)
     assert not (tmp_path / "o").exists()
+
+
+# --- found by the fuzzer --------------------------------------------------------------------------
+def test_calibration_longer_than_the_worlds_episode(tmp_path, capsys):
+    """--calib-steps beyond the world's episode length (301 > 300) calibrates on longer episodes; it was a
+    RuntimeError traceback from the simulator."""
+    rc, _, err = export(["--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--calib-steps", "301",
+                         "--no-avr", "--no-progress"], capsys)
+    assert rc == 0, err
+    assert json.loads((tmp_path / "k.c.manifest.json").read_text())["calibration"]["steps"] == 301
