@@ -18,6 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONWARNINGS="ignore")
 EXPORT_FILES = ("kilobot_policy.c", "kilobot_target.c", "kilobot_policy.c.manifest.json")
 EXPORT_ARGS = ["--robots-calib", "2", "--calib-steps", "4", "--no-avr", "--no-progress"]
+#: what CPython prints when a SIGINT lands in its own start-up, before the program's first line
+CPYTHON_START_UP = ("Could not import runpy module", "'import warnings' failed", "'import site' failed")
 
 
 def export_cmd(out_dir: Path, seed: int) -> list[str]:
@@ -122,7 +124,7 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
         problems.append(f"temporaries left after recovery: {left}")
     # the signal came while the interpreter itself starts or finishes, outside any of our code (CPython then
     # dies of SIGINT, or prints "Could not import runpy module" and a traceback of its own start-up)
-    interpreter = rc == -signal.SIGINT or "Could not import runpy module" in message
+    interpreter = rc == -signal.SIGINT or any(m in message for m in CPYTHON_START_UP)
     if sig == signal.SIGINT and not interpreter:
         if rc not in (0, 130):
             problems.append(f"exit status {rc} after SIGINT")
