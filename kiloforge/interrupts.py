@@ -3,7 +3,10 @@
 * :class:`Interrupted` is the ``KeyboardInterrupt`` a SIGTERM raises under :func:`terminate_raises`
   (a SIGINT raises Python's own ``KeyboardInterrupt``); :func:`exit_status` maps either to 130 / 143;
 * :func:`deferred` holds SIGINT and SIGTERM back while a block that must not be cut in two runs
-  (:mod:`kiloforge.io` publishing a set of files), and raises :class:`Interrupted` after it.
+  (:mod:`kiloforge.io` publishing a set of files), and raises :class:`Interrupted` after it;
+* :func:`run_entry_point` is what a ``__main__`` module runs: it loads the command's modules with
+  Ctrl-C ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
+  the command, and ignores signals once it has returned (nothing is left to interrupt).
 
 Handlers can only be installed from the main thread; elsewhere both are no-ops (Python delivers
 ``KeyboardInterrupt`` to the main thread only).
@@ -13,7 +16,7 @@ from __future__ import annotations
 import signal
 import threading
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -71,3 +74,34 @@ def deferred() -> Iterator[None]:
             _restore(s, h)
     if got:
         raise Interrupted(got[0])
+
+
+def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], argv: Sequence[str] | None,
+                    message: str) -> int:
+    """``load()`` (the imports of a command, returning its ``main``), then ``main(argv)``; a SIGINT while
+    loading prints ``message`` and returns 130."""
+    import sys
+
+    got: list[int] = []
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        got.append(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    try:
+        main = load()
+    except BaseException:
+        if not got:
+            raise
+    finally:
+        if previous is not None:
+            _restore(signal.SIGINT, previous)
+    if got:
+        print(message, file=sys.stderr)
+        return 130
+    status = main(argv)
+    if _main_thread():
+        for s in SIGNALS:  # finished: only the exit is left
+            signal.signal(s, signal.SIG_IGN)
+    return status

@@ -22,6 +22,12 @@ EXPORT_ARGS = ["--robots-calib", "2", "--calib-steps", "4", "--no-avr", "--no-pr
 CPYTHON_START_UP = ("Could not import runpy module", "'import warnings' failed", "'import site' failed")
 
 
+def in_interpreter(rc: int, message: str) -> bool:
+    """The SIGINT came while CPython itself started or exited, outside any of the project's code: CPython's own
+    start-up messages, or death by SIGINT without a traceback through the repository."""
+    return any(m in message for m in CPYTHON_START_UP) or (rc == -signal.SIGINT and str(ROOT) not in message)
+
+
 def export_cmd(out_dir: Path, seed: int) -> list[str]:
     return [sys.executable, "-m", "export", "--out", str(out_dir / EXPORT_FILES[0]), "--seed", str(seed)] + EXPORT_ARGS
 
@@ -124,7 +130,7 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
         problems.append(f"temporaries left after recovery: {left}")
     # the signal came while the interpreter itself starts or finishes, outside any of our code (CPython then
     # dies of SIGINT, or prints "Could not import runpy module" and a traceback of its own start-up)
-    interpreter = rc == -signal.SIGINT or any(m in message for m in CPYTHON_START_UP)
+    interpreter = in_interpreter(rc, message)
     if sig == signal.SIGINT and not interpreter:
         if rc not in (0, 130):
             problems.append(f"exit status {rc} after SIGINT")
@@ -136,3 +142,126 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
             problems.append("said it wrote the new set but did not")
     last = "interpreter start-up or exit" if interpreter else message.splitlines()[-1] if message else ""
     return KillResult(signal.Signals(sig).name, moment, rc, before, after, left, last, problems)
+
+
+# --- trainings ---------------------------------------------------------------------------------------
+TRAIN_TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden",
+              "16", "--n-envs", "2", "--warmup-episodes", "2", "--batch-size", "8", "--replay-size", "400",
+              "--updates-per-step", "0.5", "--eval-every", "40", "--eval-episodes", "2", "--checkpoint-every", "4",
+              "--threads", "1", "--quiet"]
+TRAIN_EPISODES = 16  #: after the warm-up episodes
+
+
+def train_cmd(out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "learn", "train", *TRAIN_TINY, "--episodes", str(TRAIN_EPISODES), "--out",
+            str(out), *extra]
+
+
+def _run_files(d: Path) -> list[str]:
+    """Temporaries anywhere in a run directory."""
+    return sorted(str(p.relative_to(d)) for p in d.rglob("*") if p.name.startswith(".") or p.name.endswith(".tmp"))
+
+
+@dataclass
+class TrainKillResult:
+    signal: str
+    moment: str
+    rc: int
+    state: str  #: what the kill left: "checkpoint", "no checkpoint" (config.json only), "nothing"
+    how: str  #: "resumed", "restarted" or "started again"
+    rc_after: int
+    episodes: int
+    problems: list
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def uninterrupted_training(root: Path) -> tuple[float, int]:
+    """How long the short training takes and how many episodes it ends with."""
+    from learn.checkpoint import load_checkpoint
+
+    t0 = time.perf_counter()
+    subprocess.run(train_cmd(root / "uninterrupted"), env=ENV, check=True, capture_output=True, timeout=600)
+    return time.perf_counter() - t0, int(load_checkpoint(root / "uninterrupted")["counters"]["episodes"])
+
+
+def kill_training(d: Path, sig: int, moment: str, rng: np.random.Generator, duration: float,
+                  episodes_done: int) -> TrainKillResult:
+    """Start a short training in ``d``, send ``sig`` at a random moment (``uniform``: anywhere in the run;
+    ``training``: after its first checkpoint), then continue it the documented way (``--resume``, which
+    restarts a run without a checkpoint; the plain command if nothing was written yet); it must finish
+    with the uninterrupted run's ``episodes_done`` episodes, its policies and no temporaries."""
+    import json
+
+    from learn.checkpoint import load_checkpoint
+
+    proc = subprocess.Popen(train_cmd(d), env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    t0 = time.perf_counter()
+    if moment == "training":
+        while proc.poll() is None and not (d / "checkpoint.pt").exists() and time.perf_counter() - t0 < 600:
+            time.sleep(0.01)
+    time.sleep(rng.uniform(0, max(0.05, 1.05 * duration - (time.perf_counter() - t0))))
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    _, err = proc.communicate(timeout=600)
+    rc, message = proc.returncode, err.decode("utf-8", "replace").strip()
+    problems = []
+    interpreter = in_interpreter(rc, message)
+    if sig == signal.SIGINT and not interpreter:
+        if rc not in (0, 130):
+            problems.append(f"exit status {rc} after SIGINT: {message[-300:]}")
+        if "Traceback" in message:
+            problems.append(f"a traceback: {message[-300:]}")
+    state = ("checkpoint" if (d / "checkpoint.pt").exists() else
+             "no checkpoint" if (d / "config.json").exists() else "nothing")
+    if state == "nothing":
+        how, again = "started again", subprocess.run(train_cmd(d), env=ENV, capture_output=True, timeout=600)
+    else:
+        how = "resumed" if state == "checkpoint" else "restarted"
+        again = subprocess.run(train_cmd(d, "--resume"), env=ENV, capture_output=True, timeout=600)
+    episodes = -1
+    if again.returncode != 0:
+        problems.append(f"{how}: exit {again.returncode}: {again.stderr.decode()[-400:]}")
+    else:
+        episodes = int(load_checkpoint(d)["counters"]["episodes"])
+        if episodes != episodes_done:
+            problems.append(f"{how}: {episodes} episodes, not {episodes_done}")
+        if json.loads((d / "summary.json").read_text())["stopped"] != "done":
+            problems.append(f"{how}: summary says {(d / 'summary.json').read_text()[:100]}")
+        for name in ("policy_best.npz", "policy_last.npz"):
+            from kiloforge.policies import load_policy
+
+            load_policy(d / name)  # raises if missing or damaged
+        left = _run_files(d)
+        if left:
+            problems.append(f"temporaries left: {left}")
+    return TrainKillResult(signal.Signals(sig).name, moment, rc, state, how, again.returncode, episodes, problems)
+
+
+def kill_trainings(root: Path, n: int, rng: np.random.Generator) -> int:
+    """``n`` killed trainings (SIGKILL and SIGINT, anywhere or after the first checkpoint); prints the table;
+    returns how many broke a rule."""
+    import collections
+
+    root.mkdir(parents=True, exist_ok=True)
+    duration, episodes = uninterrupted_training(root)
+    print(f"\none short training takes {duration:.1f} s ({episodes} episodes); killing {n}")
+    table: collections.Counter = collections.Counter()
+    bad = 0
+    t0 = time.perf_counter()
+    for i in range(n):
+        sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "training")[(i // 2) % 2]
+        r = kill_training(root / f"t{i}", sig, moment, rng, duration, episodes)
+        table[(r.signal, r.moment, r.rc, r.state, r.how, r.rc_after)] += 1
+        if not r.ok:
+            bad += 1
+            print(f"training {i}: {r}")
+    print(f"\n{n} killed trainings in {time.perf_counter() - t0:.0f} s\n")
+    print("| signal | moment | exit status | left | continued by | its exit status | runs |")
+    print("|---|---|---:|---|---|---:|---:|")
+    for (s, m, rc, st, how, rc2), k in sorted(table.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[1])):
+        print(f"| {s} | {m} | {rc} | {st} | {how} | {rc2} | {k} |")
+    print(f"\ntrainings that broke a rule: {bad}")
+    return bad
