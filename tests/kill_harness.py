@@ -259,9 +259,47 @@ def kill_trainings(root: Path, n: int, rng: np.random.Generator) -> int:
             bad += 1
             print(f"training {i}: {r}")
     print(f"\n{n} killed trainings in {time.perf_counter() - t0:.0f} s\n")
-    print("| signal | moment | exit status | left | continued by | its exit status | runs |")
-    print("|---|---|---:|---|---|---:|---:|")
-    for (s, m, rc, st, how, rc2), k in sorted(table.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[1])):
-        print(f"| {s} | {m} | {rc} | {st} | {how} | {rc2} | {k} |")
+    print_table(("signal", "moment", "exit status", "left", "continued by", "its exit status"), table)
     print(f"\ntrainings that broke a rule: {bad}")
+    return bad
+
+
+def print_table(headers: tuple[str, ...], counts) -> None:
+    """A markdown table of outcome tuples and how many runs had each, grouped by the first two columns."""
+    print("| " + " | ".join(headers) + " | runs |")
+    print("|" + "---|" * (len(headers) + 1))
+    for key, k in sorted(counts.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[1])):
+        print("| " + " | ".join(map(str, key)) + f" | {k} |")
+
+
+def said(r: KillResult) -> str:
+    """What a killed export's last line said, in short."""
+    if r.signal == "SIGKILL" or r.rc == 0:
+        return "-"
+    for key in ("nothing written", "interrupted after writing", "interpreter start-up or exit"):
+        if key in r.message:
+            return key
+    return r.message[:40]
+
+
+def kill_exports(root: Path, n: int, rng: np.random.Generator) -> int:
+    """``n`` killed exports (SIGKILL and SIGINT; anywhere, once staged, once committed); prints the table;
+    returns how many broke a rule."""
+    import collections
+
+    old, new, duration = reference_sets(root)
+    print(f"one export takes {duration:.2f} s; killing {n}")
+    table: collections.Counter = collections.Counter()
+    bad = 0
+    t0 = time.perf_counter()
+    for i in range(n):
+        sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "publish", "commit")[(i // 2) % 3]
+        r = kill_export(root / f"e{i}", old, new, sig, moment, rng, duration)
+        table[(r.signal, r.moment, r.before, r.after, r.rc, said(r))] += 1
+        if not r.ok:
+            bad += 1
+            print(f"export {i}: {r}")
+    print(f"\n{n} killed exports in {time.perf_counter() - t0:.0f} s\n")
+    print_table(("signal", "moment", "set right after the kill", "after recovery", "exit status", "message"), table)
+    print(f"\nexports that broke a rule: {bad}")
     return bad
