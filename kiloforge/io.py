@@ -328,13 +328,17 @@ def _publish(directory: Path, stage: Path, names: Sequence[str]) -> None:
 
 
 @contextmanager
-def staged_files(directory: str | os.PathLike, names: Sequence[str], *, create: bool = False) -> Iterator[Path]:
+def staged_files(directory: str | os.PathLike, names: Sequence[str] | None = None, *, record: str | None = None,
+                 create: bool = False) -> Iterator[Path]:
     """Yield a staging directory beside ``directory``'s files; write every one of ``names`` into it.
     On leaving the block they are published together (the last name is the set's record, see the
     module doc); on an exception nothing changes (and ``directory``, when ``create`` made it, is
-    removed again). Stale temporaries of the same set are recovered first."""
+    removed again). Stale temporaries of the same set are recovered first.
+
+    ``names=None, record=R``: the set is whatever files the block wrote (in name order), ``R`` last
+    (for writers whose file names depend on their options, such as an evaluation's plots)."""
     directory = Path(directory)
-    names = list(names)
+    names = [record] if names is None and record is not None else list(names or ())
     if not names or len(set(names)) != len(names) or not all(_simple_name(n) for n in names):
         raise ValueError(f"staged_files needs distinct plain file names, got {names}")
     created: list[Path] = []
@@ -359,6 +363,12 @@ def staged_files(directory: str | os.PathLike, names: Sequence[str], *, create: 
         try:
             _lock(lock)
             yield stage
+            if record is not None:  # what the block wrote, the record last
+                wrote = sorted(p.name for p in stage.iterdir() if p.is_file() and p.name != "lock"
+                               and not p.name.startswith("."))
+                names = [n for n in wrote if n != record] + [record]
+                if not all(_simple_name(n) for n in names):
+                    raise OutputError(f"cannot write into '{directory}': unexpected file names {names}")
             try:
                 _publish(directory, stage, names)
             except OSError as e:

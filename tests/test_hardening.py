@@ -395,3 +395,21 @@ def test_calibration_longer_than_the_worlds_episode(tmp_path, capsys):
                          "--no-avr", "--no-progress"], capsys)
     assert rc == 0, err
     assert json.loads((tmp_path / "k.c.manifest.json").read_text())["calibration"]["steps"] == 301
+
+
+def test_staged_files_with_names_chosen_while_writing(tmp_path):
+    """staged_files(record=R) publishes whatever the block wrote, R last; nothing on an error."""
+    with kio.staged_files(tmp_path / "ev", record="evaluation.json", create=True) as stage:
+        for n in ("coverage_4.png", "returns_4.png", "evaluation.json"):
+            (stage / n).write_text(n)
+    assert sorted(p.name for p in (tmp_path / "ev").iterdir()) == ["coverage_4.png", "evaluation.json",
+                                                                   "returns_4.png"]
+    with pytest.raises(RuntimeError):
+        with kio.staged_files(tmp_path / "ev2", record="evaluation.json", create=True) as stage:
+            (stage / "coverage_4.png").write_text("x")
+            raise RuntimeError("evaluation failed")
+    assert not (tmp_path / "ev2").exists() and leftovers(tmp_path) == []
+    with pytest.raises(kio.OutputError, match="evaluation.json.*not produced"):
+        with kio.staged_files(tmp_path / "ev3", record="evaluation.json", create=True) as stage:
+            (stage / "a.png").write_text("x")
+    assert not (tmp_path / "ev3").exists()
