@@ -230,10 +230,11 @@ def read_regular_file(path: str | os.PathLike, what: str, max_bytes: int, *, dir
     except OSError as e:
         raise InputError(f"{name} cannot be read ({printable(e.strerror or e)})") from None
     try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the two looks
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):  # replaced between the two looks
             raise InputError(f"{name} is not a regular file")
         with os.fdopen(fd, "rb", closefd=False) as f:
-            data = f.read(max_bytes + 1)
+            data = f.read(min(st.st_size, max_bytes) + 1)  # one byte more shows a file that grew past the limit
     except OSError as e:
         raise InputError(f"{name} cannot be read ({printable(e.strerror or e)})") from None
     finally:
