@@ -14,6 +14,8 @@ Pipeline::
 """
 from __future__ import annotations
 
+import dataclasses
+
 from typing import Any, Sequence
 
 import numpy as np
@@ -40,6 +42,7 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
     world = policy.world
     T = int(steps if steps is not None else world.episode_steps)
     assert T >= 1, f"steps must be >= 1, got {T}"
+    run_world = dataclasses.replace(world, episode_steps=T)  # episodes of T steps, longer ones too
     kind = kind_of(policy)
     seeds = np.random.SeedSequence(seed).spawn(len(counts) * episodes)
     bar = None
@@ -50,9 +53,9 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
     try:
         for ci, m in enumerate(counts):
             for ep in range(episodes):
-                env = SwarmEnv(world, n_envs, m, seed=int(seeds[ci * episodes + ep].generate_state(1)[0]))
+                env = SwarmEnv(run_world, n_envs, m, seed=int(seeds[ci * episodes + ep].generate_state(1)[0]))
                 obs, _ = env.reset()  # (B, M, obs_dim)
-                actor = kind.swarm_policy(policy, world)
+                actor = kind.swarm_policy(policy, run_world)
                 actor.reset(n_envs, m)
                 prev = np.zeros((n_envs, m, ACTION_DIM), np.float32)
                 xs = np.empty((n_envs * m, T, world.tuple_dim), np.float32)

@@ -10,10 +10,12 @@ One ``.npz`` in :func:`numpy.savez`'s layout, byte-for-byte reproducible (:func:
         the kind's own fields (layer sizes, hidden size, gate order, ...),
         policy_hash (sha256 of :func:`canonical_bytes`: the arrays and meta without this field)
 
-This module knows no actor kind: :func:`read_artifact` checks what every file has (a zip of
-``.npy`` members read with ``allow_pickle=False``, the meta, format, version, action mapping and
-world) and :mod:`kiloforge.policies` looks the kind up and lets it validate its arrays. Every
-problem raises :class:`~kiloforge.errors.PolicyError` with one line naming the file.
+This module knows no actor kind: :func:`read_artifact` checks what every file has (a regular file
+within the size limit, a zip of plain numeric ``.npy`` members whose sizes are checked before
+anything is decompressed, never unpickled; strict JSON meta with format, version, action mapping,
+world and a mandatory ``policy_hash``) and :mod:`kiloforge.policies` looks the kind up, lets it
+validate its arrays and checks the hash. Every problem raises
+:class:`~kiloforge.errors.PolicyError` with one line naming the file.
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import zipfile
 from pathlib import Path
 from typing import Any, Mapping
@@ -29,12 +32,15 @@ import numpy as np
 
 from sim.config import WorldConfig
 
-from .errors import PolicyError
+from .errors import InputError, PolicyError
+from .validate import MAX_POLICY_BYTES, parse_json, quote, read_npz, read_regular_file, show
 
 FORMAT = "kiloforge-policy"
 FORMAT_VERSION = 1
 ACTION_MAPPING = "clip01"  #: actions are the output layer's values clipped to [0, 1]
 META = "meta"  #: the member holding the JSON metadata
+POLICY_HINT = "policy_best.npz"  #: suggested when a directory (a training run) is given as a policy
+_HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
 def canonical_json(obj: Any) -> bytes:
@@ -94,52 +100,57 @@ def artifact_bytes(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) ->
     return npz_bytes(members)
 
 
-def read_artifact(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """(arrays, meta) of a policy file after the checks every kind shares; raises PolicyError."""
+def read_artifact(path: str | os.PathLike, *, require_hash: bool = True) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """(arrays, meta) of a policy file after the checks every kind shares; raises PolicyError.
+
+    The file must be a regular file of at most :data:`~kiloforge.validate.MAX_POLICY_BYTES`; the
+    archive's limits are checked before anything is decompressed (:func:`kiloforge.validate.read_npz`),
+    the meta is strict JSON (:func:`kiloforge.validate.parse_json`) and must carry a ``policy_hash``
+    (``require_hash=False`` only for re-hashing a file one trusts).
+    """
     path = Path(path)
     bad = file_error(path)
-    if not path.exists():
-        raise bad("does not exist")
-    if path.is_dir():
-        raise bad("is a directory, not a .npz file")
     try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise bad(f"cannot be read ({e.strerror or e})") from None
+        raw = read_regular_file(path, "policy file", MAX_POLICY_BYTES, dir_hint=POLICY_HINT)
+    except InputError as e:
+        raise PolicyError(str(e)) from None
     if not raw:
         raise bad("is empty")
-    if not zipfile.is_zipfile(io.BytesIO(raw)):
-        raise bad("is not a .npz (zip) archive; truncated or not a policy")
-    try:
-        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
-            names = set(z.files)
-            if META not in names:
-                raise bad("has no 'meta' entry; not a kiloforge policy")
-            arrays = {n: z[n] for n in names}
-    except PolicyError:
-        raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as e:
-        raise bad(f"is corrupt or truncated ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    except Exception as e:  # zlib.error and friends from a damaged member
-        raise bad(f"is corrupt or truncated ({type(e).__name__})") from None
-
+    arrays = read_npz(raw, bad)
+    if META not in arrays:
+        raise bad("has no 'meta' entry; not a kiloforge policy")
     meta_arr = arrays.pop(META)
     if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
         raise bad(f"'meta' must be a 1-D uint8 array of UTF-8 JSON, got {meta_arr.dtype} {meta_arr.shape}")
     try:
-        meta = json.loads(meta_arr.tobytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise bad(f"'meta' is not valid UTF-8 JSON ({e})") from None
+        meta = parse_json(meta_arr.tobytes(), "'meta'")
+    except InputError as e:
+        raise bad(str(e)) from None
     if not isinstance(meta, dict):
-        raise bad("'meta' must be a JSON object")
-    if meta.get("format") != FORMAT:
-        raise bad(f"format is {meta.get('format')!r}, expected '{FORMAT}'")
+        raise bad(f"'meta' must be a JSON object, got {show(meta)}")
+    if meta.get("format") != FORMAT or not isinstance(meta.get("format"), str):
+        raise bad(f"format is {show(meta.get('format'))}, expected '{FORMAT}'; not a kiloforge policy")
     version = meta.get("format_version")
-    if version != FORMAT_VERSION:
-        raise bad(f"format version {version!r} is not supported (this kiloforge reads version {FORMAT_VERSION})")
-    if meta.get("action_mapping", ACTION_MAPPING) != ACTION_MAPPING:
-        raise bad(f"action mapping {meta.get('action_mapping')!r} is not supported (only '{ACTION_MAPPING}')")
+    if not (isinstance(version, int) and not isinstance(version, bool) and version == FORMAT_VERSION):
+        raise bad(f"format version {show(version)} is not supported (this kiloforge reads version {FORMAT_VERSION})")
+    mapping = meta.get("action_mapping", ACTION_MAPPING)
+    if not (isinstance(mapping, str) and mapping == ACTION_MAPPING):
+        raise bad(f"action mapping {show(mapping)} is not supported (only '{ACTION_MAPPING}')")
+    if require_hash or meta.get("policy_hash") is not None:
+        check_stored_hash(meta, path)
     return arrays, meta
+
+
+def check_stored_hash(meta: Mapping[str, Any], path: Path) -> str:
+    """The meta's ``policy_hash``: mandatory, 64 lowercase hex digits (the check against the contents
+    is :func:`kiloforge.policies.load_policy`'s)."""
+    stored = meta.get("policy_hash")
+    if stored is None:
+        raise file_error(path)("has no policy_hash, so nothing proves its contents are what was trained; if you "
+                               f"trust this file, re-hash it: python -m export rehash {quote(path)} (docs/design.md)")
+    if not (isinstance(stored, str) and _HEX64.fullmatch(stored)):
+        raise file_error(path)(f"policy_hash must be 64 hex digits (sha256), got {show(stored)}")
+    return stored
 
 
 def world_of(meta: Mapping[str, Any]) -> WorldConfig:
@@ -155,5 +166,5 @@ def world_of(meta: Mapping[str, Any]) -> WorldConfig:
 def file_error(path: Path):
     """A factory of PolicyErrors that name ``path``: ``bad("is empty")``."""
     def bad(msg: str) -> PolicyError:
-        return PolicyError(f"policy file '{path}': {msg}")
+        return PolicyError(f"policy file {quote(path)}: {msg}")
     return bad

@@ -2,18 +2,40 @@
 
 :class:`KiloforgeError` is the base of every error raised for bad input (a corrupt policy file, a
 policy the int8 format cannot hold, an output path that cannot be written); the exporter's own
-errors (:mod:`export.errors`) derive from it too.
+errors (:mod:`export.errors`) derive from it too. A message may quote text read from a file (a
+name, a field, a path); :func:`printable` escapes what a terminal would interpret, and every
+error message goes through it.
 """
 from __future__ import annotations
 
 
+def printable(text: object, limit: int | None = None) -> str:
+    """``text`` with every non-printable character (control, format, separator, unassigned) escaped
+    as ``\\xNN`` / ``\\uNNNN``, so that text from a file cannot move the cursor, recolour or
+    rewrite a terminal; cut to ``limit`` characters (with an ellipsis) when given.
+
+    >>> printable("ok \\x1b[2Jname\\u202e")
+    'ok \\\\x1b[2Jname\\\\u202e'
+    """
+    s = str(text)
+    if not s.isprintable():
+        s = "".join(c if c.isprintable() else
+                    f"\\x{ord(c):02x}" if ord(c) < 0x100 else
+                    f"\\u{ord(c):04x}" if ord(c) < 0x10000 else f"\\U{ord(c):08x}" for c in s)
+    if limit is not None and len(s) > limit:
+        s = s[:max(0, limit - 3)] + "..."
+    return s
+
+
 def one_line(msg: object) -> str:
-    """Collapse a message onto one line (newlines become '; ').
+    """Collapse a message onto one line (newlines become '; '), every other control character escaped.
 
     >>> one_line("a\\n  b\\n")
     'a; b'
+    >>> one_line("bell\\a")
+    'bell\\\\x07'
     """
-    parts = [p.strip() for p in str(msg).splitlines()]
+    parts = [printable(p.strip()) for p in str(msg).splitlines()]
     return "; ".join(p for p in parts if p)
 
 
@@ -24,7 +46,11 @@ class KiloforgeError(Exception):
         super().__init__(one_line(msg))
 
 
-class PolicyError(KiloforgeError):
+class InputError(KiloforgeError, ValueError):
+    """An external input (a file, a JSON field, a command-line number) is malformed or out of range."""
+
+
+class PolicyError(InputError):
     """A policy artifact is missing, unreadable, corrupt or inconsistent with its world."""
 
 

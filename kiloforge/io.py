@@ -1,27 +1,74 @@
-"""Atomic file output for the whole project: temp file in the target directory, fsync, ``os.replace``.
+"""File output for the whole project: one file atomically, or a set of files all or nothing.
 
-* :func:`write_atomic` writes one file (bytes, or str encoded as UTF-8);
-* :func:`write_files_atomic` writes several files all-or-nothing: every temp file is written first;
-  only when all succeeded are they renamed into place, and if a rename fails the files already
-  renamed are put back as they were (restored from a backup, or removed when they did not exist);
-* :func:`atomic_path` is for writers that want a file name (matplotlib, Pillow, ``torch.save``, a
-  compiler's ``-o``): it yields a temp sibling and moves it onto the target only on success.
+* :func:`write_atomic` writes one file (bytes, or str encoded as UTF-8): a temp file beside it,
+  fsync, ``os.replace``; :func:`atomic_path` is the same for writers that want a file name
+  (matplotlib, Pillow, ``torch.save``, a compiler's ``-o``);
+* :func:`staged_files` is for a command that writes several files into one directory (the
+  exporter's C files and manifest, the simulator's plots and metrics, an evaluation): the files
+  are written into a staging directory beside them and published together;
+  :func:`write_files_atomic` does it for contents already in memory.
 
-Failures raise :class:`kiloforge.errors.OutputError` with a one-line message.
+Publishing a set ``[f_1, ..., f_n]`` (``f_n``, the *record*, is the file that describes the set:
+the export manifest with the hashes of the files, ``metrics.json``, ...):
+
+1. every file is written and fsynced in the staging directory ``.<f_n>.kf<pid>-<token>.stage``;
+2. a journal (names, sizes, sha256) is written and renamed into the staging directory: from
+   here on the new set is committed, and SIGINT / SIGTERM are held back until step 5;
+3. the old record is removed, 4. ``f_1 .. f_{n-1}`` are renamed into place, then ``f_n``;
+5. the staging directory is removed.
+
+A reader that takes the record's presence as "the set is complete" (and can check the hashes it
+lists) therefore never sees a mixed set: the record is absent exactly while files change. A
+process killed (SIGKILL, power loss) before step 2 leaves the old set untouched; after step 2 the
+next :func:`recover` (every publish of the same record runs it first) completes steps 3 to 5.
+Temporaries of dead writers (their pid no longer runs, or their lock is free for a minute) are
+removed the same way. Failures raise :class:`kiloforge.errors.OutputError` with one line.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
-import tempfile
+import re
+import secrets
+import shutil
+import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import IO, Iterator, Mapping, Sequence
 
+from . import interrupts
 from .errors import OutputError
+from .validate import printable
+
+try:  # POSIX: a writer holds an advisory lock on its temporaries while it runs
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None  # type: ignore[assignment]
+
+JOURNAL = "journal.json"
+JOURNAL_FORMAT = "kiloforge-publish"
+STALE_LOCK_S = 60.0  #: a temporary whose lock is free is stale after this long (covers a reused pid)
+_TAG = re.compile(r"\.kf(\d+)-[0-9a-f]{8}\.(tmp|stage)")
+_PUBLISHED: list[Path] = []  #: every set published by this process, in order (see :func:`published_since`)
+
+
+def published_since(mark: int) -> list[Path]:
+    """The files of the sets published completely since ``mark`` (a length of :func:`published_count`):
+    what an interrupted command really wrote."""
+    return list(_PUBLISHED[mark:])
+
+
+def published_count() -> int:
+    return len(_PUBLISHED)
+
+
+def _dir_of(path: Path) -> Path:
+    return path.parent if str(path.parent) else Path(".")
 
 
 def _check_dir(path: Path) -> None:
-    d = path.parent if str(path.parent) else Path(".")
+    d = _dir_of(path)
     if not d.exists():
         raise OutputError(f"cannot write '{path}': directory '{d}' does not exist")
     if not d.is_dir():
@@ -32,7 +79,7 @@ def _check_dir(path: Path) -> None:
         raise OutputError(f"cannot write '{path}': directory '{d}' is not writable")
 
 
-def check_writable(paths: list[Path]) -> None:
+def check_writable(paths: Sequence[str | os.PathLike]) -> None:
     """Raise :class:`OutputError` unless every path's directory exists and is writable."""
     for p in paths:
         _check_dir(Path(p))
@@ -46,75 +93,144 @@ def new_file_mode(executable: bool = False) -> int:
     return (0o777 if executable else 0o666) & ~mask
 
 
-def _temp_sibling(path: Path) -> Path:
-    """A new empty file beside ``path`` (same directory, so that ``os.replace`` is atomic)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
-                               dir=path.parent if str(path.parent) else ".")
-    os.close(fd)
-    return Path(tmp)
+# --- temporaries and their owners ----------------------------------------------------------------
+def _temp_name(target: str, kind: str, suffix: str = "") -> str:
+    return f".{target}.kf{os.getpid()}-{secrets.token_hex(4)}.{kind}{suffix}"
 
 
-def _fsync_file(path: Path) -> None:
-    with open(path, "rb") as f:
-        os.fsync(f.fileno())
+def _lock(f: IO[bytes] | int) -> None:
+    if fcntl is not None:
+        fcntl.flock(f if isinstance(f, int) else f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
 
 
-def _write_temp(path: Path, data: bytes) -> Path:
-    tmp = _temp_sibling(path)
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
     try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, new_file_mode())
-    except BaseException:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError, AttributeError):
+        return True
+    return True
+
+
+def _lock_free(path: Path) -> bool:
+    """Nobody holds the advisory lock on ``path`` (a temp file, or a staging directory's lock file)."""
+    if fcntl is None:
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def _stale(entry: Path, pid: int, lock_file: Path) -> bool:
+    if not _pid_alive(pid):
+        return True
+    try:
+        old = time.time() - entry.lstat().st_mtime > STALE_LOCK_S
+    except OSError:
+        return False
+    return old and pid != os.getpid() and _lock_free(lock_file)
+
+
+def _fsync_dir(d: Path) -> None:
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def recover(directory: str | os.PathLike, names: Sequence[str] | None = None) -> list[Path]:
+    """Finish or remove what dead writers left in ``directory`` (for the targets ``names``, or all):
+    a committed staging directory is published (steps 3 to 5), an uncommitted one and temp files
+    are removed. Returns the entries handled. Never touches the temporaries of a live writer."""
+    d = Path(directory)
+    try:
+        entries = sorted(d.iterdir())
+    except OSError:
+        return []
+    wanted = None if names is None else {f".{n}" for n in names}
+    done = []
+    for e in entries:
+        m = _TAG.search(e.name)
+        if not m or not e.name.startswith("."):
+            continue
+        if wanted is not None and e.name[:m.start()] not in wanted:
+            continue
+        pid, kind = int(m.group(1)), m.group(2)
+        if kind == "stage" and e.is_dir() and not e.is_symlink():
+            if _stale(e, pid, e / "lock"):
+                journal = _read_journal(e)
+                if journal is not None:
+                    try:
+                        _apply(d, e, journal)
+                    except OSError:
+                        pass
+                shutil.rmtree(e, ignore_errors=True)
+                done.append(e)
+        elif kind == "tmp" and e.is_file() and not e.is_symlink():
+            if _stale(e, pid, e):
+                e.unlink(missing_ok=True)
+                done.append(e)
+    return done
+
+
+# --- one file ------------------------------------------------------------------------------------
+@contextmanager
+def _temp_beside(path: Path, suffix: str) -> Iterator[tuple[Path, int]]:
+    """A new locked temp file beside ``path``: (its path, an open fd holding the lock)."""
+    d = _dir_of(path)
+    for _ in range(16):
+        tmp = d / _temp_name(path.name, "tmp", suffix)
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+    else:  # pragma: no cover - 16 collisions of a random 32-bit token
+        raise OutputError(f"cannot write '{path}': no free temporary name")
+    try:
+        _lock(fd)
+        yield tmp, fd
+    finally:
+        os.close(fd)
         tmp.unlink(missing_ok=True)
-        raise
-    return tmp
 
 
-def write_files_atomic(files: Mapping[str | os.PathLike, bytes | str]) -> list[Path]:
-    """Write every ``path -> content`` (str is UTF-8 encoded) all-or-nothing; returns the paths."""
-    items = [(Path(p), c.encode("utf-8") if isinstance(c, str) else bytes(c)) for p, c in files.items()]
-    check_writable([p for p, _ in items])
-    temps: list[tuple[Path, Path]] = []
-    try:
-        for p, data in items:
-            temps.append((_write_temp(p, data), p))
-    except OSError as e:
-        for t, _ in temps:
-            t.unlink(missing_ok=True)
-        raise OutputError(f"cannot write '{items[len(temps)][0]}': {e.strerror or e}") from None
-    done: list[tuple[Path, Path | None]] = []  # (target, backup or None)
-    try:
-        for t, p in temps:
-            backup = None
-            if p.exists():
-                backup = p.with_name(f".{p.name}.bak")
-                os.replace(p, backup)
-            done.append((p, backup))
-            os.replace(t, p)
-    except OSError as e:
-        for p, backup in reversed(done):
-            try:
-                if backup is not None:
-                    os.replace(backup, p)
-                else:
-                    p.unlink(missing_ok=True)
-            except OSError:
-                pass
-        for t, _ in temps:
-            t.unlink(missing_ok=True)
-        raise OutputError(f"cannot write '{p}': {e.strerror or e}") from None
-    for _, backup in done:
-        if backup is not None:
-            backup.unlink(missing_ok=True)
-    return [p for p, _ in items]
-
-
-def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:
+def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = False) -> Path:
     """Write one file atomically (str is UTF-8 encoded); returns its path."""
-    return write_files_atomic({path: data})[0]
+    path = Path(path)
+    raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    _check_dir(path)
+    recover(_dir_of(path), [path.name])
+    try:
+        with _temp_beside(path, "") as (tmp, fd):
+            view = memoryview(raw)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+            os.chmod(tmp, new_file_mode(executable))
+            os.replace(tmp, path)
+    except OSError as e:
+        raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+    return path
 
 
 @contextmanager
@@ -124,11 +240,167 @@ def atomic_path(path: str | os.PathLike, executable: bool = False) -> Iterator[P
     (``path`` is left as it was)."""
     path = Path(path)
     _check_dir(path)
-    tmp = _temp_sibling(path)
-    try:
+    recover(_dir_of(path), [path.name])
+    with _temp_beside(path, path.suffix) as (tmp, _):
         yield tmp
-        _fsync_file(tmp)
-        os.chmod(tmp, new_file_mode(executable))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+        try:
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.chmod(tmp, new_file_mode(executable))
+            os.replace(tmp, path)
+        except OSError as e:
+            raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+
+
+# --- a set of files ------------------------------------------------------------------------------
+def _sha256_file(path: Path) -> tuple[str, int]:
+    h = hashlib.sha256()
+    n = 0
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+            n += len(chunk)
+        os.fsync(f.fileno())
+    return h.hexdigest(), n
+
+
+def _read_journal(stage: Path) -> list[str] | None:
+    """The file names of a staging directory's journal, in publish order (None: not committed)."""
+    try:
+        doc = json.loads((stage / JOURNAL).read_text(encoding="utf-8"))
+        names = [f["name"] for f in doc["files"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if doc.get("format") != JOURNAL_FORMAT or not names or not all(_simple_name(n) for n in names):
+        return None
+    return names
+
+
+def _simple_name(name: object) -> bool:
+    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name \
+        and "\0" not in name and name != JOURNAL
+
+
+def _apply(directory: Path, stage: Path, names: Sequence[str]) -> None:
+    """Steps 3 and 4 (idempotent: a recovery may repeat them): remove the old record, move the
+    files, the record last."""
+    record = names[-1]
+    if (stage / record).exists():
+        (directory / record).unlink(missing_ok=True)
+        _fsync_dir(directory)
+    for n in names[:-1]:
+        if (stage / n).exists():
+            os.replace(stage / n, directory / n)
+    if (stage / record).exists():
+        os.replace(stage / record, directory / record)
+    _fsync_dir(directory)
+
+
+def _publish(directory: Path, stage: Path, names: Sequence[str]) -> None:
+    files = []
+    for n in names:
+        if not (stage / n).is_file():
+            raise OutputError(f"cannot write '{directory / n}': it was not produced")
+        digest, size = _sha256_file(stage / n)
+        files.append({"name": n, "sha256": digest, "bytes": size})
+    tmp = stage / "journal.tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump({"format": JOURNAL_FORMAT, "version": 1, "files": files}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    with interrupts.deferred():
+        os.replace(tmp, stage / JOURNAL)  # the commit point
+        _fsync_dir(stage)
+        try:
+            try:
+                _apply(directory, stage, names)
+            except OSError:
+                _apply(directory, stage, names)  # once more (idempotent)
+        except OSError as e:
+            # abandon the set rather than let a later recovery publish it over newer files: the
+            # record is gone, so readers see an incomplete set, which is what it is
+            shutil.rmtree(stage, ignore_errors=True)
+            raise OutputError(f"cannot write '{directory / names[-1]}' and the files beside it: "
+                              f"{printable(e.strerror or e)}; the set in '{directory}' is incomplete "
+                              f"(no {names[-1]}): write it again") from None
+        _PUBLISHED.extend(directory / n for n in names)
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+@contextmanager
+def staged_files(directory: str | os.PathLike, names: Sequence[str] | None = None, *, record: str | None = None,
+                 create: bool = False) -> Iterator[Path]:
+    """Yield a staging directory beside ``directory``'s files; write every one of ``names`` into it.
+    On leaving the block they are published together (the last name is the set's record, see the
+    module doc); on an exception nothing changes (and ``directory``, when ``create`` made it, is
+    removed again). Stale temporaries of the same set are recovered first.
+
+    ``names=None, record=R``: the set is whatever files the block wrote (in name order), ``R`` last
+    (for writers whose file names depend on their options, such as an evaluation's plots)."""
+    directory = Path(directory)
+    names = [record] if names is None and record is not None else list(names or ())
+    if not names or len(set(names)) != len(names) or not all(_simple_name(n) for n in names):
+        raise ValueError(f"staged_files needs distinct plain file names, got {names}")
+    created: list[Path] = []
+    if create:
+        p = directory
+        while not p.exists() and p != p.parent:
+            created.append(p)
+            p = p.parent
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputError(f"cannot create '{directory}': {printable(e.strerror or e)}") from None
+    try:
+        check_writable([directory / n for n in names])
+        recover(directory, names)
+        stage = directory / _temp_name(names[-1], "stage")
+        try:
+            stage.mkdir(mode=0o700)
+            lock = os.open(stage / "lock", os.O_RDWR | os.O_CREAT, 0o600)
+        except OSError as e:
+            raise OutputError(f"cannot write into '{directory}': {printable(e.strerror or e)}") from None
+        try:
+            _lock(lock)
+            yield stage
+            if record is not None:  # what the block wrote, the record last
+                wrote = sorted(p.name for p in stage.iterdir() if p.is_file() and p.name != "lock"
+                               and not p.name.startswith("."))
+                names = [n for n in wrote if n != record] + [record]
+                if not all(_simple_name(n) for n in names):
+                    raise OutputError(f"cannot write into '{directory}': unexpected file names {names}")
+            try:
+                _publish(directory, stage, names)
+            except OSError as e:
+                raise OutputError(f"cannot write into '{directory}': {printable(e.strerror or e)}") from None
+        finally:
+            os.close(lock)
+            if stage.exists() and _read_journal(stage) is None:
+                shutil.rmtree(stage, ignore_errors=True)
+    except BaseException:
+        for p in created:  # innermost first; only if still empty
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def write_files_atomic(files: Mapping[str | os.PathLike, bytes | str], *, create: bool = False) -> list[Path]:
+    """Write every ``path -> content`` (str is UTF-8 encoded) as one set, all or nothing
+    (:func:`staged_files`); the paths share one directory and the last one is the set's record."""
+    items = [(Path(p), c.encode("utf-8") if isinstance(c, str) else bytes(c)) for p, c in files.items()]
+    if not items:
+        return []
+    dirs = {_dir_of(p).resolve() if _dir_of(p).exists() else _dir_of(p) for p, _ in items}
+    if len(dirs) != 1:
+        raise ValueError(f"write_files_atomic writes into one directory, got {sorted(map(str, dirs))}")
+    directory = _dir_of(items[0][0])
+    with staged_files(directory, [p.name for p, _ in items], create=create) as stage:
+        for p, data in items:
+            try:
+                with open(stage / p.name, "wb") as f:
+                    f.write(data)
+            except OSError as e:
+                raise OutputError(f"cannot write '{p}': {printable(e.strerror or e)}") from None
+    return [p for p, _ in items]

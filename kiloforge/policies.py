@@ -2,8 +2,11 @@
 
 ``load_policy`` reads a file with the checks every artifact shares, looks its kind up in the
 registry and lets the kind validate its arrays (shapes against the world's tuple width, finite
-values, ...), then checks the stored hash; every problem is a one-line
-:class:`~kiloforge.errors.PolicyError` naming the file.
+values, ...), refuses meta that differs from what the kind writes (a field added, left out or
+written differently), then checks the stored hash, which is
+mandatory; every problem is a one-line :class:`~kiloforge.errors.PolicyError` naming the file.
+``rehash_policy`` re-writes a file one trusts with the hash of its contents
+(``python -m export rehash FILE``).
 """
 from __future__ import annotations
 
@@ -15,26 +18,62 @@ from sim.config import WorldConfig
 
 from .actors.base import FloatPolicy
 from .actors.registry import kind_named, kind_of
-from .artifact import file_error, read_artifact, world_of
+from .artifact import canonical_json, file_error, read_artifact, world_of
 from .errors import OutputError, PolicyError
 from .io import write_atomic
+from .validate import quote, show
 
 
-def load_policy(path: str | os.PathLike) -> FloatPolicy:
-    """Read and validate a policy artifact of any registered kind; raises :class:`PolicyError`."""
-    path = Path(path)
+def _policy_of(path: Path, arrays: dict, meta: dict) -> FloatPolicy:
     bad = file_error(path)
-    arrays, meta = read_artifact(path)
     try:
         kind = kind_named(meta.get("kind"))
         policy = kind.from_arrays(arrays, meta, world_of(meta), meta.get("provenance", {}))
     except PolicyError as e:
         raise bad(str(e).removeprefix("policy: ")) from None
-    stored = meta.get("policy_hash")
-    if stored is not None and stored != policy.hash:
-        raise bad(f"policy_hash {str(stored)[:12]}... does not match the contents ({policy.hash[:12]}...); "
-                  "the file was modified")
+    _same_meta(bad, {k: v for k, v in meta.items() if k != "policy_hash"}, policy.meta(), policy.kind)
     return policy
+
+
+def _same_meta(bad, given: dict, derived: dict, kind: str, where: str = "meta") -> None:
+    """The file's meta must be exactly what its policy writes: no field missing, added or written differently
+    (a field left out would otherwise silently take a default)."""
+    if canonical_json(given) == canonical_json(derived):
+        return
+    unknown = sorted(set(given) - set(derived))
+    if unknown:
+        raise bad(f"{where} has field(s) a '{kind}' policy does not have: {', '.join(map(quote, unknown[:8]))}")
+    missing = sorted(set(derived) - set(given))
+    if missing:
+        raise bad(f"{where} lacks {', '.join(map(quote, missing[:8]))}")
+    for k in sorted(given):
+        if isinstance(given[k], dict) and isinstance(derived[k], dict):
+            _same_meta(bad, given[k], derived[k], kind, f"{where} {k}")
+        elif canonical_json(given[k]) != canonical_json(derived[k]):
+            raise bad(f"{where} field {quote(k)} is {show(given[k])}, which reads back as {show(derived[k])}")
+
+
+def load_policy(path: str | os.PathLike) -> FloatPolicy:
+    """Read and validate a policy artifact of any registered kind; raises :class:`PolicyError`."""
+    path = Path(path)
+    arrays, meta = read_artifact(path)
+    policy = _policy_of(path, arrays, meta)
+    stored = meta["policy_hash"]
+    if stored != policy.hash:
+        raise file_error(path)(f"policy_hash {stored[:12]}... does not match the contents ({policy.hash[:12]}...); "
+                               "the file was modified or damaged")
+    return policy
+
+
+def rehash_policy(path: str | os.PathLike, out: str | os.PathLike | None = None) -> tuple[FloatPolicy, str | None]:
+    """Re-write a policy file one trusts with the hash of its contents (atomically, to ``out`` or in
+    place); returns the policy and the hash the file had (None when it had none). Every other check
+    of :func:`load_policy` still applies."""
+    path = Path(path)
+    arrays, meta = read_artifact(path, require_hash=False)
+    policy = _policy_of(path, arrays, meta)
+    save_policy(policy, path if out is None else out)
+    return policy, meta.get("policy_hash")
 
 
 def save_policy(policy: FloatPolicy, path: str | os.PathLike) -> Path:

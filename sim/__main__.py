@@ -18,22 +18,24 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
+import os
 import sys
-import tempfile
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
-from kiloforge.errors import PolicyError
-from kiloforge.io import write_files_atomic
+from kiloforge import io
+from kiloforge.errors import KiloforgeError, PolicyError, printable
+from kiloforge.interrupts import exit_status, terminate_raises
+from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
+from kiloforge.validate import int_arg, seed_arg
 
-from .config import PRESETS, preset
+from .config import MAX_EPISODE_STEPS, PRESETS, preset
 
 EXIT_USAGE = 2
+MAX_ROBOTS = 1024
+MAX_EPISODES = 100_000
 OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
-SUITE_FILES = ("robustness.json", "robustness.md")
+SUITE_FILES = ("robustness.md", "robustness.json")  #: the record (kiloforge.io) last, as in OUTPUT_FILES
 SUITES = ("robustness",)
 
 
@@ -51,15 +53,17 @@ def build_parser() -> argparse.ArgumentParser:
                 "trajectory plot, coverage plot and an animated GIF.")
     p.add_argument("--preset", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: thesis, "
                    "or the artifact's world)")
-    p.add_argument("--robots", type=int, nargs="+", default=[4],
+    p.add_argument("--robots", type=int_arg(1, MAX_ROBOTS), nargs="+", default=[4],
                    help="searching robots per env (default 4); with --suite, one or more counts")
-    p.add_argument("--seed", type=int, default=0, help="root seed; same seed, same result (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
     p.add_argument("--policy", default="baseline",
                    help="'random', 'baseline' (hand-written searcher) or a policy artifact file (.npz)")
     p.add_argument("--out", required=True, help="output folder (created if needed)")
-    p.add_argument("--episodes", type=int, default=20, help="episodes to run (default 20)")
-    p.add_argument("--steps", type=int, default=None, help="steps per episode (default: the world's)")
-    p.add_argument("--envs", type=int, default=None, help="envs simulated at once (default: min(episodes, 32))")
+    p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
+    p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
+                   help="steps per episode (default: the world's)")
+    p.add_argument("--envs", type=int_arg(1, MAX_EPISODES), default=None,
+                   help="envs simulated at once (default: min(episodes, 32))")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--suite", choices=SUITES, default=None,
                    help="robustness: final coverage in every world variant (sim.variants) instead of one run")
@@ -71,17 +75,6 @@ def _check_args(a: argparse.Namespace) -> None:
         raise UserError(f"unknown preset '{a.preset}'; choose one of: {', '.join(sorted(PRESETS))}")
     if a.suite is None and len(a.robots) != 1:
         raise UserError(f"--robots takes one count without --suite, got {len(a.robots)}")
-    for m in a.robots:
-        if not 1 <= m <= 1024:
-            raise UserError(f"--robots must be between 1 and 1024, got {m}")
-    if a.seed < 0:
-        raise UserError(f"--seed must be >= 0, got {a.seed}")
-    if a.episodes < 1:
-        raise UserError(f"--episodes must be >= 1, got {a.episodes}")
-    if a.steps is not None and a.steps < 1:
-        raise UserError(f"--steps must be >= 1, got {a.steps}")
-    if a.envs is not None and a.envs < 1:
-        raise UserError(f"--envs must be >= 1, got {a.envs}")
 
 
 def _load_policy(a: argparse.Namespace):
@@ -97,7 +90,7 @@ def _load_policy(a: argparse.Namespace):
             desc["params"] = dataclasses.asdict(make_policy(a.policy, world).p)
         return world, lambda w: make_policy(a.policy, w), desc, None
     path = Path(a.policy)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise UserError(f"--policy must be 'random', 'baseline' or a policy file; '{a.policy}' is neither")
     try:
         art = load_policy(path)
@@ -108,41 +101,20 @@ def _load_policy(a: argparse.Namespace):
         art_world = dataclasses.replace(art_world, episode_steps=a.steps)
     note = None
     if a.preset is not None and art_world != world:
-        note = (f"note: {path.name} was trained in world '{art.world.name}', which differs from preset "
+        note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from preset "
                 f"'{a.preset}'; using the policy's world")
     desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
             "hash": art.hash, "layer_sizes": art.layer_sizes}
     return art_world, lambda w: swarm_policy(art, w), desc, note
 
 
-def _prepare_out(out: str) -> tuple[Path, bool]:
-    """Create the output folder; (path, created). Unusable folders are a user error."""
-    path = Path(out)
-    existed = path.is_dir()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-", delete=True)
-        probe.close()
-    except OSError as e:
-        raise UserError(f"cannot write to output folder '{out}': {e.strerror or e}") from None
-    return path, not existed
-
-
-@contextmanager
-def _staged_output(out: Path, files: tuple[str, ...]) -> Iterator[Path]:
-    """A staging folder inside ``out``: the ``files`` written there appear in ``out`` together, or
-    (on any error) nothing does and a folder this run created is removed."""
-    out, created = _prepare_out(str(out))
-    staging = Path(tempfile.mkdtemp(dir=out, prefix=".sim-"))
-    try:
-        yield staging
-        write_files_atomic({out / f: (staging / f).read_bytes() for f in files})
-    except BaseException:
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+def _staged_output(out: Path, files: tuple[str, ...]):
+    """The ``files`` written into the yielded staging folder appear in ``out`` together, or (on any error)
+    nothing does and a folder this run created is removed (:func:`kiloforge.io.staged_files`; the last
+    file, the set's record, is published last)."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out must be a folder; '{out}' is a file")
+    return staged_files(out, files, create=True)
 
 
 def run(a: argparse.Namespace) -> dict:
@@ -228,16 +200,21 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    mark = io.published_count()
     try:
-        a = build_parser().parse_args(argv)
-        a.argv = argv
-        run(a)
-    except UserError as e:
-        print(f"python -m sim: error: {e}", file=sys.stderr)
+        with terminate_raises():
+            a = build_parser().parse_args(argv)
+            a.argv = argv
+            run(a)
+    except (UserError, KiloforgeError) as e:
+        print(f"python -m sim: error: {printable(e)}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("python -m sim: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        written = io.published_since(mark)
+        what = (f"after writing {', '.join(map(str, written))} (complete)" if written
+                else "; nothing written (files from an earlier run are unchanged)")
+        print(f"python -m sim: interrupted {what}".replace(" ;", ";"), file=sys.stderr)
+        return exit_status(e)
     except SystemExit as e:  # --help
         return int(e.code or 0) if not isinstance(e.code, str) else EXIT_USAGE
     return 0

@@ -36,6 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from kiloforge.errors import InputError
+from kiloforge.validate import check_keys, check_str, check_typed, show
+
 # Observation layout (docs/design.md control-step contract, step 2; thesis §4.1). One definition, used
 # by the simulator, the trainer, the emulator and the renderer.
 OBS_WALL = 0  #: 1.0 when the ambient-light reading says a wall is near, else 0.0
@@ -48,6 +51,8 @@ ROLE_SEARCHER = 0
 ROLE_TARGET = 1
 
 KILO_TICK_HZ = 30.52  #: kilo_ticks per second, measured (platform notes: 305 ticks in 10 s)
+MAX_ARENA_HALF_MM = 100_000.0  #: a 200 m arena; larger ones only serve to exhaust memory
+MAX_EPISODE_STEPS = 1_000_000  #: control periods per episode (about 11 days of Kilobot time)
 
 
 @dataclass(frozen=True)
@@ -97,11 +102,19 @@ class WorldConfig:
     spawn_margin_mm: float = 0.0  #: robots and target spawn this far inside the walls
 
     def __post_init__(self) -> None:
+        check_str(self.name, "WorldConfig name", max_len=64)
+        for f in dataclasses.fields(self):  # exact types first: 11.0 is not an int, "true" not a bool
+            value = getattr(self, f.name)
+            typed = check_typed(value, f.type, f"WorldConfig '{self.name}': {f.name}")
+            if typed is not value:
+                object.__setattr__(self, f.name, typed)
+
         def need(cond: bool, msg: str) -> None:
             if not cond:
-                raise ValueError(f"WorldConfig '{self.name}': {msg}")
+                raise InputError(f"WorldConfig '{self.name}': {msg}")
 
-        need(self.arena_half_mm > 0, f"arena_half_mm must be > 0, got {self.arena_half_mm}")
+        need(0 < self.arena_half_mm <= MAX_ARENA_HALF_MM,
+             f"arena_half_mm must be in (0, {MAX_ARENA_HALF_MM}], got {self.arena_half_mm}")
         need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
         need(0.0 <= self.beacon_mobility <= 1.0, f"beacon_mobility must be in [0, 1], got {self.beacon_mobility}")
         need(self.spawn_margin_mm >= 0 and self.spawn_margin_mm < self.arena_half_mm,
@@ -112,7 +125,7 @@ class WorldConfig:
         need(1 <= self.period_ticks <= 255, f"period_ticks must be in 1..255, got {self.period_ticks}")
         need(self.comm_radius_mm > 0, f"comm_radius_mm must be > 0, got {self.comm_radius_mm}")
         need(self.comm_radius_mm <= 255, f"comm_radius_mm must be <= 255 (uint8 mm), got {self.comm_radius_mm}")
-        need(self.msg_period_ticks >= 0, f"msg_period_ticks must be >= 0, got {self.msg_period_ticks}")
+        need(0 <= self.msg_period_ticks <= 0xFFFF, f"msg_period_ticks must be in 0..65535, got {self.msg_period_ticks}")
         need(0.0 <= self.msg_loss < 1.0, f"msg_loss must be in [0, 1), got {self.msg_loss}")
         need(self.dist_noise_mm >= 0, f"dist_noise_mm must be >= 0, got {self.dist_noise_mm}")
         need(0 <= self.dist_min_mm <= self.dist_max_mm <= 255,
@@ -127,7 +140,8 @@ class WorldConfig:
         need(0 <= self.light_floor <= 1023 and 0 <= self.light_wall <= 1023
              and 0 <= self.light_threshold <= 1023, "light readings and threshold must be in 0..1023")
         need(0.0 <= self.light_dropout < 1.0, f"light_dropout must be in [0, 1), got {self.light_dropout}")
-        need(self.episode_steps >= 1, f"episode_steps must be >= 1, got {self.episode_steps}")
+        need(1 <= self.episode_steps <= MAX_EPISODE_STEPS,
+             f"episode_steps must be in 1..{MAX_EPISODE_STEPS}, got {self.episode_steps}")
         if self.tick_level:
             need(self.msg_period_ticks >= 1, "tick-level worlds need msg_period_ticks >= 1")
 
@@ -181,13 +195,11 @@ class WorldConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "WorldConfig":
-        """Build from a dict (e.g. policy metadata); unknown keys are an error that names them."""
+        """Build from a dict (e.g. policy metadata); missing fields take the defaults, unknown keys
+        and values of the wrong type or range are an :class:`~kiloforge.errors.InputError` naming them."""
         if not isinstance(d, dict):
-            raise ValueError(f"world config must be a JSON object, got {type(d).__name__}")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown world config field(s): {', '.join(unknown)}")
+            raise InputError(f"world config must be a JSON object, got {show(d)}")
+        check_keys(d, "world config", frozenset(f.name for f in dataclasses.fields(cls)))
         return cls(**d)
 
     def to_json(self) -> str:
@@ -240,7 +252,7 @@ def preset(name: str, **overrides: Any) -> WorldConfig:
     >>> preset("kilobot", msg_loss=0.0).msg_loss
     0.0
     """
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset '{name}'; choose one of: {', '.join(sorted(PRESETS))}")
+    if not isinstance(name, str) or name not in PRESETS:
+        raise InputError(f"unknown preset '{name}'; choose one of: {', '.join(sorted(PRESETS))}")
     cfg = PRESETS[name]
     return dataclasses.replace(cfg, **overrides) if overrides else cfg

@@ -19,6 +19,7 @@ in float64), so neither the pair set nor a distance depends on the method or the
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -209,7 +210,9 @@ def _concat(parts: list[Pairs]) -> Pairs:
 
 def _grid(x: np.ndarray, y: np.ndarray, radius: float, extent: float, ordered: bool) -> Pairs:
     B, N = x.shape
-    nc = max(1, int(2.0 * extent // radius))  # cells per side; cell width 2*extent/nc >= radius
+    # cells per side; cell width 2*extent/nc >= radius. At most ~4N cells per env: wider cells find the same
+    # pairs, and an arena millions of radii wide (a valid, if odd, world) would otherwise allocate that many
+    nc = max(1, min(int(2.0 * extent // radius), 2 * math.isqrt(N) + 2))
     cw = 2.0 * extent / nc
     xf, yf = x.ravel(), y.ravel()  # (B*N,) flat id = env * N + index
     cx = np.clip(((xf + extent) / cw).astype(np.int64), 0, nc - 1)

@@ -188,7 +188,7 @@ def test_cli_verify_smoke(tmp_path, capsys):
 @pytest.mark.parametrize("argv, needle", [
     (["verify", "--robots", "4"], "--closed-loop"),
     (["verify", "--closed-loop", "--policy", "/nonexistent/p.npz"], "does not exist"),
-    (["verify", "--closed-loop", "--episodes", "0"], "positive"),
+    (["verify", "--closed-loop", "--episodes", "0"], "--episodes: must be in [1, "),
     (["verify", "--closed-loop", "--robots", "5000", "--episodes", "1"], "robots"),
 ])
 def test_cli_verify_errors(argv, needle, capsys):

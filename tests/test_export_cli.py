@@ -135,22 +135,34 @@ def test_unwritable_out_path(tmp_path, capsys, kind):
 
 
 def test_all_or_nothing_write(tmp_path, monkeypatch):
-    """When the second rename fails, the first file is restored and no temp file is left."""
-    a, b = tmp_path / "a.c", tmp_path / "b.c"
-    a.write_text("old a")
+    """A failure while the set is staged leaves the old set; a rename failing after the commit leaves
+    no record (an incomplete set, said so) and no temporaries."""
+    a, b = tmp_path / "a.c", tmp_path / "b.json"
+    write_files_atomic({a: "old a", b: "old b"})
+    real_open = open
+
+    def failing_open(path, *args, **kw):
+        if Path(path).name == "b.json" and Path(path).parent != tmp_path:
+            raise OSError(28, "No space left on device")
+        return real_open(path, *args, **kw)
+    monkeypatch.setattr("builtins.open", failing_open)
+    with pytest.raises(OutputError, match="No space left"):
+        write_files_atomic({a: "new a", b: "new b"})
+    monkeypatch.setattr("builtins.open", real_open)
+    assert a.read_text() == "old a" and b.read_text() == "old b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.c", "b.json"]
+
     real = os.replace
-    calls = []
 
     def flaky(src, dst):
-        calls.append(dst)
-        if Path(dst) == b:
+        if Path(dst) == a:
             raise OSError(5, "I/O error")
         return real(src, dst)
     monkeypatch.setattr(os, "replace", flaky)
-    with pytest.raises(OutputError, match="I/O error"):
+    with pytest.raises(OutputError, match="I/O error.*incomplete"):
         write_files_atomic({a: "new a", b: "new b"})
     monkeypatch.setattr(os, "replace", real)
-    assert a.read_text() == "old a" and not b.exists()
+    assert not b.exists() and a.read_text() == "old a"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.c"]
 
 

@@ -80,7 +80,7 @@ def test_banner_names_version_hash_and_format():
 
 def test_world_name_is_comment_safe():
     """Free text from the policy (the world name) cannot end the banner comment or inject code."""
-    w = dataclasses.replace(preset("thesis"), name="evil */ int pwned; /* \u00e9\n??=")
+    w = dataclasses.replace(preset("thesis"), name="evil */ int pwned; /* \u00e9 ??=")  # newlines: refused by WorldConfig
     qp = synthetic_qpolicy(w, 1, (3,))
     text = render_firmware(qp, generator_version="x */ y")[POLICY_FILE]
     banner, rest = text.split("*/", 1)

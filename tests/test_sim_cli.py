@@ -85,7 +85,7 @@ def test_cli_unwritable_out_exit_2(tmp_path, capsys):
     blocker = tmp_path / "file.txt"
     blocker.write_text("x")
     assert main(["--out", str(blocker / "sub")] + TINY) == 2
-    assert "cannot write to output folder" in _one_line_error(capsys)
+    assert "cannot create" in _one_line_error(capsys)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
 
 

@@ -1,5 +1,5 @@
-"""What the exporter's sub-commands share: exit codes, the one-line-error parser, argument types,
-policy loading."""
+"""What the exporter's sub-commands share: exit codes, the one-line-error parser, argument types
+(every number range-checked by :mod:`kiloforge.validate`), policy loading."""
 from __future__ import annotations
 
 import argparse
@@ -8,7 +8,10 @@ from importlib import resources
 from pathlib import Path
 
 from kiloforge.actors.base import FloatPolicy
+from kiloforge.errors import printable
 from kiloforge.policies import load_policy
+from kiloforge.validate import float_arg, int_arg
+from sim.config import MAX_EPISODE_STEPS, WorldConfig
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
@@ -26,14 +29,24 @@ class Parser(argparse.ArgumentParser):
         raise ExportError(f"{self.prog}: {message} (see --help)")
 
 
-def positive(text: str) -> int:
+MAX_ROBOTS = 1024  #: robots per simulated swarm (calibration, verification)
+MAX_EPISODES = 100_000
+
+positive = int_arg(1, 1 << 20)  #: a size flag (layers, history, hidden units); the budget refuses what does not fit
+robots_arg = int_arg(1, MAX_ROBOTS)
+episodes_arg = int_arg(1, MAX_EPISODES)
+steps_arg = int_arg(1, MAX_EPISODE_STEPS)
+percentile_arg = float_arg(0.0, 100.0, lo_open=True)
+
+
+def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:
+    """The largest robot count fits the world's arena (SwarmEnv refuses too many discs)."""
+    from sim.env import SwarmEnv
+
     try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got '{text}'") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
-    return v
+        SwarmEnv(world, 1, max(counts), seed=0)
+    except ValueError as e:
+        raise ExportError(f"{flag} {max(counts)}: {e}") from None
 
 
 def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None = None) -> FloatPolicy:
@@ -51,8 +64,8 @@ def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None 
 
 def describe(policy: FloatPolicy) -> str:
     """The lines every sub-command prints about the policy it works on."""
-    lines = [f"policy {policy.hash[:16]}: world '{policy.world.name}', {policy.describe()}"]
+    lines = [f"policy {policy.hash[:16]}: world '{printable(policy.world.name)}', {printable(policy.describe())}"]
     notes = policy.provenance.get("notes")
     if notes:
-        lines.append(f"  provenance: {notes}")
+        lines.append(f"  provenance: {printable(notes, 300)}")
     return "\n".join(lines)

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from kiloforge.actors.base import QuantizedActor
-from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.errors import OutputError
+from kiloforge.io import check_writable, write_files_atomic
+from kiloforge.validate import seed_arg
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
@@ -28,7 +29,8 @@ from ..errors import BudgetError, ExportError, VerifyError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import EXIT_OK, Parser, describe, load, positive
+from .common import (EXIT_OK, Parser, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
+                     steps_arg)
 
 
 def _uids(text: str) -> tuple[int, ...]:
@@ -52,14 +54,14 @@ def export_parser() -> argparse.ArgumentParser:
     src.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
-    ap.add_argument("--robots-calib", type=positive, nargs="+", default=[4, 16], metavar="N",
+    ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
                     help="robot counts of the calibration rollouts (default 4 16)")
-    ap.add_argument("--calib-episodes", type=positive, default=1, help="episodes per robot count (default 1)")
-    ap.add_argument("--calib-steps", type=positive, default=None,
+    ap.add_argument("--calib-episodes", type=episodes_arg, default=1, help="episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=steps_arg, default=None,
                     help="control periods per calibration episode (default: the world's episode length)")
-    ap.add_argument("--seed", type=int, default=0, help="calibration seed (default 0)")
-    ap.add_argument("--percentile", type=float, default=100.0,
-                    help="range percentile for exponent choice (default 100: the largest value seen)")
+    ap.add_argument("--seed", type=seed_arg, default=0, help="calibration seed, a non-negative integer (default 0)")
+    ap.add_argument("--percentile", type=percentile_arg, default=100.0,
+                    help="range percentile for exponent choice, in (0, 100] (default 100: the largest value seen)")
     ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS",
                     help="comma-separated kilo_uids that run as the target beacon (default: the world's target_uid)")
     ap.add_argument("--kilolib", type=Path, default=None, metavar="DIR",
@@ -118,6 +120,7 @@ def run_export(argv: Sequence[str]) -> int:
 
     policy = load(args.policy, args.onnx, args.world_json)
     print(describe(policy))
+    check_robots(policy.world, args.robots_calib, "--robots-calib")
     budget = bud.for_policy(policy)
     if not budget.ok:
         print(budget.table())
@@ -154,7 +157,7 @@ def run_export(argv: Sequence[str]) -> int:
             contents[stems[Path(name).stem].with_suffix(Path(name).suffix)] = data
     manifest = build_manifest(policy, qp, budget, report, calib,
                               {out.name: files[POLICY_FILE], TARGET_FILE: files[TARGET_FILE]}, options)
-    contents[manifest_path] = manifest_json(manifest)
+    contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
     print(f"wrote {out}, {target_path}, {manifest_path}")
     return EXIT_OK

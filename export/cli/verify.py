@@ -26,12 +26,12 @@ from typing import Any, Sequence
 
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
-from sim.env import SwarmEnv
+from kiloforge.validate import float_arg, seed_arg
 
-from ..errors import ExportError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
-from .common import EXIT_FAIL, EXIT_OK, Parser, describe, load, positive
+from .common import (EXIT_FAIL, EXIT_OK, Parser, check_robots, describe, episodes_arg, load, percentile_arg,
+                     robots_arg, steps_arg)
 
 COVERAGE_PNG = "coverage.png"
 RETURNS_PNG = "returns_box.png"
@@ -45,23 +45,23 @@ def verify_parser() -> argparse.ArgumentParser:
     ap.add_argument("--closed-loop", action="store_true", required=True,
                     help="run the closed-loop comparison (the verification this command does)")
     ap.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped default policy)")
-    ap.add_argument("--robots", type=positive, nargs="+", default=[16, 32], metavar="M",
+    ap.add_argument("--robots", type=robots_arg, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")
-    ap.add_argument("--episodes", type=positive, default=200, help="episodes per robot count (default 200)")
-    ap.add_argument("--steps", type=positive, default=None,
+    ap.add_argument("--episodes", type=episodes_arg, default=200, help="episodes per robot count (default 200)")
+    ap.add_argument("--steps", type=steps_arg, default=None,
                     help="control periods per episode (default: the world's episode length)")
-    ap.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
+    ap.add_argument("--seed", type=seed_arg, default=0, help="episode seed, a non-negative integer (default 0)")
     ap.add_argument("--out", type=Path, default=None,
                     help="directory for coverage.png, returns_box.png and closed_loop.json (created if missing)")
-    ap.add_argument("--goal", type=float, default=GOAL_RATIO,
+    ap.add_argument("--goal", type=float_arg(0.0, 1.5, lo_open=True), default=GOAL_RATIO,
                     help=f"pass when int8 final coverage >= GOAL x float final coverage (default {GOAL_RATIO})")
-    ap.add_argument("--robots-calib", type=positive, nargs="+", default=[4, 16], metavar="N",
+    ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
                     help="robot counts of the calibration rollouts, as for export (default 4 16)")
-    ap.add_argument("--calib-episodes", type=positive, default=1, help="calibration episodes per robot count (default 1)")
-    ap.add_argument("--calib-steps", type=positive, default=None,
+    ap.add_argument("--calib-episodes", type=episodes_arg, default=1, help="calibration episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=steps_arg, default=None,
                     help="control periods per calibration episode, as for export (default: the world's)")
-    ap.add_argument("--calib-seed", type=int, default=0, help="calibration seed, as export's --seed (default 0)")
-    ap.add_argument("--percentile", type=float, default=100.0,
+    ap.add_argument("--calib-seed", type=seed_arg, default=0, help="calibration seed, as export's --seed (default 0)")
+    ap.add_argument("--percentile", type=percentile_arg, default=100.0,
                     help="range percentile for exponent choice, as for export (default 100)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
     return ap
@@ -126,10 +126,6 @@ def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
 def run_verify(argv: Sequence[str]) -> int:
     """The ``verify`` sub-command; returns the exit status (raises ExportError on bad input)."""
     args = verify_parser().parse_args(list(argv))
-    if not 0.0 < args.goal <= 1.5:
-        raise ExportError(f"--goal must be in (0, 1.5], got {args.goal}")
-    if not 0.0 < args.percentile <= 100.0:
-        raise ExportError(f"--percentile must be in (0, 100], got {args.percentile}")
     out: Path | None = args.out
     if out is not None:  # fail before the slow part
         if out.exists() and not out.is_dir():
@@ -142,11 +138,8 @@ def run_verify(argv: Sequence[str]) -> int:
         check_writable([base / RESULT_JSON])
     policy = load(args.policy)
     print(describe(policy))
-    M_max = max(args.robots)
-    try:
-        SwarmEnv(policy.world, 1, M_max, seed=0)  # checks that this many robots fit the arena
-    except ValueError as e:
-        raise ExportError(f"--robots {M_max}: {e}") from None
+    check_robots(policy.world, args.robots, "--robots")
+    check_robots(policy.world, args.robots_calib, "--robots-calib")
 
     progress = not args.no_progress and sys.stderr.isatty()
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
@@ -181,12 +174,8 @@ def run_verify(argv: Sequence[str]) -> int:
         }
         title = f"policy {policy.hash[:8]} ({policy.world.name})"
         cov, box = _plots(comps, title)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise OutputError(f"cannot create '{out}': {e.strerror or e}") from None
         files = {out / COVERAGE_PNG: cov, out / RETURNS_PNG: box,
-                 out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}
-        write_files_atomic(files)
+                 out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}  # the record last
+        write_files_atomic(files, create=True)
         print(f"wrote {', '.join(str(p) for p in files)}")
     return EXIT_OK if passed else EXIT_FAIL

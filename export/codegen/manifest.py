@@ -2,16 +2,22 @@
 
 It holds the number format, rounding rule and every exponent, the architecture, the budget
 breakdown, the quantisation error, the policy hash and the generator version, and the sha256 of
-every file written alongside, so a C file found on a lab machine can be traced back to its policy.
+every file written alongside, so a C file found on a lab machine can be traced back to its policy,
+and a reader can check that the files beside a manifest are the set it describes
+(:func:`verify_manifest`).
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+from pathlib import Path
 from typing import Any, Mapping
 
 from kiloforge import numfmt
 from kiloforge.actors.base import FloatPolicy, QuantizedActor
+from kiloforge.errors import InputError
+from kiloforge.validate import read_json_file
 
 from .budget import Budget
 
@@ -60,3 +66,27 @@ def build_manifest(policy: FloatPolicy, qp: QuantizedActor, budget: Budget, repo
 def manifest_json(manifest: Mapping[str, Any]) -> str:
     """Stable, human-readable JSON text (sorted keys, trailing newline)."""
     return json.dumps(manifest, indent=2, sort_keys=True, allow_nan=False) + "\n"
+
+
+def verify_manifest(path: str | os.PathLike) -> list[str]:
+    """What does not match in the set a manifest describes: each file it lists must exist beside it
+    with the recorded size and sha256. An empty list: the manifest and its files are one complete set
+    (:mod:`kiloforge.io` publishes the manifest last, so a present manifest describes its files)."""
+    path = Path(path)
+    try:
+        doc = read_json_file(path, "manifest")
+    except InputError as e:
+        return [str(e)]
+    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT or not isinstance(doc.get("files"), dict):
+        return [f"{path}: not a kiloforge export manifest"]
+    problems = []
+    for name, rec in doc["files"].items():
+        f = path.parent / name
+        try:
+            data = f.read_bytes()
+        except OSError as e:
+            problems.append(f"{f}: {e.strerror or e}")
+            continue
+        if not isinstance(rec, dict) or rec.get("bytes") != len(data) or rec.get("sha256") != _sha256(data):
+            problems.append(f"{f}: does not match the manifest")
+    return problems

@@ -31,17 +31,18 @@ one-line message that names the file, and the node and op where relevant.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kiloforge.actors.mlp import MLPPolicy
-from kiloforge.errors import PolicyError
+from kiloforge.actors.mlp import MAX_T_PREV, MLPPolicy
+from kiloforge.errors import InputError, PolicyError
 from kiloforge.policies import save_policy
+from kiloforge.validate import check_int, parse_json, quote, read_json_file, read_regular_file, show
 from sim.config import ACTION_DIM, WorldConfig, preset
 
 # metadata_props keys (the same names are written by learn.onnx_export)
@@ -54,6 +55,8 @@ META_ACTION = "kiloforge.action"  #: "clip01" (informative)
 MAX_PARAMS = 1_000_000  #: more float parameters than this cannot be a Kilobot policy (32 KB flash)
 MAX_FILE_BYTES = 64 * 1024 * 1024  #: refuse to parse larger files (a Kilobot MLP is a few KB)
 MAX_NODES = 10_000
+MIN_OPSET = 7  #: older opsets give Gemm, Add and Dropout other semantics (and onnxruntime runs opset >= 7 only)
+MAX_WORLD_JSON_BYTES = 1 << 20  #: a world JSON file or metadata entry (a full WorldConfig is under 1 KB)
 
 _FLOAT_TYPES = {1: "float32", 10: "float16", 11: "float64", 16: "bfloat16"}  # TensorProto codes
 _ACT_OPS = {"Relu": "relu", "Elu": "elu", "Tanh": "tanh", "Sigmoid": "sigmoid"}
@@ -72,14 +75,14 @@ def _need_onnx() -> Any:
 
 
 # --- world metadata ----------------------------------------------------------------------------
-def _world_from_obj(obj: Any, where: str) -> tuple[WorldConfig, int]:
+def _world_from_obj(obj: Any, where: str, t_prev_text: bool = False) -> tuple[WorldConfig, int]:
     """``{"world": dict | preset name, "t_prev": int}`` or WorldConfig fields + ``t_prev``."""
     if not isinstance(obj, dict):
         raise OnnxImportError(f"{where}: expected a JSON object with 'world' and 't_prev', got {type(obj).__name__}")
     obj = dict(obj)
     if "t_prev" not in obj:
         raise OnnxImportError(f"{where}: missing 't_prev' (the number of history tuples the actor reads)")
-    t_prev = _parse_t_prev(obj.pop("t_prev"), where)
+    t_prev = _parse_t_prev(obj.pop("t_prev"), where, t_prev_text)
     if "world" in obj:
         world_obj: Any = obj.pop("world")
         if obj:
@@ -90,6 +93,8 @@ def _world_from_obj(obj: Any, where: str) -> tuple[WorldConfig, int]:
         raise OnnxImportError(f"{where}: missing 'world' (a WorldConfig object or a preset name)")
     if isinstance(world_obj, str):
         world_obj = {"preset": world_obj}
+    if isinstance(world_obj, dict) and "preset" in world_obj and not isinstance(world_obj["preset"], str):
+        raise OnnxImportError(f"{where}: 'preset' must be a preset name, got {show(world_obj['preset'])}")
     if not isinstance(world_obj, dict):
         raise OnnxImportError(f"{where}: 'world' must be a preset name or an object, got {type(world_obj).__name__}")
     try:
@@ -98,36 +103,30 @@ def _world_from_obj(obj: Any, where: str) -> tuple[WorldConfig, int]:
             unknown = sorted(set(rest) - {"preset"} - set(WorldConfig.__dataclass_fields__))
             if unknown:
                 raise ValueError(f"unknown world config field(s): {', '.join(unknown)}")
-            return preset(str(rest.pop("preset")), **rest), t_prev
+            return preset(rest.pop("preset"), **rest), t_prev
         return WorldConfig.from_dict(world_obj), t_prev
     except (TypeError, ValueError) as e:
         raise OnnxImportError(f"{where}: bad world config: {str(e).splitlines()[0]}") from None
 
 
-def _parse_t_prev(v: Any, where: str) -> int:
+def _parse_t_prev(v: Any, where: str, text: bool) -> int:
+    """An integer in 1..MAX_T_PREV: decimal text in metadata_props (``text``), a JSON integer in a file."""
+    if text:
+        if not (isinstance(v, str) and re.fullmatch(r"[0-9]{1,6}", v)):
+            raise OnnxImportError(f"{where}: t_prev must be a decimal integer, got {quote(v)}")
+        v = int(v)
     try:
-        t = int(v)
-        ok = str(v).strip().lstrip("+").isdigit() if isinstance(v, str) else (t == v and not isinstance(v, bool))
-    except (TypeError, ValueError):
-        ok, t = False, 0
-    if not ok or t < 1:
-        raise OnnxImportError(f"{where}: t_prev must be a positive integer, got {v!r}")
-    return t
+        return check_int(v, f"{where}: t_prev", 1, MAX_T_PREV)
+    except InputError as e:
+        raise OnnxImportError(str(e)) from None
 
 
 def _read_world_json(path: str | os.PathLike) -> tuple[WorldConfig, int]:
-    p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise OnnxImportError(f"cannot read world JSON {p}: {e.strerror or e}") from None
-    except UnicodeDecodeError:
-        raise OnnxImportError(f"{p}: not a UTF-8 text (JSON) file") from None
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise OnnxImportError(f"{p}: not valid JSON ({e.msg} at line {e.lineno})") from None
-    return _world_from_obj(obj, str(p))
+        obj = read_json_file(path, "world JSON", max_bytes=MAX_WORLD_JSON_BYTES)
+    except InputError as e:
+        raise OnnxImportError(str(e)) from None
+    return _world_from_obj(obj, f"world JSON {quote(path)}")
 
 
 def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig, int] | None:
@@ -137,10 +136,10 @@ def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig,
         if key not in meta:
             raise OnnxImportError(f"{where}: metadata has no '{key}' (found {', '.join(sorted(meta))})")
     try:
-        world_obj = json.loads(meta[META_WORLD])
-    except json.JSONDecodeError as e:
-        raise OnnxImportError(f"{where}: metadata '{META_WORLD}' is not valid JSON ({e.msg})") from None
-    return _world_from_obj({"world": world_obj, "t_prev": meta[META_T_PREV]}, f"{where}: metadata")
+        world_obj = parse_json(meta[META_WORLD], f"{where}: metadata '{META_WORLD}'", max_bytes=MAX_WORLD_JSON_BYTES)
+    except InputError as e:
+        raise OnnxImportError(str(e)) from None
+    return _world_from_obj({"world": world_obj, "t_prev": meta[META_T_PREV]}, f"{where}: metadata", t_prev_text=True)
 
 
 def default_world_json_path(model_path: str | os.PathLike) -> Path:
@@ -222,6 +221,41 @@ def _constant_value(node: Any, label: str, err: Any) -> np.ndarray:
     raise err(f"{label}: unsupported Constant (only tensor / float / int values)")
 
 
+#: ONNX TensorProto element types a constant may be cast to, and their NumPy types
+_CAST_TO = {1: np.float32, 10: np.float16, 11: np.float64, 2: np.uint8, 3: np.int8, 4: np.uint16, 5: np.int16,
+            6: np.int32, 7: np.int64, 12: np.uint32, 13: np.uint64, 9: np.bool_}
+_TYPE_NAMES = {0: "UNDEFINED", 1: "FLOAT", 2: "UINT8", 3: "INT8", 4: "UINT16", 5: "INT16", 6: "INT32", 7: "INT64",
+               8: "STRING", 9: "BOOL", 10: "FLOAT16", 11: "DOUBLE", 12: "UINT32", 13: "UINT64", 14: "COMPLEX64",
+               15: "COMPLEX128", 16: "BFLOAT16"}
+
+
+def _cast(x: np.ndarray, to: int, label: str, err: Any) -> np.ndarray:
+    """ONNX Cast of a constant: float rounding to nearest even, float -> integer truncation toward zero
+    (refused when a value is not finite or out of the target's range: ONNX leaves that undefined),
+    anything -> bool is ``x != 0``; the other element types are refused by name."""
+    target = _CAST_TO.get(int(to))
+    if target is None:
+        raise err(f"{label}: Cast to {_TYPE_NAMES.get(int(to), f'type {to}')} is not supported "
+                  f"(only {', '.join(_TYPE_NAMES[k] for k in sorted(_CAST_TO))})")
+    if x.dtype.kind not in "fiub":
+        raise err(f"{label}: Cast of a {x.dtype} constant is not supported")
+    if target is np.bool_:
+        return x != 0
+    if np.issubdtype(target, np.integer) and x.dtype.kind == "f":
+        info = np.iinfo(target)
+        t = np.trunc(x.astype(np.float64))
+        if not np.all(np.isfinite(t)) or t.size and (t.min() < info.min or t.max() > info.max):
+            raise err(f"{label}: Cast to {_TYPE_NAMES[int(to)]} of values outside its range (undefined in ONNX)")
+        return t.astype(target)
+    if np.issubdtype(target, np.integer) and x.dtype.kind in "iub":
+        info = np.iinfo(target)
+        xi = x.astype(np.int64) if x.dtype != np.uint64 else x
+        if xi.size and (int(xi.min()) < info.min or int(xi.max()) > info.max):
+            raise err(f"{label}: Cast to {_TYPE_NAMES[int(to)]} of values outside its range")
+        return x.astype(target)
+    return x.astype(target)
+
+
 def _fold_constant(node: Any, a: dict[str, Any], vals: list[np.ndarray], label: str, err: Any) -> np.ndarray:
     """Evaluate a node whose inputs are all constants (weight preprocessing some exporters emit)."""
     op, x0 = node.op_type, vals[0]
@@ -230,11 +264,15 @@ def _fold_constant(node: Any, a: dict[str, Any], vals: list[np.ndarray], label: 
             return x0
         if op == "Transpose":
             return np.transpose(x0, a.get("perm"))
-        if op == "Cast" and np.issubdtype(x0.dtype, np.floating):
-            return x0
+        if op == "Cast":
+            return _cast(x0, a.get("to", 0), label, err)
         if op == "Reshape" and len(vals) == 2:
+            if int(a.get("allowzero", 0)):
+                raise err(f"{label}: Reshape with allowzero=1 is not supported")
             return x0.reshape([x0.shape[i] if s == 0 else int(s) for i, s in enumerate(vals[1].reshape(-1))])
-    except ValueError as e:
+    except OnnxImportError:
+        raise
+    except (ValueError, IndexError, TypeError) as e:
         raise err(f"{label}: cannot fold constant {op}: {e}") from None
     raise err(f"{label}: constant computation with {op} is not supported; fold constants before exporting "
               "(e.g. onnx-simplifier, or torch.onnx.export(..., do_constant_folding=True))")
@@ -257,17 +295,11 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
 
     # ---- read the file --------------------------------------------------------------------
     try:
-        size = path.stat().st_size
-    except OSError as e:
-        raise OnnxImportError(f"cannot read ONNX model {where}: {e.strerror or e}") from None
-    if not path.is_file():
-        raise err("not a file")
-    if size == 0:
+        data = read_regular_file(path, "ONNX model", MAX_FILE_BYTES)
+    except InputError as e:
+        raise OnnxImportError(str(e)) from None
+    if not data:
         raise err("empty file (not an ONNX model)")
-    if size > MAX_FILE_BYTES:
-        raise err(f"{size / 2**20:.0f} MiB is far larger than any policy the Kilobot can hold (32 KB flash); "
-                  "export a small MLP actor only")
-    data = path.read_bytes()
     model = onnx.ModelProto()
     try:
         model.ParseFromString(data)
@@ -304,6 +336,9 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
 
     opsets = {o.domain or "ai.onnx": o.version for o in model.opset_import}
     opset = opsets.get("ai.onnx", 0)
+    if opset < MIN_OPSET:
+        raise err(f"opset {opset} is older than {MIN_OPSET}, the oldest whose Gemm, Dropout and broadcasting rules "
+                  "the importer models (re-export with a newer opset)")
     meta = {p.key: p.value for p in model.metadata_props}
 
     # ---- constants --------------------------------------------------------------------------
@@ -431,9 +466,11 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
             if len(node.output) > 1 and node.output[1] and any(node.output[1] in n.input for n in g.node):
                 raise err(f"{label}: Dropout's mask output is used; only plain MLPs are supported")
         elif op == "Flatten":
-            if int(a.get("axis", 1)) != 1:
+            if int(a.get("axis", 1)) not in (1, -1):
                 raise err(f"{label}: Flatten(axis={a.get('axis')}) changes the [N, D] layout")
         elif op == "Reshape":
+            if int(a.get("allowzero", 0)):
+                raise err(f"{label}: Reshape with allowzero=1 is not supported")
             shape = const_in(node, 1, label)
             s = [int(v) for v in np.asarray(shape).reshape(-1)]
             if not (len(s) == 2 and s[0] in (-1, 0) and (s[1] == -1 or width is None or s[1] == width)):
@@ -487,6 +524,12 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
         if not (np.all(np.isfinite(w)) and np.all(np.isfinite(b))):
             raise err(f"layer {i} ({layers[i].node}) has NaN or infinite weights")
     acts = [l.act for l in layers]
+
+    try:  # types and shapes as a runtime infers them (e.g. a float16 weight on float32 data is refused)
+        onnx.checker.check_model(model, full_check=True)
+    except Exception as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise err(f"invalid ONNX model: {first}") from None
 
     world, t_prev, world_src = _resolve_world(meta, world_json, path)
     need = world.history_dim(t_prev)

@@ -32,6 +32,7 @@ from sim.rollout import HistoryActor
 from .. import numfmt
 from ..artifact import plain_provenance
 from ..errors import PolicyError, QuantizeError
+from ..validate import show
 from ..numfmt import ACTIVATIONS, INT8_MAX, INT8_MIN, OUTPUT_ACTIVATIONS, TABLE_ACTIVATIONS, QuantLayer, act_float
 from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CDense, CTable, FloatPolicy,
                    QuantizedActor, RenderSpec, Resize, check_world, dense_summary, invalid, sensing_tables)
@@ -463,6 +464,8 @@ class MLPKind(ActorKind):
         if extra:
             raise PolicyError(f"policy: has unexpected arrays: {', '.join(extra)}")
         sizes = meta["layer_sizes"]
+        if not isinstance(sizes, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in sizes):
+            raise PolicyError(f"policy: layer_sizes must be a list of integers, got {show(sizes)}")
         shapes = [arrays[f"w{k}"].shape for k in range(n)]
         declared = [[sizes[k + 1], sizes[k]] for k in range(len(sizes) - 1)] if isinstance(sizes, list) else None
         if declared != [list(s) for s in shapes]:

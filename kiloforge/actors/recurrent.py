@@ -23,6 +23,7 @@ from sim.config import ACTION_DIM, WorldConfig
 from ..artifact import plain_provenance
 from ..errors import PolicyError
 from ..numfmt import HIDDEN_EXP, QuantLayer
+from ..validate import show
 from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world, float_arrays, invalid
 from .dense import is_output_layer
 
@@ -247,6 +248,10 @@ class RecurrentKind(ActorKind):
             raise PolicyError(f"policy: gate order {meta['gate_order']!r} is not supported (only '{order}')")
         if meta["input"] != INPUT_LAYOUT:
             raise PolicyError(f"policy: input layout {meta['input']!r} is not supported (only '{INPUT_LAYOUT}')")
+        for key in ("hidden", "input_dim"):
+            v = meta.get(key, 0)
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise PolicyError(f"policy: '{key}' must be an integer, got {show(v)}")
         p = self.policy_type(**{n: arrays[n] for n in ARRAYS}, world=world, provenance=provenance)
         if meta["hidden"] != p.hidden_size or meta.get("input_dim", p.in_dim) != p.in_dim:
             raise PolicyError(f"policy: meta says hidden {meta['hidden']}, input {meta.get('input_dim')} but the "
