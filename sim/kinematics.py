@@ -11,8 +11,17 @@ The heading turns first and the robot then moves along the *new* heading, as wri
 Kilobot (``tick_level`` worlds), once per kilo_tick for ``period_ticks`` ticks: the motor mode of
 :func:`sim.motion.schedule` on the uint8 commands. STRAIGHT moves ``v_max · tick_s`` along the
 heading; LEFT / RIGHT turn by ``± ω_max · tick_s``; STOP does nothing (per-robot factors:
-:class:`MotionParams`). Simplification: a pivot is modelled as a rotation about the robot's centre
-(a real Kilobot pivots about one leg, so its centre also shifts by a few mm per quarter turn).
+:class:`MotionParams`). A pivot turns the robot about its pivot leg (``cfg.pivot_offset_mm`` R from
+the centre, ``cfg.pivot_angle_deg`` α from the heading, on the side of the turn; R = 0: about the
+centre). In complex coordinates, with heading φ before the tick, θ = ±ω_max · tick_s and
+β = ±α (+ for left pivots)::
+
+    leg  p  = z + R exp(i(φ + β))             (stays put during the tick)
+    z'      = p - R exp(i(φ + θ + β)),  φ' = φ + θ
+
+so after m pivot ticks from (z0, φ0) the centre is at ``z0 + R e^{i(φ0+β)} (1 - e^{imθ})``: an arc
+of radius R about the leg, each tick a chord of 2R sin(θ/2) in the direction φ + β - sign(θ)·90° + θ/2
+(for the Kilobot's α = 125.5°: forwards and towards the turn, heading ± 35.5°).
 
 Headings are wrapped to (-π, π]. Walls: robot centres are clipped to ``[-a + r, a - r]`` after every
 tick (a = ``arena_half_mm``, r = ``robot_radius_mm``). Collisions (``cfg.collisions``): after each
@@ -28,16 +37,21 @@ robot (mobility m: 0 = taped down, the robot takes the whole push; 1 = pushed li
 
 How a period is computed (same model as stepping every robot tick by tick, without a Python loop
 over ticks where nothing touches): a robot's period is ``turn`` pivot ticks, then ``straight``
-ticks, then stop, so its collision-free path is closed form, for every tick at once: the heading
-after the pivots, then n straight steps along it (``curve``: a geometric sum of rotated steps).
-Walls too: clipping a coordinate tick by tick equals clipping the unclipped path whenever that
-coordinate moves in one direction during the period (always true for straight runs; a curved path
-that meets a wall and turns back is run tick by tick). Only the envs in which two discs on these
+ticks, then stop, so its collision-free path is closed form, for every tick at once: the arc about
+the pivot leg (above; nothing with a centre pivot), then n straight steps along the heading after
+the pivots (``curve``: a geometric sum of rotated steps). Walls too: clipping a coordinate tick by
+tick equals clipping the unclipped path whenever that coordinate moves in one direction during the
+period (always true for a straight run after a centre pivot; a robot whose arc or curved run meets a
+wall and whose coordinate turns back is run tick by tick). Only the envs in which two discs on these
 paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
-the period start) are re-run tick by tick from the first such tick, with the collision resolution.
+the period start, travel = arc + straight path length) are re-run tick by tick from the first such
+tick, with the collision resolution; a tick's move there is the closed form's increment, which does
+not depend on where pushes put the robot.
 
 Trigonometry: thesis moves use float32 (:func:`unit`, ~1e-7 relative, below 1e-5 mm per step);
-Kilobot moves take one float64 ``exp(iφ)`` per robot and period. Everything else is float64.
+Kilobot moves take float64 ``exp(iφ)`` per robot and period (and, for arcs, a table of
+``exp(i j ω_max tick_s)``, or one exponential per pivot tick when turn rates vary per robot).
+Everything else is float64.
 """
 from __future__ import annotations
 
@@ -109,14 +123,16 @@ class MotionParams:
 
     ``speed`` scales v_max on straight ticks, ``turn_left`` / ``turn_right`` scale ω_max on left /
     right pivot ticks, ``curve`` is the heading change (rad, + = counter-clockwise) per straight
-    tick (a robot whose calibrated "straight" is not quite straight). The nominal robot is
-    ``1, 1, 1, 0``; :mod:`sim.variants` draws these.
+    tick (a robot whose calibrated "straight" is not quite straight), ``pivot_mm`` the distance of
+    each robot's pivot point from its centre. The nominal robot is ``1, 1, 1, 0`` and the world's
+    ``pivot_offset_mm``; :mod:`sim.variants` draws these.
     """
 
     speed: np.ndarray
     turn_left: np.ndarray
     turn_right: np.ndarray
     curve: np.ndarray | None = None  #: None: every straight is straight
+    pivot_mm: np.ndarray | None = None  #: None: cfg.pivot_offset_mm for every robot
 
 
 class _Contacts:
@@ -298,41 +314,49 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         step = dl * motion.speed
         if motion.curve is not None and np.any(motion.curve != 0):
             kappa = motion.curve
+    R = cfg.pivot_offset_mm if motion is None or motion.pivot_mm is None else motion.pivot_mm
+    leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
+    phi0 = heading.copy() if leg else None
     phi_s = heading + t * theta  # heading when the straight ticks start
     k = np.arange(P).reshape(P, 1, 1)
     n = np.clip(k + 1 - t, 0, s)  # (P, B, M) straight ticks done by the end of tick k
-    go = (k >= t) & (k < t + s)  # (P, B, M) tick k is a straight tick
-    z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
+    u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
+    inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     if kappa is None:
-        e = step * np.exp(1j * phi_s)  # (B, M) displacement of one straight tick
-        inc = None
+        e = step * u_s  # (B, M) displacement of one straight tick
         disp = n * e
         heading[...] = wrap_angle(phi_s)
     else:  # each straight tick turns by kappa, then moves along the new heading
-        inc = go * (step * np.exp(1j * (phi_s + n * kappa)))
+        inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
         disp = np.cumsum(inc, axis=0)
         heading[...] = wrap_angle(phi_s + s * kappa)
+    travel = s * step  # (B, M) path length of the period: a bound on how far a disc gets
+    if leg:
+        travel = travel + _add_arcs(disp, phi0, theta, t, left, R, cfg, dphi if motion is None else None)
+    z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
     if record is not None and record.dtype == np.float64 and record.flags.c_contiguous:
         zk = record.view(np.complex128).reshape(P, B, M)  # write the ticks straight into the record
         np.add(z0, disp, out=zk)
     else:
         zk = z0 + disp
     zkf = zk.view(np.float64)
+    k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
+    if leg or kappa is not None:  # a path along a wall whose coordinate turns back: clip per tick
+        out = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=0)  # (B, M, 2) coordinates past a wall
+        b, r = out.any(axis=2).nonzero()
+        if b.size:
+            dd = np.diff(disp[:, b, r], axis=0, prepend=0.0)  # (P, K) each tick's move
+            turns = np.stack([(c > 0).any(axis=0) & (c < 0).any(axis=0) for c in (dd.real, dd.imag)], -1)  # (K, 2)
+            k0[b[(turns & out[b, r]).any(axis=1)]] = 0
     np.minimum(zkf, lim, out=zkf)  # walls: exact for monotone coordinates (see the module doc)
     np.maximum(zkf, -lim, out=zkf)
 
-    k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
-    if kappa is not None:  # a curved path along a wall whose coordinate turns back: clip per tick
-        out = (np.abs((z0 + disp).view(np.float64)) > lim).reshape(P, B, M, 2).any(axis=0)  # (B, M, 2)
-        ir, ii = inc.real, inc.imag
-        turns = np.stack([(ir > 0).any(0) & (ir < 0).any(0), (ii > 0).any(0) & (ii < 0).any(0)], -1)
-        k0[(out & turns).any(axis=(1, 2))] = 0
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
     if collider is not None:
-        np.minimum(k0, _first_contacts(z0, zk, zb, s * step, cfg), out=k0)
+        np.minimum(k0, _first_contacts(z0, zk, zb, travel, cfg), out=k0)
     if (k0 < P).any():
-        _per_tick(zk, zb, z0, go, inc if inc is not None else go * e, k0, cfg, collider,
+        _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider,
                   None if not has_beacon else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)),
                   target_record)
     elif target_record is not None:
@@ -342,6 +366,35 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         target[:, 0], target[:, 1] = zb.real, zb.imag
     if record is not None and not np.shares_memory(record, zk):
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
+
+
+def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarray, left: np.ndarray,
+              R: float | np.ndarray, cfg: WorldConfig, nominal_dphi: float | None) -> np.ndarray:
+    """Add the centre's arcs about the pivot legs to ``disp`` (P, B, M) in place; returns their
+    lengths (B, M), a bound on how far they move the centre.
+
+    ``t`` pivot ticks of θ each (per robot) about the leg at ``c = R exp(i(φ0 + β))`` from the centre
+    (β = +α for left pivots, -α for right ones; the module doc) put the centre at
+    ``z0 + c (1 - exp(i m θ))`` after m of them, and it keeps the whole arc ``c (1 - exp(i t θ))``
+    afterwards. ``nominal_dphi``: θ = ±this for every robot (a table of exp(i j θ) instead of one
+    exponential per robot and tick), or None.
+    """
+    P = disp.shape[0]
+    a = math.radians(cfg.pivot_angle_deg)
+    c = R * np.where(left, complex(math.cos(a), math.sin(a)), complex(math.cos(a), -math.sin(a))) * np.exp(1j * phi0)
+    T = int(t.max())
+    m = np.minimum(np.arange(1, T + 1).reshape(T, 1, 1), t)  # (T, B, M) pivot ticks done by the end of tick k
+    if nominal_dphi is not None:
+        table = np.exp(1j * nominal_dphi * np.arange(-P, P + 1))  # exp(i j dphi), j = -P..P
+        m *= np.where(left, 1, -1)
+        m += P
+        rot = table.take(m)
+    else:
+        rot = np.exp(1j * (theta * m))
+    arc = c - c * rot  # (T, B, M)
+    disp[:T] += arc
+    disp[T:] += arc[-1]
+    return t * (R * np.abs(theta))
 
 
 def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, travel: np.ndarray,
@@ -377,11 +430,15 @@ def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, trave
     return first
 
 
-def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndarray, inc: np.ndarray,
-              k0: np.ndarray, cfg: WorldConfig, collider: Collider | None, mobility: np.ndarray | None,
-              target_record: np.ndarray | None) -> None:
+def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.ndarray, straight: np.ndarray,
+              t: np.ndarray, s: np.ndarray, leg: bool, k0: np.ndarray, cfg: WorldConfig, collider: Collider | None,
+              mobility: np.ndarray | None, target_record: np.ndarray | None) -> None:
     """Re-run the envs with ``k0[e] < P`` tick by tick from their tick k0[e]: move, walls, resolve
-    collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb."""
+    collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb.
+
+    A tick's move: ``straight`` (P, B, M) increments, or (B, M) the step of every straight tick,
+    when pivots turn about the centre; with ``leg`` pivots, the increments of the unclipped
+    closed-form path ``disp`` (P, B, M)."""
     P, B, M = zk.shape
     sel = (k0 < P).nonzero()[0]
     Bs = sel.size
@@ -393,9 +450,15 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndar
     zs[:, :M] = z0[sel] if kmin == 0 else zk[kmin - 1, sel]
     if zb is not None:
         zs[:, M] = zb[sel]
-    inc_s = inc[:, sel]  # (P, Bs, M)
-    moving_env = go[:, sel].any(axis=2)  # (P, Bs)
     ticks = np.arange(P)[:, None]
+    ts, ss = t[sel], s[sel]
+    go = ticks[..., None] < ts + ss  # (P, Bs, M) robots moving at tick k
+    if leg:
+        inc_s = np.diff(disp[:, sel], axis=0, prepend=0.0)
+    else:
+        go &= ticks[..., None] >= ts
+        inc_s = straight[:, sel] if straight.ndim == 3 else go * straight[sel]
+    moving_env = go.any(axis=2)  # (P, Bs)
     last = np.where(moving_env.any(axis=0), P - np.argmax(moving_env[::-1], axis=0), 0)  # (Bs,) last moving tick + 1
     last = np.maximum(last, ks + 1)  # an env with contacts resolves strictly at least once
     k_end = int(last.max())
