@@ -41,8 +41,9 @@ ticks, then stop, so its collision-free path is closed form, for every tick at o
 the pivot leg (above; nothing with a centre pivot), then n straight steps along the heading after
 the pivots (``curve``: a geometric sum of rotated steps). Walls too: clipping a coordinate tick by
 tick equals clipping the unclipped path whenever that coordinate moves in one direction during the
-period (always true for a straight run after a centre pivot; a robot whose arc or curved run meets a
-wall and whose coordinate turns back is run tick by tick). Only the envs in which two discs on these
+period (always true for a straight run after a centre pivot), and in general, per coordinate,
+``x_k = min(x0 + D_k, a - r - (max_{j<=k} D_j - D_k))`` for the unclipped displacement D (a running
+maximum; the running minimum for the other wall; :func:`_clip_path`). Only the envs in which two discs on these
 paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
 the period start, travel = arc + straight path length) are re-run tick by tick from the first such
 tick, with the collision resolution; a tick's move there is the closed form's increment, which does
@@ -77,6 +78,9 @@ RELAX_OMEGA = 1.5
 #: 32-robot jam reaches OVERLAP_TOL_MM in ~15 sweeps instead of ~120 (measured on captured jams)
 RELAX_MARGIN_MM = 0.05
 MIN_SKIN_FRAC = 0.25  #: candidate pairs within 2r + skin; the skin is at least this x 2r
+#: the skin is this x a period's longest own path: a disc may move skin / 2 (its own path and pushes)
+#: before its env's list is rebuilt (at 2.0, with its own path alone, most crowded periods rebuilt)
+SKIN_TRAVELS = 2.5
 
 
 def wrap_angle(phi: np.ndarray) -> np.ndarray:
@@ -206,6 +210,8 @@ class _Contacts:
         compact_at = 1
         for sweep in range(MAX_RELAX_ITERS):
             if sweep == cap and capped is not None and capped.any():  # capped envs are done
+                if capped[limit_env > 0].all():
+                    return sweep
                 limit = np.where(capped.take(pe), -1.0, limit)
             dz = z.take(fi) - z.take(fj)  # (K,) from j to i
             d = np.abs(dz)
@@ -244,8 +250,10 @@ class Collider:
         assert cfg.robot_radius_mm > 0, "collisions need robot_radius_mm > 0"
         self.cfg = cfg
         self.diam = 2.0 * cfg.robot_radius_mm
-        #: candidate-pair skin: twice the longest straight run of a period at nominal speed
-        self.skin = max(2.0 * cfg.period_ticks * cfg.v_max_mm_s * cfg.tick_s, MIN_SKIN_FRAC * self.diam)
+        #: candidate-pair skin: SKIN_TRAVELS x the longest path of a period at nominal speed (straight run
+        #: or arc about the pivot leg), so a list built at a period's start rarely needs a rebuild
+        travel = cfg.period_ticks * cfg.tick_s * max(cfg.v_max_mm_s, cfg.pivot_offset_mm * cfg.omega_max_rad_s)
+        self.skin = max(SKIN_TRAVELS * travel, MIN_SKIN_FRAC * self.diam)
 
     def resolve(self, pos: np.ndarray, target: np.ndarray | None, tol: float = OVERLAP_TOL_MM,
                 beacon_mobility: float | np.ndarray = 0.0) -> int:
@@ -319,12 +327,14 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     phi0 = heading.copy() if leg else None
     phi_s = heading + t * theta  # heading when the straight ticks start
     k = np.arange(P).reshape(P, 1, 1)
-    n = np.clip(k + 1 - t, 0, s)  # (P, B, M) straight ticks done by the end of tick k
+    n = k + 1 - t  # (P, B, M) straight ticks done by the end of tick k
+    np.maximum(n, 0, out=n)
+    np.minimum(n, s, out=n)
     u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
     inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     if kappa is None:
         e = step * u_s  # (B, M) displacement of one straight tick
-        disp = n * e
+        disp = _scaled(n, e)
         heading[...] = wrap_angle(phi_s)
     else:  # each straight tick turns by kappa, then moves along the new heading
         inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
@@ -341,14 +351,11 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         zk = z0 + disp
     zkf = zk.view(np.float64)
     k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
-    if leg or kappa is not None:  # a path along a wall whose coordinate turns back: clip per tick
-        out = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=0)  # (B, M, 2) coordinates past a wall
-        b, r = out.any(axis=2).nonzero()
+    if leg or kappa is not None:  # a coordinate may turn back: the robots that meet a wall
+        b, r = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=(0, 3)).nonzero()
         if b.size:
-            dd = np.diff(disp[:, b, r], axis=0, prepend=0.0)  # (P, K) each tick's move
-            turns = np.stack([(c > 0).any(axis=0) & (c < 0).any(axis=0) for c in (dd.real, dd.imag)], -1)  # (K, 2)
-            k0[b[(turns & out[b, r]).any(axis=1)]] = 0
-    np.minimum(zkf, lim, out=zkf)  # walls: exact for monotone coordinates (see the module doc)
+            zk[:, b, r] = _clip_path(z0[b, r], disp.reshape(P, B * M).take(b * M + r, axis=1), lim)
+    np.minimum(zkf, lim, out=zkf)  # walls: clipping the path = clipping every tick, for monotone coordinates
     np.maximum(zkf, -lim, out=zkf)
 
     has_beacon = collider is not None and target is not None
@@ -366,6 +373,34 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         target[:, 0], target[:, 1] = zb.real, zb.imag
     if record is not None and not np.shares_memory(record, zk):
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
+
+
+def _scaled(n: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``n * e`` for integers n (P, B, M) and complex e (B, M), by two real products (NumPy casts
+    integers to complex an order of magnitude slower than it multiplies)."""
+    out = np.empty(n.shape, np.complex128)
+    f = out.view(np.float64).reshape(n.shape + (2,))
+    np.multiply(n, e.real, out=f[..., 0])
+    np.multiply(n, e.imag, out=f[..., 1])
+    return out
+
+
+def _clip_path(z0: np.ndarray, disp: np.ndarray, lim: float) -> np.ndarray:
+    """Positions (P, K) of paths ``z0 + disp`` (disp (P, K): the unclipped displacement after each
+    tick) clipped to [-lim, lim]² after every tick, in closed form.
+
+    Per coordinate, ``x_{k+1} = min(x_k + dx_k, lim)`` gives ``x_k = min(x0 + D_k, lim - (max_{j<=k}
+    D_j - D_k))`` (D_0 = 0 included), and likewise for the lower wall with the running minimum. Exact
+    for paths that come near one wall per coordinate at most (a period's travel is far below the
+    arena width).
+    """
+    out = []
+    for x0, d in ((z0.real, disp.real), (z0.imag, disp.imag)):
+        x = x0 + d
+        np.minimum(x, lim - (np.maximum(np.maximum.accumulate(d, axis=0), 0.0) - d), out=x)
+        np.maximum(x, (d - np.minimum(np.minimum.accumulate(d, axis=0), 0.0)) - lim, out=x)
+        out.append(x)
+    return out[0] + 1j * out[1]
 
 
 def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarray, left: np.ndarray,
@@ -391,7 +426,8 @@ def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarr
         rot = table.take(m)
     else:
         rot = np.exp(1j * (theta * m))
-    arc = c - c * rot  # (T, B, M)
+    arc = np.multiply(c, rot, out=rot)
+    np.subtract(c, arc, out=arc)  # (T, B, M) c (1 - exp(i m theta))
     disp[:T] += arc
     disp[T:] += arc[-1]
     return t * (R * np.abs(theta))
@@ -416,17 +452,18 @@ def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, trave
     if not near.size:
         return first
     e, i, j = e.take(near), i.take(near), j.take(near)
-    zi = zk[:, e, i]  # (P, K)
+    zf = zk.reshape(P, B * M)  # (take keeps the result C-ordered; fancy indexing here would not)
+    zi = zf.take(e * M + i, axis=1)  # (P, K)
     if zb is None:
-        zj = zk[:, e, j]
+        zj = zf.take(e * M + j, axis=1)
     else:
         beacon = j == M
-        zj = zk[:, e, np.minimum(j, M - 1)]
+        zj = zf.take(e * M + np.minimum(j, M - 1), axis=1)
         zj[:, beacon] = zb[e[beacon]]  # the beacon stays put unless pushed
     touch = np.abs(zi - zj) < diam - OVERLAP_TOL_MM  # (P, K)
     hit = touch.any(axis=0).nonzero()[0]
     if hit.size:
-        np.minimum.at(first, e.take(hit), touch[:, hit].argmax(axis=0))
+        np.minimum.at(first, e.take(hit), touch.take(hit, axis=1).argmax(axis=0))
     return first
 
 
@@ -447,23 +484,27 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
     lim = cfg.arena_half_mm - cfg.robot_radius_mm
     N = M + (zb is not None)
     zs = np.empty((Bs, N), np.complex128)
-    zs[:, :M] = z0[sel] if kmin == 0 else zk[kmin - 1, sel]
+    zs[:, :M] = (z0 if kmin == 0 else zk[kmin - 1]).take(sel, axis=0)
     if zb is not None:
         zs[:, M] = zb[sel]
     ticks = np.arange(P)[:, None]
     ts, ss = t[sel], s[sel]
     go = ticks[..., None] < ts + ss  # (P, Bs, M) robots moving at tick k
     if leg:
-        inc_s = np.diff(disp[:, sel], axis=0, prepend=0.0)
+        d = disp.take(sel, axis=1)
+        inc_s = np.empty_like(d)
+        inc_s[0] = d[0]
+        np.subtract(d[1:], d[:-1], out=inc_s[1:])
     else:
         go &= ticks[..., None] >= ts
-        inc_s = straight[:, sel] if straight.ndim == 3 else go * straight[sel]
+        inc_s = straight.take(sel, axis=1) if straight.ndim == 3 else go * straight.take(sel, axis=0)
     moving_env = go.any(axis=2)  # (P, Bs)
     last = np.where(moving_env.any(axis=0), P - np.argmax(moving_env[::-1], axis=0), 0)  # (Bs,) last moving tick + 1
     last = np.maximum(last, ks + 1)  # an env with contacts resolves strictly at least once
     k_end = int(last.max())
     moving = moving_env.any(axis=1).tolist()
-    starts = {k: (ks == k).nonzero()[0] for k in np.unique(ks).tolist() if k > kmin}  # later envs join here
+    later = (ks > kmin).nonzero()[0]  # envs joining after the first
+    starts = {k: later[ks.take(later) == k] for k in set(ks.take(later).tolist())}
     if collider is not None:
         contacts = _Contacts(zs.reshape(-1), Bs, N, cfg, collider.skin, None if zb is None else mobility[sel])
         diam = collider.diam
@@ -471,6 +512,7 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
         limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
         resolving = active.any(axis=1).tolist()
+        loose = ~strict
     flat = zs.reshape(-1)
     zsf = flat.view(np.float64)
     body = zs[:, :M]
@@ -484,11 +526,18 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
             np.minimum(zsf, lim, out=zsf)
             np.maximum(zsf, -lim, out=zsf)
         if collider is not None and resolving[k]:
-            contacts.relax(flat, limit[k], ~strict[k], TICK_SWEEPS)
+            contacts.relax(flat, limit[k], loose[k], TICK_SWEEPS)
         rec[k - kmin] = zs
-    mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1): an env's own ticks
-    zk[kmin:k_end, sel] = np.where(mine, rec[..., :M], zk[kmin:k_end, sel])
-    zk[k_end:, sel] = body
+    own = rec[..., :M]  # an env's own ticks; before an env's first tick its closed form stays
+    if later.size:
+        mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1)
+        own = np.where(mine, own, zk[kmin:k_end].take(sel, axis=1))
+    if Bs == B:
+        zk[kmin:k_end] = own
+        zk[k_end:] = body
+    else:
+        zk[kmin:k_end, sel] = own
+        zk[k_end:, sel] = body
     if zb is not None:
         if target_record is not None:  # the beacon rests until the first contact
             bz = np.concatenate([np.broadcast_to(zb[sel], (kmin, Bs)), rec[..., M],
