@@ -149,34 +149,42 @@ class _Contacts:
     """
 
     def __init__(self, z: np.ndarray, n_env: int, n_disc: int, cfg: WorldConfig, skin: float,
-                 mobility: np.ndarray | None) -> None:
+                 mobility: np.ndarray | None, pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+        """``z`` (n_env * n_disc,) the positions the list is built at; ``pairs`` (env, i, j), sorted:
+        the pairs within 2r + skin there, when the caller has them already."""
         self.n_env, self.n_disc = n_env, n_disc
         self.diam = 2.0 * cfg.robot_radius_mm
         self.lim = cfg.arena_half_mm - cfg.robot_radius_mm
         self.extent = cfg.arena_half_mm
         self.skin = skin
         self.mobility = mobility  # (n_env,) beacon mobility, or None: no beacon disc (last disc is a robot)
-        self.pe, self.fi, self.fj, self.wi, self.wj = self._pairs(z, np.arange(n_env))
+        if pairs is None:
+            pairs = self._within(z, np.arange(n_env))
+        self.pe, self.fi, self.fj, self.wi, self.wj = self._shares(*pairs)
         self.built_at = z.copy()
 
-    def _pairs(self, z: np.ndarray, envs: np.ndarray) -> tuple:
-        """(env, flat i, flat j, share i, share j) of the candidate pairs of ``envs`` (ascending)."""
+    def _within(self, z: np.ndarray, envs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(env, i, j) of the pairs of ``envs`` (ascending) within 2r + skin at ``z``, sorted."""
         N = self.n_disc
         zz = z.reshape(self.n_env, N)[envs]
         p = grid.pairs_within(zz.view(np.float64).reshape(envs.size, N, 2), self.diam + self.skin, self.extent)
-        pe = envs.take(p.env)
-        fi, fj = pe * N + p.i, pe * N + p.j  # i < j, so the beacon is always j
+        return envs.take(p.env), p.i, p.j
+
+    def _shares(self, pe: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple:
+        """(env, flat i, flat j, share i, share j) of pairs (env, i, j)."""
+        N = self.n_disc
+        fi, fj = pe * N + i, pe * N + j  # i < j, so the beacon is always j
         if self.mobility is None:
             return pe, fi, fj, None, None  # every pair shares its push equally
         # robot-beacon pairs: shares by mobility (robot 1, beacon m): 1 / (1 + m) and m / (1 + m)
-        m = np.where(p.j == N - 1, self.mobility.take(pe), 1.0)
+        m = np.where(j == N - 1, self.mobility.take(pe), 1.0)
         return pe, fi, fj, 2.0 / (1.0 + m), 2.0 * m / (1.0 + m)  # relative to an equal share
 
     def _rebuild(self, z: np.ndarray, envs: np.ndarray) -> None:
         stale = np.zeros(self.n_env, bool)
         stale[envs] = True
         keep = ~stale.take(self.pe)
-        new = self._pairs(z, envs)
+        new = self._shares(*self._within(z, envs))
         order = np.argsort(np.concatenate((self.pe[keep], new[0])), kind="stable")
         old = (self.pe, self.fi, self.fj, self.wi, self.wj)
         self.pe, self.fi, self.fj, self.wi, self.wj = (
@@ -360,12 +368,18 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
-    if collider is not None:
-        np.minimum(k0, _first_contacts(z0, zk, zb, travel, cfg), out=k0)
+    start = cand = None
+    if collider is not None:  # pairs near enough to touch this period (also the per-tick contact lists)
+        start = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N) discs at the start
+        tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
+        reach = max(2.0 * float(tr.max()), collider.skin)
+        cand = grid.pairs_within(start.view(np.float64).reshape(B, -1, 2), collider.diam + reach + 1e-9,
+                                 cfg.arena_half_mm)
+        np.minimum(k0, _first_contacts(cand, zk, zb, tr, collider.diam), out=k0)
     if (k0 < P).any():
         _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider,
                   None if not has_beacon else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)),
-                  target_record)
+                  target_record, start, cand)
     elif target_record is not None:
         target_record[...] = target  # the beacon stays put
     pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
@@ -433,17 +447,13 @@ def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarr
     return t * (R * np.abs(theta))
 
 
-def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, travel: np.ndarray,
-                    cfg: WorldConfig) -> np.ndarray:
+def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr: np.ndarray,
+                    diam: float) -> np.ndarray:
     """(B,) first tick at which two discs on their collision-free paths ``zk`` (P, B, M) come closer
-    than 2r - OVERLAP_TOL_MM in each env (P: never)."""
+    than 2r - OVERLAP_TOL_MM in each env (P: never). ``cand``: the disc pairs within 2r + the largest
+    ``tr[e, i] + tr[e, j]`` at the period start, ``tr`` (B, N) each disc's path length (0: the beacon)."""
     P, B, M = zk.shape
     first = np.full(B, P, np.int64)
-    diam = 2.0 * cfg.robot_radius_mm
-    allz = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N)
-    tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
-    reach_max = 2.0 * float(tr.max()) if tr.size else 0.0
-    cand = grid.pairs_within(allz.view(np.float64).reshape(B, -1, 2), diam + reach_max + 1e-9, cfg.arena_half_mm)
     if not len(cand):
         return first
     e, i, j = cand.env, cand.i, cand.j
@@ -469,9 +479,12 @@ def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, trave
 
 def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.ndarray, straight: np.ndarray,
               t: np.ndarray, s: np.ndarray, leg: bool, k0: np.ndarray, cfg: WorldConfig, collider: Collider | None,
-              mobility: np.ndarray | None, target_record: np.ndarray | None) -> None:
+              mobility: np.ndarray | None, target_record: np.ndarray | None, start: np.ndarray | None,
+              cand: grid.Pairs | None) -> None:
     """Re-run the envs with ``k0[e] < P`` tick by tick from their tick k0[e]: move, walls, resolve
     collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb.
+    ``start`` (B, N): the discs at the period start, ``cand`` the pairs within 2r + skin there (or
+    farther): the contact lists are built from them.
 
     A tick's move: ``straight`` (P, B, M) increments, or (B, M) the step of every straight tick,
     when pivots turn about the centre; with ``leg`` pivots, the increments of the unclipped
@@ -506,7 +519,13 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
     later = (ks > kmin).nonzero()[0]  # envs joining after the first
     starts = {k: later[ks.take(later) == k] for k in set(ks.take(later).tolist())}
     if collider is not None:
-        contacts = _Contacts(zs.reshape(-1), Bs, N, cfg, collider.skin, None if zb is None else mobility[sel])
+        loc = np.full(B, -1)
+        loc[sel] = np.arange(Bs)
+        le = loc.take(cand.env)
+        near = np.flatnonzero((le >= 0) & (cand.dist <= collider.diam + collider.skin))
+        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
+                             None if zb is None else mobility[sel],
+                             (le.take(near), cand.i.take(near), cand.j.take(near)))
         diam = collider.diam
         strict = ticks == last - 1
         active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k

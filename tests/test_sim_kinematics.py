@@ -133,6 +133,24 @@ def test_leg_pivot_moves_the_centre_along_the_arc(side):
                                        sign * math.sin(math.radians(35.5) + dphi / 2)], atol=1e-9)
 
 
+def test_arc_that_meets_a_wall_and_turns_back():
+    """A left pivot next to the right wall moves the centre into the wall, then away from it: the
+    closed form equals clipping every tick (not clipping the free arc once)."""
+    cfg = preset("kilobot", collisions=False)
+    lim = cfg.arena_half_mm - cfg.robot_radius_mm
+    pos = np.array([[[lim - 0.3, 0.0]]])
+    heading = np.array([[math.radians(90.0 - 35.5 - 20.0)]])  # the arc heads at 70 deg, ends at 116 deg
+    q = np.array([[[255, 0]]], np.uint8)
+    p_ref, h_ref = pos.copy(), heading.copy()
+    want = _reference(p_ref, h_ref, q, cfg)
+    free = _reference(pos.copy(), heading.copy(), q, preset("kilobot", collisions=False, arena_half_mm=1e4))
+    once = np.minimum(free, lim)  # the free arc, clipped afterwards
+    assert (want[:, 0, 0, 0] == lim).any() and np.abs(once - want).max() > 0.1
+    rec = np.empty_like(want)
+    tick_move(pos, heading, q, cfg, None, None, rec)
+    np.testing.assert_allclose(rec, want, rtol=0, atol=1e-9)
+
+
 def test_leg_pivot_then_straight_and_centre_pivot():
     """A pivot then straight period: the straight run starts where the arc ends, along the new
     heading; with pivot_offset_mm = 0 the pivot leaves the centre in place."""
