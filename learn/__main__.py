@@ -3,6 +3,7 @@
     python -m learn train --robots 4 --history 10 --out runs/NAME [--preset fast] [--world thesis]
                           [--seed S] [--config file.json] [--resume] [--<any TrainConfig field> VALUE]
     python -m learn train-recurrent --robots 2 --out runs/NAME [--preset guided] [--<any RecurrentConfig field>]
+    python -m learn train-es --robots 4 16 32 --out runs/NAME [--preset quick] [--<any ESConfig field>]
     python -m learn evaluate --policy P [P ...] --robots 16 32 --episodes 500 --steps 500 --out DIR
     python -m learn plot RUN_DIR [RUN_DIR ...] [--out curve.png]
     python -m learn export-onnx --policy P.npz --out actor.onnx
@@ -57,6 +58,9 @@ def build_parser() -> ArgumentParser:
 
     sub.add_parser("train-recurrent", add_help=False,
                    help="train a recurrent (GRU) policy with MAGRDPG (python -m learn train-recurrent --help)")
+    sub.add_parser("train-es", add_help=False,
+                   help="train an MLP policy with evolution strategies from a clone of the searcher "
+                        "(python -m learn train-es --help)")
     sub.add_parser("export-onnx", add_help=False,
                    help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
     sub.add_parser("sweep", add_help=False,
@@ -126,10 +130,11 @@ def _main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in ("train", "train-recurrent"):  # learn/cli.py: tyro parsers of the configs
-        from .cli import main_train, main_train_recurrent
+    if argv and argv[0] in ("train", "train-recurrent", "train-es"):  # learn/cli.py: tyro parsers of the configs
+        from .cli import main_train, main_train_es, main_train_recurrent
 
-        return main_train(argv[1:]) if argv[0] == "train" else main_train_recurrent(argv[1:])
+        return {"train": main_train, "train-recurrent": main_train_recurrent,
+                "train-es": main_train_es}[argv[0]](argv[1:])
     if argv and argv[0] == "export-onnx":  # its own parser lives with the exporter (learn/onnx_export.py)
         from .onnx_export import main_export_onnx
 

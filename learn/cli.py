@@ -28,7 +28,7 @@ import tyro
 
 from sim.config import PRESETS as WORLD_PRESETS
 
-from .config import PRESETS, ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
+from .config import PRESETS, ConfigBase, ConfigError, ESConfig, ExperimentConfig, RecurrentConfig, TrainConfig
 
 _BOX = re.compile(r"[╭╮╰╯│]")
 
@@ -41,7 +41,7 @@ RUN_OPTIONS = (("preset", Optional[str], None, "training preset (the world is --
                ("quiet", bool, False, "no progress bar; one line per evaluation"))
 
 
-def _args_class(cls: type[ExperimentConfig]) -> type:
+def _args_class(cls: type[ConfigBase]) -> type:
     """The CLI of one config class: its fields (no prefix), then the run options."""
     fields = [("cfg", Annotated[cls, tyro.conf.arg(name="")])]
     fields += [(name, Annotated[typ, tyro.conf.arg(help=doc)], dataclasses.field(default=default))
@@ -60,8 +60,8 @@ def read_json(path: Path) -> dict:
         raise ConfigError(f"cannot read '{path}': {e}") from None
 
 
-def base_config(cls: type[ExperimentConfig], preset: str | None, config: str | None, resume: bool,
-                out: str | None, default_preset: str) -> ExperimentConfig:
+def base_config(cls: type[ConfigBase], preset: str | None, config: str | None, resume: bool,
+                out: str | None, default_preset: str) -> ConfigBase:
     """defaults < preset < config file; with ``resume`` the run's own config.json."""
     if resume:
         if not out:
@@ -99,7 +99,7 @@ def _tyro_error(text: str) -> str:
     return msg
 
 
-def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, default_preset: str):
+def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_preset: str):
     """(config, run directory, resume, quiet) from the command line; ConfigError (one line) on bad input."""
     meta = argparse.ArgumentParser(add_help=False)
     for flag in ("--preset", "--config", "--out"):
@@ -135,16 +135,56 @@ def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, de
     return cfg, out, args.resume, args.quiet
 
 
-def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = TrainConfig,
+def report_rl(res) -> None:
+    """What a MAGDDPG / MAGRDPG run prints when it ends."""
+    c = res.counters
+    best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
+    print(f"  {c.env_steps} transitions, {c.updates} updates in {c.wall_s:.0f} s: "
+          f"{c.env_steps / c.env_s if c.env_s else float('nan'):.0f} env steps/s while collecting, "
+          f"{c.updates / c.update_s if c.update_s else float('nan'):.0f} updates/s while updating")
+    if best:
+        print(f"  best evaluation at {best['env_steps']:.0f} transitions: return {best['eval_return']:.1f}, "
+              f"final coverage {best['eval_final_coverage']:.3f}, time to find {best['eval_time_to_find']:.1f}")
+
+
+def report_es(res) -> None:
+    """What an ES run prints when it ends."""
+    c = res.counters
+    print(f"  {c.rows[-1]['generation'] if c.rows else 0:.0f} generations, {c.env_steps} env steps in {c.wall_s:.0f} s")
+    if c.rows:
+        best = max(c.rows, key=lambda r: r["eval_final_coverage"])
+        sizes = "  ".join(f"{k[len('eval_final_coverage_m'):]} robots {v:.3f}" for k, v in best.items()
+                          if k.startswith("eval_final_coverage_m"))
+        print(f"  best evaluation at generation {best['generation']:.0f}: final coverage "
+              f"{best['eval_final_coverage']:.3f}{'  (' + sizes + ')' if sizes else ''}")
+
+
+def _rl_trainer():
+    from .train import train
+
+    return train
+
+
+def _es_trainer():
+    from .es_train import train_es
+
+    return train_es
+
+
+#: per algorithm: (the trainer, loaded lazily; what its run prints at the end)
+TRAINERS = {"magddpg": (_rl_trainer, report_rl), "magrdpg": (_rl_trainer, report_rl), "es": (_es_trainer, report_es)}
+
+
+def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfig,
                prog: str = "python -m learn train", default_preset: str = "default") -> int:
     """CLI entry point of one algorithm; returns the exit status."""
     from kiloforge.errors import KiloforgeError
     from kiloforge.interrupts import exit_status
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    load, report = TRAINERS[cls.algorithm]
     try:
-        from .train import train
-
+        train = load()
         cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)
         note = cfg.budget_note()
         if note:
@@ -153,19 +193,12 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as e:  # outside train()'s own handling (which checkpoints): loading, setting up, ending
+    except KeyboardInterrupt as e:  # outside the trainer's own handling (which checkpoints): loading, setting up, ending
         print(f"{prog}: error: interrupted; the run directory keeps its last checkpoint, if any "
               "(--resume continues it, or restarts a run without one)", file=sys.stderr)
         return exit_status(e)
-    c = res.counters
-    best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
     print(f"run: {res.run_dir}  ({res.stopped})")
-    print(f"  {c.env_steps} transitions, {c.updates} updates in {c.wall_s:.0f} s: "
-          f"{c.env_steps / c.env_s if c.env_s else float('nan'):.0f} env steps/s while collecting, "
-          f"{c.updates / c.update_s if c.update_s else float('nan'):.0f} updates/s while updating")
-    if best:
-        print(f"  best evaluation at {best['env_steps']:.0f} transitions: return {best['eval_return']:.1f}, "
-              f"final coverage {best['eval_final_coverage']:.3f}, time to find {best['eval_time_to_find']:.1f}")
+    report(res)
     pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
             if (res.run_dir / n).is_file()]
     print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
@@ -175,4 +208,9 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
 def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:
     """``python -m learn train-recurrent``: MAGRDPG (default preset ``fast``)."""
     return main_train(argv, RecurrentConfig, prog, "fast")
+
+
+def main_train_es(argv: list[str] | None = None, prog: str = "python -m learn train-es") -> int:
+    """``python -m learn train-es``: evolution strategies from a behaviour-cloned MLP (learn.es_train)."""
+    return main_train(argv, ESConfig, prog, "default")
 

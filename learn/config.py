@@ -44,6 +44,7 @@ from typing import Annotated, Any, ClassVar
 
 import tyro
 
+from sim.config import MAX_EPISODE_STEPS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
 from sim.config import preset as world_preset
@@ -68,8 +69,61 @@ Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
 HistoryLength = Annotated[int, tyro.conf.arg(aliases=("--history",))]
 
 
+class ConfigBase:
+    """What every algorithm's config shares: tuple fields, the world, JSON round trip (not used on its own)."""
+
+    algorithm: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.n_robots, int) and not isinstance(self.n_robots, bool):
+            self.n_robots = (self.n_robots,)
+        for name in self._tuple_fields():
+            value = getattr(self, name)
+            if isinstance(value, list):
+                setattr(self, name, tuple(value))
+
+    @classmethod
+    def _tuple_fields(cls) -> tuple[str, ...]:
+        return tuple(f for f, h in _hints(cls).items() if typing.get_origin(h) is tuple)
+
+    def world_config(self) -> WorldConfig:
+        """The world this run trains in (world preset, with ``episode_steps`` when set)."""
+        if self.episode_steps:
+            return world_preset(self.world, episode_steps=self.episode_steps)
+        return world_preset(self.world)
+
+    # --- (de)serialisation ---------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready fields and the algorithm; one swarm size is written as an integer."""
+        d = {"algorithm": self.algorithm, **dataclasses.asdict(self)}
+        d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        if len(self.n_robots) == 1:
+            d["n_robots"] = self.n_robots[0]
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], base: "ConfigBase | None" = None):
+        """Fields of ``d`` replace those of ``base`` (default: the defaults); unknown keys and values of
+        the wrong type are an error (one line naming the field). Not validated: call ``validate()``."""
+        if not isinstance(d, dict):
+            raise ConfigError(f"a training config must be a JSON object, got {type(d).__name__}")
+        d = dict(d)
+        algo = d.pop("algorithm", cls.algorithm)
+        if algo != cls.algorithm:
+            raise ConfigError(f"this is a {algo} config, not {cls.algorithm}")
+        hints = _hints(cls)
+        unknown = sorted(set(d) - set(hints))
+        if unknown:
+            raise ConfigError(f"unknown training config field(s): {', '.join(unknown)} "
+                              f"({cls.algorithm}; known: {', '.join(hints)})")
+        return dataclasses.replace(base or cls(), **{k: check_type(cls, k, v) for k, v in d.items()})
+
+
 @dataclass
-class ExperimentConfig:
+class ExperimentConfig(ConfigBase):
     """Fields of every algorithm (see the module doc); use TrainConfig or RecurrentConfig."""
 
     algorithm: ClassVar[str] = ""
@@ -135,18 +189,6 @@ class ExperimentConfig:
     seed: int = 1  #: master seed (networks, environments, noise, replay sampling, evaluation)
     exp_name: str = "default"  #: experiment name used in the default run directory name
 
-    def __post_init__(self) -> None:
-        if isinstance(self.n_robots, int) and not isinstance(self.n_robots, bool):
-            self.n_robots = (self.n_robots,)
-        for name in self._tuple_fields():
-            value = getattr(self, name)
-            if isinstance(value, list):
-                setattr(self, name, tuple(value))
-
-    @classmethod
-    def _tuple_fields(cls) -> tuple[str, ...]:
-        return tuple(f for f, h in _hints(cls).items() if typing.get_origin(h) is tuple)
-
     # --- validation ----------------------------------------------------------------------------
     def validate(self) -> "ExperimentConfig":
         """Raise :class:`ConfigError` (one line) for a bad value; return self."""
@@ -209,12 +251,6 @@ class ExperimentConfig:
         return self
 
     # --- derived -------------------------------------------------------------------------------
-    def world_config(self) -> WorldConfig:
-        """The world this run trains in (world preset, with ``episode_steps`` when set)."""
-        if self.episode_steps:
-            return world_preset(self.world, episode_steps=self.episode_steps)
-        return world_preset(self.world)
-
     @property
     def total_episodes(self) -> int:
         return self.warmup_episodes + self.episodes
@@ -228,36 +264,6 @@ class ExperimentConfig:
     def demo_samples(self) -> int:
         """Demonstration samples added to every minibatch (0 without a demonstrator)."""
         raise NotImplementedError
-
-    # --- (de)serialisation ---------------------------------------------------------------------
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready fields and the algorithm; one swarm size is written as an integer."""
-        d = {"algorithm": self.algorithm, **dataclasses.asdict(self)}
-        d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-        if len(self.n_robots) == 1:
-            d["n_robots"] = self.n_robots[0]
-        return d
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any], base: "ExperimentConfig | None" = None):
-        """Fields of ``d`` replace those of ``base`` (default: the defaults); unknown keys and values of
-        the wrong type are an error (one line naming the field). Not validated: call ``validate()``."""
-        if not isinstance(d, dict):
-            raise ConfigError(f"a training config must be a JSON object, got {type(d).__name__}")
-        d = dict(d)
-        algo = d.pop("algorithm", cls.algorithm)
-        if algo != cls.algorithm:
-            raise ConfigError(f"this is a {algo} config, not {cls.algorithm}")
-        hints = _hints(cls)
-        unknown = sorted(set(d) - set(hints))
-        if unknown:
-            raise ConfigError(f"unknown training config field(s): {', '.join(unknown)} "
-                              f"({cls.algorithm}; known: {', '.join(hints)})")
-        return dataclasses.replace(base or cls(), **{k: check_type(cls, k, v) for k, v in d.items()})
-
 
 @dataclass
 class TrainConfig(ExperimentConfig):
@@ -353,7 +359,90 @@ class RecurrentConfig(ExperimentConfig):
         return self.demo_windows if self.demo_policy != "none" else 0
 
 
-CONFIGS: dict[str, type[ExperimentConfig]] = {"magddpg": TrainConfig, "magrdpg": RecurrentConfig}
+@dataclass
+class ESConfig(ConfigBase):
+    """Evolution strategies (learn.es): OpenAI-ES on final coverage, from a behaviour-cloned MLP. Field docs double as --help."""
+
+    algorithm: ClassVar[str] = "es"
+
+    # --- task --------------------------------------------------------------------------------
+    world: str = "kilobot"  #: world preset (sim.config.PRESETS): thesis or kilobot
+    n_robots: Robots = (4, 16, 32)  #: swarm sizes; every generation plays each of them
+    size_weights: tuple[int, ...] = ()  #: relative weight of each swarm size in the fitness (empty = equal)
+    episode_steps: int = 0  #: control steps of a training episode; 0 = the world's (kilobot: 300)
+    randomise: str = "none"  #: domain randomisation of the training episodes (a name in sim.variants.RANDOMISATIONS)
+    # --- actor (an MLP over the T_prev history, as MAGDDPG's) ---------------------------------
+    t_prev: HistoryLength = 20  #: history length T_prev in (previous action, observation) tuples
+    actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
+    # --- start: behaviour cloning of the demonstrator ------------------------------------------
+    demo_policy: str = "searcher"  #: demonstrator: searcher (the hand-written searcher, turning left) or none (random init)
+    demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
+    bc_updates: int = 6000  #: behaviour-cloning Adam steps
+    bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning
+    bc_batch: int = 2048  #: robot-steps per cloning step, split equally over the swarm sizes
+    # --- evolution strategies -----------------------------------------------------------------
+    generations: int = 60  #: ES generations (one update of the weights each)
+    pairs: int = 16  #: antithetic pairs per generation (2 x pairs population members)
+    sigma: float = 0.02  #: standard deviation of the weight perturbations
+    lr: float = 0.01  #: Adam learning rate of the ES ascent
+    episodes_per_member: int = 1  #: episodes per member and swarm size per generation (common to all members)
+    # --- evaluation and bookkeeping ----------------------------------------------------------
+    eval_every: int = 5  #: evaluate every this many generations (and after the last)
+    eval_episodes: int = 16  #: deterministic evaluation episodes per swarm size (fixed seeds)
+    eval_steps: int = 500  #: control steps of an evaluation episode (the benchmark's 500)
+    max_minutes: float = 0.0  #: stop after the first generation past this wall-clock time (0 = no limit)
+    threads: int = 0  #: torch CPU threads; 0 = auto (1)
+    seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)
+    exp_name: str = "es"  #: experiment name used in the default run directory name
+
+    def validate(self) -> "ESConfig":
+        """Raise :class:`ConfigError` (one line) for a bad value; return self."""
+        need(self.world in WORLD_PRESETS, f"world must be one of {', '.join(sorted(WORLD_PRESETS))}, got '{self.world}'")
+        need(len(self.n_robots) >= 1 and all(isinstance(m, int) and 1 <= m <= MAX_ROBOTS for m in self.n_robots),
+             f"n_robots must be in 1..{MAX_ROBOTS}, got {_show(self.n_robots)}")
+        need(len(set(self.n_robots)) == len(self.n_robots), f"n_robots lists a size twice: {_show(self.n_robots)}")
+        need(not self.size_weights or (len(self.size_weights) == len(self.n_robots) and min(self.size_weights) >= 0
+                                       and sum(self.size_weights) > 0),
+             f"size_weights must be empty or one non-negative weight per swarm size ({len(self.n_robots)}), "
+             f"got {list(self.size_weights)}")
+        need(self.episode_steps >= 0, f"episode_steps must be >= 0 (0 = the world's), got {self.episode_steps}")
+        need(1 <= self.t_prev <= 200, f"t_prev (history) must be in 1..200, got {self.t_prev}")
+        need(len(self.actor_hidden) >= 1 and all(1 <= w <= 4096 for w in self.actor_hidden),
+             f"actor_hidden must be one or more widths in 1..4096, got {list(self.actor_hidden)}")
+        need(self.demo_policy in DEMO_POLICIES,
+             f"demo_policy must be one of {', '.join(DEMO_POLICIES)}, got '{self.demo_policy}'")
+        for name in ("demo_robot_episodes", "bc_batch", "generations", "pairs", "episodes_per_member",
+                     "eval_every", "eval_episodes", "eval_steps"):
+            need(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
+        need(self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}")
+        for name in ("bc_lr", "sigma", "lr"):
+            v = getattr(self, name)
+            need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")
+        need(self.max_minutes >= 0 and math.isfinite(self.max_minutes), f"max_minutes must be >= 0, got {self.max_minutes}")
+        need(0 <= self.threads <= 256, f"threads must be in 0..256 (0 = auto), got {self.threads}")
+        need(0 <= self.seed < 2 ** 63, f"seed must be a non-negative integer, got {self.seed}")
+        need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
+             f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")
+        if self.randomise != "none":
+            randomisation(self.randomise)  # ConfigError for an unknown name
+        need(self.eval_steps <= MAX_EPISODE_STEPS, f"eval_steps must be <= {MAX_EPISODE_STEPS}, got {self.eval_steps}")
+        return self
+
+    def eval_world(self) -> WorldConfig:
+        """The world of the evaluation episodes (the training world with ``eval_steps`` steps)."""
+        return world_preset(self.world, episode_steps=self.eval_steps)
+
+    def weights(self) -> list[float]:
+        """The swarm sizes' fitness weights, summing to 1."""
+        w = self.size_weights or (1,) * len(self.n_robots)
+        return [x / sum(w) for x in w]
+
+    def budget_note(self) -> str | None:
+        """Why the exporter would refuse this actor (None when it fits the Kilobot)."""
+        return TrainConfig(world=self.world, t_prev=self.t_prev, actor_hidden=self.actor_hidden).budget_note()
+
+
+CONFIGS: dict[str, type[ConfigBase]] = {"magddpg": TrainConfig, "magrdpg": RecurrentConfig, "es": ESConfig}
 
 
 def config_from_dict(d: dict[str, Any]) -> ExperimentConfig:
@@ -485,7 +574,13 @@ RECURRENT_PRESETS: dict[str, dict[str, Any]] = {
     "quick": {"max_minutes": 5.0, "replay_size": 100_000, "eval_every": 12_800, "exp_name": "gru-quick"},
     "guided": {**_GUIDED, "exp_name": "gru-guided"},
 }
-PRESETS: dict[str, dict[str, dict[str, Any]]] = {"magddpg": TRAIN_PRESETS, "magrdpg": RECURRENT_PRESETS}
+#: ES presets: ``default`` is the recipe of the shipped policy; ``quick`` a few minutes at 4 and 16 robots
+ES_PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "quick": {"n_robots": [4, 16], "demo_robot_episodes": 192, "bc_updates": 2000, "generations": 12, "pairs": 8,
+              "eval_every": 4, "eval_episodes": 8, "max_minutes": 8.0, "exp_name": "es-quick"},
+}
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {"magddpg": TRAIN_PRESETS, "magrdpg": RECURRENT_PRESETS, "es": ES_PRESETS}
 
 
 def from_preset(name: str, cls: type[ExperimentConfig] = TrainConfig, **overrides: Any) -> ExperimentConfig:

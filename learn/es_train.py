@@ -1,0 +1,267 @@
+"""``train_es``: the evolution-strategies run — clone the demonstrator, then ascend final coverage.
+
+Read top to bottom: seeding (one ``SeedSequence``; every generation's perturbations and episodes are
+drawn from its own child ``(seed, generation)``, so a resumed run needs only the generation index,
+the weights and Adam's moments to continue exactly), the actor (MAGDDPG's MLP over the T_prev
+history, so artifacts, export and evaluation are the ones of every other run), behaviour cloning of
+the searcher on every swarm size (:mod:`learn.demos`), then the generations (:mod:`learn.es`). Every
+``eval_every`` generations the current weights play fixed evaluation episodes of ``eval_steps``
+steps at every swarm size; the best mean final coverage over the sizes is ``policy_best.npz``.
+
+The run directory is the one of :mod:`learn.rundir` (config.json, world.json, metrics.csv,
+learning_curve.png, checkpoint.pt, policy_bc/best/last.npz, summary.json). SIGINT / SIGTERM stop
+after the current generation with a checkpoint; the CLI exits 130 / 143.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from kiloforge.io import write_atomic
+
+from .checkpoint import Checkpointer
+from .config import ConfigError, ESConfig, TrainConfig
+from .demos import bc_pretrain, collect_demos, demonstrator
+from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
+from .evaluate import Evaluator, LearnerPolicy, metrics_row
+from .interrupt import Interrupted, StopRequest
+from .magddpg import MAGDDPG
+from .rundir import Counters, RunResult, check_resumable, finite_or_none, git_hash, prepare_run_dir, rows_to_csv, \
+    write_summary
+from .speed import set_threads, tune_allocator
+
+CHECKPOINT_VERSION = 1
+DEMO_ENVS = 24  #: demonstrator envs stepped together per swarm size
+
+
+def _child(ss: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:
+    """The child of ``ss`` at ``key``, independent of how many children were drawn before."""
+    return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + tuple(key))
+
+
+def actor_algo(cfg: ESConfig, world) -> MAGDDPG:
+    """The MLP actor (in a MAGDDPG, for its artifact, cloning loss and acting)."""
+    tc = TrainConfig(world=cfg.world, n_robots=(min(cfg.n_robots),), t_prev=cfg.t_prev,
+                     actor_hidden=cfg.actor_hidden, critic_hidden=(1,))
+    return MAGDDPG.from_config(tc, world)
+
+
+def get_theta(algo: MAGDDPG) -> torch.Tensor:
+    return torch.nn.utils.parameters_to_vector(algo.actor.net.parameters()).detach().double().clone()
+
+
+def set_theta(algo: MAGDDPG, theta: torch.Tensor) -> None:
+    with torch.no_grad():
+        torch.nn.utils.vector_to_parameters(theta.float(), algo.actor.net.parameters())
+
+
+def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, progress: bool = True,
+             log: Callable[[str], None] = print) -> RunResult:
+    """Run ``cfg`` into ``run_dir`` (``resume`` continues its checkpoint); returns counters and why it stopped."""
+    cfg.validate()
+    run_dir = Path(run_dir)
+    resume = prepare_run_dir(run_dir, resume, log)
+    ckpt = Checkpointer(run_dir)
+    world, eval_world = cfg.world_config(), cfg.eval_world()
+    set_threads(cfg.threads)
+    tune_allocator()
+    randomise = None
+    if cfg.randomise != "none":
+        from .config import randomisation
+
+        randomise = randomisation(cfg.randomise)
+
+    # --- seeding -------------------------------------------------------------------------------
+    ss_init, ss_demo, ss_gen, ss_eval = np.random.SeedSequence(cfg.seed).spawn(4)
+    torch.manual_seed(int(ss_init.generate_state(1, np.uint64)[0]))
+    eval_seed = int(ss_eval.generate_state(1, np.uint32)[0])
+
+    algo = actor_algo(cfg, world)
+    pop = PopulationMLP.of(algo.actor.net)
+    evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed) for M in cfg.n_robots]
+    weights = cfg.weights()
+    c = Counters()
+    result = RunResult(run_dir, c, "done")
+    theta = get_theta(algo)
+    adam = Adam(pop.n_params, cfg.lr)
+    gen = 0
+
+    def export(name: str, row: dict) -> None:
+        from kiloforge.policies import save_policy
+
+        prov = {"trainer": "kiloforge.learn ES", "config": cfg.to_dict(), "seed": cfg.seed, "git": git_hash(),
+                "torch": torch.__version__, "trained_robots": list(cfg.n_robots), "generations": gen,
+                "env_steps": c.env_steps, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(row))}
+        save_policy(algo.artifact(world, prov), run_dir / name)
+
+    def evaluate() -> dict:
+        set_theta(algo, theta)
+        per_size = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, eval_world))) for ev in evaluators}
+        keys = next(iter(per_size.values())).keys()
+        return {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys} | \
+            ({f"{k}_m{M}": v for M, m in per_size.items() for k, v in m.items()} if len(per_size) > 1 else {})
+
+    def log_row(metrics: dict, fitness: float) -> dict:
+        row = {"env_steps": c.env_steps, "episodes": c.episodes, "updates": gen, "wall_s": round(c.wall_s, 2),
+               **metrics, "train_return": float("nan"), "critic_loss": float("nan"), "q_mean": float("nan"),
+               "env_steps_per_s": c.env_steps / c.env_s if c.env_s > 0 else float("nan"),
+               "updates_per_s": float("nan"), "generation": gen, "fitness": fitness}
+        c.rows.append(row)
+        c.evals += 1
+        export("policy_last.npz", row)
+        if row["eval_final_coverage"] > c.best_return:  # ES selects on final coverage, not return
+            c.best_return = row["eval_final_coverage"]
+            export("policy_best.npz", row)
+        write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+        from .plots import plot_learning_curves
+
+        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
+                             title=f"ES, {'/'.join(map(str, cfg.n_robots))} robots, {algo.describe()} ({cfg.world} world)")
+        return row
+
+    def save() -> None:
+        t0 = time.perf_counter()
+        c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+        ckpt.save({"version": CHECKPOINT_VERSION, "algorithm": cfg.algorithm, "config": cfg.to_dict(),
+                   "generation": gen, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
+        c.checkpoint_s += time.perf_counter() - t0
+
+    stop = StopRequest()
+    bar = None
+    session_start = time.perf_counter()
+    wall_at_start = 0.0
+    with stop:
+        try:
+            if resume:
+                state = ckpt.load([])
+                if state.get("version") != CHECKPOINT_VERSION or state.get("algorithm") != cfg.algorithm:
+                    raise ConfigError(f"'{ckpt.path}' is not an ES checkpoint of version {CHECKPOINT_VERSION}")
+                check_resumable(state["config"], cfg)
+                gen = int(state["generation"])
+                theta = state["theta"].double()
+                adam.load_state_dict(state["adam"])
+                c = result.counters = Counters(**state["counters"])
+                log(f"resumed {run_dir} at generation {gen}")
+            else:
+                ckpt.clean()
+                write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
+                write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
+                if cfg.demo_policy != "none":
+                    clone(cfg, world, algo, ss_demo, stop, progress, log)
+                    theta = get_theta(algo)
+                    export("policy_bc.npz", {})
+                    bc = evaluate()
+                    demo = {M: metrics_row(ev(demonstrator(eval_world)))["eval_final_coverage"] for M, ev in
+                            zip(cfg.n_robots, evaluators)}
+                    write_atomic(run_dir / "demos.json", json.dumps(finite_or_none(
+                        {"clone": bc, "demonstrator_final_coverage": demo}), indent=2, sort_keys=True) + "\n")
+                    log(f"behaviour clone: final coverage {bc['eval_final_coverage']:.3f} "
+                        f"(demonstrator {np.mean(list(demo.values())):.3f})")
+                log_row(evaluate(), float("nan"))
+                save()
+            wall_at_start = c.wall_s
+            session_start = time.perf_counter()
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
+                           desc=run_dir.name[:40])
+            while gen < cfg.generations:
+                stop.check()
+                if cfg.max_minutes and wall_at_start + time.perf_counter() - session_start >= 60 * cfg.max_minutes:
+                    result.stopped = "time"
+                    break
+                t0 = time.perf_counter()
+                fitness, utility = generation(cfg, world, pop, theta, _child(ss_gen, gen), weights, randomise, c)
+                eps = fitness.pop("eps")
+                theta = adam.step(theta, es_direction(utility, eps, cfg.sigma))
+                gen += 1
+                c.env_s += time.perf_counter() - t0
+                c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix_str(f"fitness {fitness['mean']:.3f}", refresh=True)
+                if gen % cfg.eval_every == 0 or gen == cfg.generations:
+                    t1 = time.perf_counter()
+                    row = log_row(evaluate(), fitness["mean"])
+                    c.eval_s += time.perf_counter() - t1
+                    msg = f"generation {gen}: final coverage {row['eval_final_coverage']:.3f} (fitness {fitness['mean']:.3f})"
+                    if bar is not None:
+                        bar.write(msg)
+                    else:
+                        log(msg)
+                    save()
+        except (Interrupted, KeyboardInterrupt) as e:
+            result.stopped = "interrupted"
+            result.signal = e.signum if isinstance(e, Interrupted) else 2
+            if ckpt.exists():
+                save()
+                log("interrupted: checkpoint written; --resume continues from it")
+            else:
+                log("interrupted before the first checkpoint; --resume restarts the run")
+        finally:
+            if bar is not None:
+                bar.close()
+    if result.stopped != "interrupted" and ckpt.exists():
+        save()
+    c.wall_s = wall_at_start + (time.perf_counter() - session_start)
+    write_summary(run_dir, cfg, c, result.stopped)
+    return result
+
+
+def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, stop: StopRequest,
+          progress: bool, log) -> float:
+    """Behaviour cloning of the demonstrator on every swarm size (equal robot-steps per size)."""
+    rng = np.random.default_rng(ss_demo)
+    demos = []
+    for M in cfg.n_robots:
+        episodes = math.ceil(cfg.demo_robot_episodes / M)
+        demos.append(collect_demos(world, M, episodes, min(episodes, DEMO_ENVS), rng, t_prev=cfg.t_prev))
+        stop.check()
+    shares = [max(1, cfg.bc_batch // (len(cfg.n_robots) * M)) for M in cfg.n_robots]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.bc_updates, unit="step", desc="behaviour cloning", dynamic_ncols=True, leave=False)
+
+    def tick(k: int, loss: float) -> None:
+        stop.check()
+        if bar is not None:
+            bar.update(1)
+            if k % 100 == 0:
+                bar.set_postfix_str(f"loss {loss:.4f}")
+
+    try:
+        loss = bc_pretrain(algo, demos, shares, cfg.bc_updates, cfg.bc_lr, rng, tick)
+    finally:
+        if bar is not None:
+            bar.close()
+    log(f"behaviour cloning: {cfg.bc_updates} steps, final loss {loss:.4f}")
+    return loss
+
+
+def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
+               weights: list[float], randomise, c: Counters) -> tuple[dict, np.ndarray]:
+    """One generation's antithetic population on every swarm size: fitness summary and utilities (2 · pairs,)."""
+    rng = np.random.default_rng(_child(ss, 0))
+    eps = torch.from_numpy(rng.standard_normal((cfg.pairs, pop.n_params)))
+    members = torch.cat([theta + cfg.sigma * eps, theta - cfg.sigma * eps])
+    utility = np.zeros(2 * cfg.pairs)
+    fit = np.zeros(2 * cfg.pairs)
+    for i, (M, w) in enumerate(zip(cfg.n_robots, weights)):
+        seeds = [_child(ss, 1 + i, e) for e in range(cfg.episodes_per_member)]
+        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, randomise)
+        f = res.final_coverage.mean(axis=1)
+        utility += w * centred_ranks(f)
+        fit += w * f
+        c.env_steps += 2 * cfg.pairs * len(seeds) * world.episode_steps
+        c.episodes += 2 * cfg.pairs * len(seeds)
+    return {"mean": float(fit.mean()), "max": float(fit.max()), "eps": eps}, utility
