@@ -130,7 +130,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         t0 = time.perf_counter()
         c.wall_s = wall_at_start + (time.perf_counter() - session_start)
         ckpt.save({"version": CHECKPOINT_VERSION, "algorithm": cfg.algorithm, "config": cfg.to_dict(),
-                   "generation": gen, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
+                   "es_generation": gen, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
         c.checkpoint_s += time.perf_counter() - t0
 
     stop = StopRequest()
@@ -144,7 +144,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 if state.get("version") != CHECKPOINT_VERSION or state.get("algorithm") != cfg.algorithm:
                     raise ConfigError(f"'{ckpt.path}' is not an ES checkpoint of version {CHECKPOINT_VERSION}")
                 check_resumable(state["config"], cfg)
-                gen = int(state["generation"])
+                gen = int(state["es_generation"])
                 theta = state["theta"].double()
                 adam.load_state_dict(state["adam"])
                 c = result.counters = Counters(**state["counters"])

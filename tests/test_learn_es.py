@@ -1,0 +1,136 @@
+"""Evolution strategies: the batched population MLP, common random numbers, ranks, the run and its exact resume."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from kiloforge.policies import load_policy  # noqa: E402
+from learn.__main__ import main  # noqa: E402
+from learn.checkpoint import load_checkpoint  # noqa: E402
+from learn.config import ConfigError, ESConfig, from_preset  # noqa: E402
+from learn.es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population  # noqa: E402
+from learn.es_train import train_es  # noqa: E402
+from learn.networks import Actor  # noqa: E402
+from sim.config import preset  # noqa: E402
+from sim.env import SwarmEnv  # noqa: E402
+from sim.history import History  # noqa: E402
+from sim.metrics import final_coverage  # noqa: E402
+
+#: a run of a few seconds
+TINY = dict(n_robots=(2, 3), t_prev=2, actor_hidden=(8,), episode_steps=20, demo_robot_episodes=6, bc_updates=20,
+            bc_batch=64, generations=4, pairs=2, eval_every=2, eval_episodes=2, eval_steps=30, threads=1)
+
+
+def _quiet(_msg: str) -> None:
+    pass
+
+
+def test_population_mlp_matches_the_actor():
+    """Member k of PopulationMLP computes exactly what the actor's nn.Sequential does with θ_k."""
+    torch.manual_seed(0)
+    actors = [Actor(12, (7, 5)) for _ in range(3)]
+    pop = PopulationMLP.of(actors[0].net)
+    theta = torch.stack([torch.nn.utils.parameters_to_vector(a.net.parameters()).detach() for a in actors])
+    assert theta.shape == (3, pop.n_params)
+    x = torch.randn(3, 11, 12)
+    got = pop.forward(theta, x)
+    want = torch.stack([a.net(x[k]) for k, a in enumerate(actors)]).detach()
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+
+
+def test_population_members_meet_the_same_episodes():
+    """Common random numbers: every member plays episode e from its seed; member k equals a single-env run."""
+    world = preset("kilobot", episode_steps=25)
+    torch.manual_seed(1)
+    actor = Actor(world.history_dim(2), (8,))
+    pop = PopulationMLP.of(actor.net)
+    base = torch.nn.utils.parameters_to_vector(actor.net.parameters()).detach().double()
+    theta = torch.stack([base, base, base + 0.3 * torch.randn_like(base)])
+    seeds = [np.random.SeedSequence(5, spawn_key=(e,)) for e in range(2)]
+    res = rollout_population(pop, theta, world, 3, seeds, 2)
+    assert res.final_coverage.shape == (3, 2)
+    np.testing.assert_array_equal(res.final_coverage[0], res.final_coverage[1])
+    np.testing.assert_array_equal(res.returns[0], res.returns[1])
+    # member 2, episode 1, alone
+    env = SwarmEnv(world, n_envs=1, n_robots=3, seed=[seeds[1]])
+    obs, _ = env.reset()
+    hist = History(2, world.obs_dim)
+    h = hist.reset(obs)
+    cov = np.zeros((1, world.episode_steps))
+    ret = 0.0
+    for t in range(world.episode_steps):
+        a = pop.forward(theta[2:3].float(), torch.from_numpy(h).reshape(1, 3, -1)).clamp(0, 1).reshape(1, 3, -1)
+        obs, r, _, _, info = env.step(a.numpy().astype(np.float64))
+        cov[:, t] = info["coverage"]
+        ret += r[0]
+        h = hist.push(a.numpy(), obs)
+    assert final_coverage(cov)[0] == res.final_coverage[2, 1]
+    assert ret == pytest.approx(res.returns[2, 1], rel=1e-12)
+
+
+def test_centred_ranks_and_direction():
+    """Ranks lie in [-0.5, 0.5] with ties averaged; the direction weights each ε by its pair's difference."""
+    np.testing.assert_array_equal(centred_ranks(np.array([3.0, 1.0, 2.0])), [0.5, -0.5, 0.0])
+    np.testing.assert_array_equal(centred_ranks(np.array([1.0, 1.0, 0.0, 2.0])), [0.0, 0.0, -0.5, 0.5])
+    assert centred_ranks(np.array([4.0])).tolist() == [0.0]
+    eps = torch.tensor([[1.0, 0.0], [0.0, 2.0]], dtype=torch.float64)
+    g = es_direction(np.array([0.5, 0.0, -0.5, 0.0]), eps, sigma=0.5)  # pair 0 better at +ε, pair 1 even
+    torch.testing.assert_close(g, torch.tensor([0.5, 0.0], dtype=torch.float64))  # (0.5 + 0.5) ε_0 / (2·2·0.5)
+
+
+def test_adam_state_round_trip():
+    """Adam continued from its state dict steps exactly like the uninterrupted one."""
+    a, b = Adam(3, 0.1), Adam(3, 0.1)
+    th = torch.zeros(3, dtype=torch.float64)
+    g = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    ta = a.step(a.step(th, g), g)
+    tb = b.step(th, g)
+    c = Adam(3, 0.1)
+    c.load_state_dict(b.state_dict())
+    assert torch.equal(ta, c.step(tb, g))
+
+
+def test_es_run_resumes_exactly_and_exports(tmp_path):
+    """A run stopped at generation 2 and resumed ends with the same weights as one run straight to 4; policies export."""
+    cfg = ESConfig(**TINY, seed=2)
+    full = train_es(cfg, tmp_path / "full", progress=False, log=_quiet)
+    assert full.stopped == "done" and full.counters.rows[-1]["generation"] == 4
+    part = train_es(ESConfig(**{**TINY, "generations": 2}, seed=2), tmp_path / "part", progress=False, log=_quiet)
+    assert part.counters.rows[-1]["generation"] == 2
+    assert main(["train-es", "--out", str(tmp_path / "part"), "--resume", "--generations", "4", "--quiet"]) == 0
+    a = load_checkpoint(tmp_path / "full" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "part" / "checkpoint.pt")
+    assert a["es_generation"] == b["es_generation"] == 4
+    assert torch.equal(a["theta"], b["theta"])
+    other = train_es(ESConfig(**TINY, seed=3), tmp_path / "other", progress=False, log=_quiet)
+    assert not torch.equal(a["theta"], load_checkpoint(other.run_dir / "checkpoint.pt")["theta"])
+    for name in ("policy_bc.npz", "policy_best.npz", "policy_last.npz"):
+        pol = load_policy(tmp_path / "full" / name)
+        assert pol.t_prev == 2
+    from export.__main__ import main as export_main
+
+    out = tmp_path / "p.c"
+    assert export_main(["--policy", str(tmp_path / "full" / "policy_best.npz"), "--out", str(out)]) == 0
+    assert "loop" in out.read_text()
+
+
+def test_es_config_errors():
+    """Bad ES fields are one-line ConfigErrors; the presets validate."""
+    for preset_name in ("default", "quick"):
+        from_preset(preset_name, ESConfig)
+    with pytest.raises(ConfigError, match="size_weights"):
+        ESConfig(n_robots=(4, 16), size_weights=(1,)).validate()
+    with pytest.raises(ConfigError, match="sigma"):
+        ESConfig(sigma=0).validate()
+    with pytest.raises(ConfigError, match="es config, not magddpg|this is a"):
+        from learn.config import TrainConfig
+
+        TrainConfig.from_dict({"algorithm": "es"})
+
+
+def test_es_cli_refuses_bad_flags(tmp_path, capsys):
+    """A bad flag is one line on stderr and exit status 2, with nothing written."""
+    assert main(["train-es", "--pairs", "0", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pairs" in err[0]
+    assert not (tmp_path / "r").exists()
