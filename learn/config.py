@@ -428,6 +428,11 @@ class ESConfig(ConfigBase):
         need(self.eval_steps <= MAX_EPISODE_STEPS, f"eval_steps must be <= {MAX_EPISODE_STEPS}, got {self.eval_steps}")
         return self
 
+    @property
+    def total_episodes(self) -> int:
+        """Training episodes of the whole run (every member, swarm size and generation)."""
+        return self.generations * 2 * self.pairs * self.episodes_per_member * len(self.n_robots)
+
     def eval_world(self) -> WorldConfig:
         """The world of the evaluation episodes (the training world with ``eval_steps`` steps)."""
         return world_preset(self.world, episode_steps=self.eval_steps)

@@ -144,3 +144,18 @@ def test_cli_cpus_per_trial_beyond_local_cpus(tmp_path, capsys):
     assert "--cpus-per-trial 3 is more than the 2 CPUs of the local Ray" in capsys.readouterr().err
     assert main_sweep(["--num-cpus", "2", "--address", "auto", "--out", str(tmp_path / "s")]) == 2
     assert not (tmp_path / "s").exists()
+
+
+def test_es_grid_runs_a_trial(tmp_path):
+    """The ES trainer's presets form trials, and one tiny trial trains, then is finished on a rerun."""
+    from learn.sweep.trial import run_trial, trial_state
+    from learn.config import ESConfig
+
+    tiny = ["episode_steps=20", "demo_robot_episodes=4", "bc_updates=5", "bc_batch=32", "generations=2", "pairs=2",
+            "eval_every=1", "eval_episodes=2", "eval_steps=20", "actor_hidden=8", "t_prev=2"]
+    trials = expand(build_grid(trainer="es", presets=["quick"], seeds=[1, 2], robots=[2], grid=tiny))
+    assert [t.name.split("_s")[0] for t in trials] == ["kilobot-m2-t2"] * 2
+    t = trials[0]
+    numbers = run_trial(t.trainer, t.config, tmp_path / t.name)
+    assert numbers["best_final_coverage"] >= 0
+    assert trial_state(ESConfig.from_dict(t.config), tmp_path / t.name, 0) == "finished"

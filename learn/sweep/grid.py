@@ -13,7 +13,7 @@ Budgets (``--max-minutes``, CPUs per trial) are not part of a trial's identity: 
 
 File format (JSON, or TOML with Python >= 3.11)::
 
-    trainer = "magddpg"          # optional; magddpg or magrdpg
+    trainer = "magddpg"          # optional; magddpg, magrdpg or es
     preset = "quick"             # or a list of presets (an axis)
     seeds = [1, 2, 3]
     max_minutes = 30             # per trial, over all its sessions

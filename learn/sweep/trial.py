@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 from ..config import ConfigError
 
-TRAINERS = ("magddpg", "magrdpg")  #: values of ``--trainer``
+TRAINERS = ("magddpg", "magrdpg", "es")  #: values of ``--trainer``
 BUDGET_SLACK_S = 1.0  #: a run stopped on time within this of its budget has used it (wall_s is rounded)
 MIN_SESSION_MINUTES = 1e-3  #: a resumed run whose budget is spent still runs to its next episode end
 EVAL_DIR = "evaluation"  #: the final evaluation against the baselines, inside the run directory
@@ -53,6 +53,11 @@ def _trainer(trainer: str):
         from ..train import train
 
         return RecurrentConfig, RECURRENT_PRESETS, train
+    if trainer == "es":
+        from ..config import ES_PRESETS, ESConfig
+        from ..es_train import train_es
+
+        return ESConfig, ES_PRESETS, train_es
     raise ConfigError(f"unknown trainer '{trainer}'; choose one of {', '.join(TRAINERS)}")
 
 
@@ -94,7 +99,7 @@ def resolve_config(trainer: str, preset: str, overrides: dict[str, Any]):
 
 def short_name(trainer: str, cfg) -> str:
     """The readable part of a trial's directory name."""
-    arch = f"t{cfg.t_prev}" if trainer == "magddpg" else f"gru{cfg.hidden}"
+    arch = f"t{cfg.t_prev}" if hasattr(cfg, "t_prev") else f"{cfg.cell}{cfg.hidden}"
     robots = "-".join(map(str, cfg.n_robots))
     return f"{cfg.world}-m{robots}-{arch}"
 
