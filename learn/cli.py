@@ -1,7 +1,9 @@
-"""``python -m learn train`` (MAGDDPG) and ``train-recurrent`` (MAGRDPG): every config field is a flag (tyro).
+"""``python -m learn train`` (MAGDDPG), ``train-recurrent`` (MAGRDPG) and ``train-es`` (evolution strategies):
+every config field is a flag (tyro).
 
     python -m learn train --robots 4 --history 20 --preset fast --world kilobot --out runs/NAME
     python -m learn train-recurrent --preset guided --robots 2 --out runs/NAME
+    python -m learn train-es --robots 4 16 32 --seed 1 --out runs/NAME
     python -m learn train --out runs/NAME --resume [--episodes N] [--max-minutes M]
 
 Besides the config fields (``--help`` lists them with their docs; ``--robots`` = ``--n-robots``,

@@ -14,6 +14,7 @@ after the current generation with a checkpoint; the CLI exits 130 / 143.
 """
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
@@ -97,6 +98,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         from kiloforge.policies import save_policy
 
         prov = {"trainer": "kiloforge.learn ES", "config": cfg.to_dict(), "seed": cfg.seed, "git": git_hash(),
+                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "torch": torch.__version__, "trained_robots": list(cfg.n_robots), "generations": gen,
                 "env_steps": c.env_steps, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(row))}
         save_policy(algo.artifact(world, prov), run_dir / name)
