@@ -139,11 +139,12 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
                prog: str = "python -m learn train", default_preset: str = "default") -> int:
     """CLI entry point of one algorithm; returns the exit status."""
     from kiloforge.errors import KiloforgeError
-
-    from .train import train
+    from kiloforge.interrupts import exit_status
 
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
+        from .train import train
+
         cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)
         note = cfg.budget_note()
         if note:
@@ -152,6 +153,10 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # outside train()'s own handling (which checkpoints): loading, setting up, ending
+        print(f"{prog}: error: interrupted; the run directory keeps its last checkpoint, if any "
+              "(--resume continues it, or restarts a run without one)", file=sys.stderr)
+        return exit_status(e)
     c = res.counters
     best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
     print(f"run: {res.run_dir}  ({res.stopped})")
