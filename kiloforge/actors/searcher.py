@@ -3,8 +3,10 @@
 The float actor is :class:`sim.baselines.HandWrittenSearcher` itself; its artifact holds no arrays,
 only the :class:`~sim.baselines.SearcherParams` in the meta (``params``: every field, ints as ints,
 floats as JSON floats, so a file reads back to exactly the searcher it was written from). The
-shipped one is ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]``), so
-``python -m export --policy searcher`` renders it.
+shipped one is ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``), so
+``python -m export --policy searcher`` renders it. When the preset or the tuned parameters change, rewrite it with
+``save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")``
+(tests/test_searcher_firmware.py fails on a stale file).
 
 The integer searcher (:meth:`QuantizedSearcher.step_int`, rendered by
 ``firmware_templates/actors/searcher.c.j2``) runs the float searcher's rules in the same order on
