@@ -14,12 +14,13 @@ from export.codegen.budget import FLASH_LIMIT_B, SRAM_LIMIT_B, estimate
 from export.codegen.render import POLICY_FILE, render_firmware
 from export.verify import avr
 from export.verify.closed_loop import run_firmware, run_float
-from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
-from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host
 from export.contract.firmware import EVENT_DTYPE
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs
+from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host
 from kiloforge.actors.searcher import (SEARCHER, FirmwareDrawSearcher, SearcherArch, SearcherState,
                                        draw_bytes, firmware_draws, quantize_searcher, rng_seed, run_table,
                                        searcher_policy, xorshift32)
+from recorded_loop import record_loop
 from sim.baselines import TUNED, SearcherParams
 from sim.config import preset
 from sim.motion import action_to_u8
@@ -170,29 +171,10 @@ def test_host_build_seeds_from_kilo_uid(exe):
 @needs_cc
 def test_firmware_in_the_loop_replays_on_host(exe):
     """SwarmEnv driven by the searcher emulator for 120 steps (16 robots): the recorded stream replays bit-exactly on host."""
-    from sim.env import SwarmEnv
-
     cfg = dataclasses.replace(WORLD, episode_steps=200)
     M, P, K = 16, cfg.period_ticks, 120
     qp = shipped()[1]
-    env = SwarmEnv(cfg, 1, M, seed=3)
-    _, info = env.reset()
-    emu = FirmwareEmulator(qp, np.arange(1, M + 1))
-    events, lights = [], []
-    emu.tick_outputs(P)
-    ev = events_from_sim(info["events"], 0, cfg, M)
-    emu.deliver(ev)
-    events.append(ev)
-    for k in range(1, K + 1):
-        lights.append(info["light"][0].copy())
-        q, _ = emu.control_step(info["light"][0])
-        _, _, _, _, info = env.step_u8(q[None])
-        emu.tick_outputs(P)
-        ev = events_from_sim(info["events"], k, cfg, M)
-        emu.deliver(ev)
-        events.append(ev)
-    inputs = FirmwareInputs(uids=np.arange(1, M + 1), calib=emu.calib, light=np.stack(lights, 1),
-                            events=np.concatenate(events), n_ticks=(K + 1) * P)
+    inputs = record_loop(qp, cfg, M, K, seed=3)
     want = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
     got = run_host(exe, inputs, P, cfg.obs_dim)
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
