@@ -90,6 +90,17 @@ TUNED: dict[str, SearcherParams] = {
 }
 
 
+def run_lengths(p: SearcherParams, u: np.ndarray) -> np.ndarray:
+    """Exploration run lengths (periods, int32) for uniform draws ``u`` in [0, 1): Pareto(α) above
+    ``run_min_steps`` (exponential with mean ``run_min_steps`` when α = 0), rounded up, cut at ``run_max_steps``."""
+    u = np.asarray(u, np.float64)
+    if p.run_alpha > 0:
+        r = p.run_min_steps * (1.0 - u) ** (-1.0 / p.run_alpha)  # Pareto(α), ≥ run_min
+    else:
+        r = -p.run_min_steps * np.log1p(-u)  # exponential, mean run_min
+    return np.minimum(np.ceil(r), p.run_max_steps).astype(np.int32)
+
+
 class HandWrittenSearcher:
     """A run-and-tumble searcher that a Kilobot could run; see the module docstring."""
 
@@ -115,18 +126,20 @@ class HandWrittenSearcher:
         self.settled = np.zeros(shape, bool)  # stopped at the target
         self.miss = np.zeros(shape, np.int32)  # consecutive periods a settled robot missed the target
 
-    def _run_lengths(self, shape: tuple[int, ...]) -> np.ndarray:
-        p, u = self.p, self.rng.random(shape)
-        if p.run_alpha > 0:
-            r = p.run_min_steps * (1.0 - u) ** (-1.0 / p.run_alpha)  # Pareto(α), ≥ run_min
-        else:
-            r = -p.run_min_steps * np.log1p(-u)  # exponential, mean run_min
-        return np.minimum(np.ceil(r), p.run_max_steps).astype(np.int32)
+    def draws(self, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """This period's random draws for every robot: (turn direction ±1, tumble periods, wall-turn
+        periods, run length). Drawn every period whether used or not (fixed consumption ⇒
+        reproducible streams); a subclass may take them from elsewhere (the firmware's generator)."""
+        p, rng = self.p, self.rng
+        dirs = np.where(rng.random(shape) < 0.5, 1, -1).astype(np.int8)
+        tumble = rng.integers(1, p.tumble_max_steps + 1, shape)
+        wall_turn = rng.integers(p.wall_turn_min, p.wall_turn_max + 1, shape)
+        return dirs, tumble, wall_turn, run_lengths(p, rng.random(shape))
 
     # --- decision -----------------------------------------------------------------------------
     def act(self, obs: np.ndarray) -> np.ndarray:
         assert self.rng is not None, "HandWrittenSearcher.act before reset"
-        p, rng = self.p, self.rng
+        p = self.p
         B, M, _ = obs.shape
         shape = (B, M)
         wall = obs[..., OBS_WALL] > 0.5
@@ -137,13 +150,9 @@ class HandWrittenSearcher:
         level = np.where(heard, 2, np.where(nbr, 1, 0)).astype(np.int8)
         score = np.where(heard, -tdist, prox)
 
-        # random draws for every robot every period (fixed consumption ⇒ reproducible streams)
-        dirs = np.where(rng.random(shape) < 0.5, 1, -1).astype(np.int8)
+        dirs, tumble, wall_turn, runs = self.draws(shape)
         if p.turn_sign:
-            dirs[...] = p.turn_sign  # the draw above still happens: same stream whatever the sign
-        tumble = rng.integers(1, p.tumble_max_steps + 1, shape)
-        wall_turn = rng.integers(p.wall_turn_min, p.wall_turn_max + 1, shape)
-        runs = self._run_lengths(shape)
+            dirs = np.full(shape, p.turn_sign, np.int8)  # the draw still happened: same stream whatever the sign
 
         # settled robots: hold position through short target dropouts
         self.miss = np.where(self.settled & ~heard, self.miss + 1, 0)

@@ -25,8 +25,10 @@ from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU  # noqa: E402
 from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell  # noqa: E402
 from kiloforge.actors.mlp import QuantizedMLP  # noqa: E402
 from kiloforge.actors.registry import kind_of  # noqa: E402
+from kiloforge.actors.searcher import RUN_TABLE_SIZE, QuantizedSearcher  # noqa: E402
 from kiloforge.io import write_atomic  # noqa: E402
 from kiloforge.numfmt import HIDDEN_EXP, QuantLayer  # noqa: E402
+from sim.baselines import SearcherParams  # noqa: E402
 from sim.config import preset  # noqa: E402
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
@@ -95,9 +97,18 @@ def golden_lstm() -> QuantizedLSTM:
                          **sensing_tables(WORLD, E_IN))
 
 
+def golden_searcher() -> QuantizedSearcher:
+    """The hand-written searcher with non-default integer parameters and a fixed run-length table (no floats)."""
+    p = SearcherParams(run_max_steps=700, tumble_max_steps=5, wall_turn_min=2, wall_turn_max=6, wall_cooldown=4,
+                       uturn_steps=3, stop_dist=0.625, settle_patience=9, settle_hold=2, nbr_gradient=False, turn_sign=1)
+    run = (np.arange(RUN_TABLE_SIZE) * 11 % 700 + 1).astype(np.uint16)
+    return QuantizedSearcher(params=p, speed_q=200, stop_q=40, run_table=run, e_in=E_IN, world=WORLD,  # 40 = 0.625 * 2**6
+                             policy_hash=GOLDEN_HASH, **sensing_tables(WORLD, E_IN))
+
+
 def golden_policies() -> dict[str, QuantizedActor]:
     """Kind name -> its golden quantised policy."""
-    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm())}
+    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher())}
 
 
 def render(qp: QuantizedActor) -> dict[str, str]:
@@ -120,7 +131,8 @@ def golden_files() -> dict[str, str]:
     out = {}
     for kind, qp in golden_policies().items():
         files = render(qp)
-        out[f"{kind}.c"] = generated_part(files[POLICY_FILE], (RUNTIME_SOURCES, DENSE_SOURCES, kind_of(qp).c_sources))
+        dense = DENSE_SOURCES if qp.layers else ()  # a rule-based actor leaves the dense kernels out
+        out[f"{kind}.c"] = generated_part(files[POLICY_FILE], (RUNTIME_SOURCES, dense, kind_of(qp).c_sources))
     out[TARGET_GOLDEN] = generated_part(render(golden_mlp())[TARGET_FILE], (RUNTIME_SOURCES,))  # its banner names an actor
     return out
 

@@ -13,11 +13,12 @@ from export.codegen.render import POLICY_FILE, render_firmware
 from export.contract import firmware as fwspec
 from export.quantize import calibrate
 from export.verify import avr
-from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.verify.emulator import FirmwareEmulator
 from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host, verify_host
 from kiloforge import numfmt
 from kiloforge.actors.base import HiddenArch
 from kiloforge.actors.gru import GRU, quantize_gru, random_gru_policy
+from recorded_loop import record_loop
 from sim.config import preset
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -137,29 +138,10 @@ def test_a_different_cell_is_detected(builds):
 @needs_cc
 def test_firmware_in_the_loop_replays_on_host(builds):
     """SwarmEnv driven by the GRU emulator: the recorded stream replays bit-exactly through the host build."""
-    from sim.env import SwarmEnv
-
     cfg = preset("kilobot", episode_steps=20, arena_half_mm=120.0)
     M, P, K = 8, cfg.period_ticks, 15
     qp = qgru(cfg, 12, seed=9)
-    env = SwarmEnv(cfg, 1, M, seed=6)
-    _, info = env.reset()
-    emu = FirmwareEmulator(qp, np.arange(1, M + 1))
-    events, lights = [], []
-    emu.tick_outputs(P)
-    ev = events_from_sim(info["events"], 0, cfg, M)
-    emu.deliver(ev)
-    events.append(ev)
-    for k in range(1, K + 1):
-        lights.append(info["light"][0].copy())
-        q, _ = emu.control_step(info["light"][0])
-        _, _, _, _, info = env.step_u8(q[None])
-        emu.tick_outputs(P)
-        ev = events_from_sim(info["events"], k, cfg, M)
-        emu.deliver(ev)
-        events.append(ev)
-    inputs = FirmwareInputs(uids=np.arange(1, M + 1), calib=emu.calib, light=np.stack(lights, 1),
-                            events=np.concatenate(events), n_ticks=(K + 1) * P)
+    inputs = record_loop(qp, cfg, M, K, seed=6)
     want = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
     got = run_host(build_host(render_firmware(qp, generator_version="t")[POLICY_FILE], builds, name="loop"),
                    inputs, P, cfg.obs_dim)

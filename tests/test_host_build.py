@@ -14,11 +14,12 @@ import pytest
 
 from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
 from export.contract import firmware as fwspec
-from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
+from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
                                      random_inputs, rendered_params, run_host, runtime_flags, verify_host)
 from fixtures import synthetic_qpolicy
 from kiloforge import numfmt
+from recorded_loop import record_loop
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -164,29 +165,10 @@ def test_a_different_firmware_is_detected(builds):
 
 def test_firmware_in_the_loop_stream_replays_on_host(builds):
     """A stream recorded from SwarmEnv driven by the emulator replays bit-exactly through the host build."""
-    from sim.env import SwarmEnv
-
     cfg = preset("kilobot", episode_steps=20, arena_half_mm=120.0)
     M, P, K = 8, cfg.period_ticks, 15
     qp = synthetic_qpolicy(cfg, 3, (8,), ("elu",), seed=9)
-    env = SwarmEnv(cfg, 1, M, seed=6)
-    _, info = env.reset()
-    emu = FirmwareEmulator(qp, np.arange(1, M + 1))
-    events, lights = [], []
-    emu.tick_outputs(P)
-    ev = events_from_sim(info["events"], 0, cfg, M)
-    emu.deliver(ev)
-    events.append(ev)
-    for k in range(1, K + 1):
-        lights.append(info["light"][0].copy())
-        q, _ = emu.control_step(info["light"][0])
-        _, _, _, _, info = env.step_u8(q[None])
-        emu.tick_outputs(P)
-        ev = events_from_sim(info["events"], k, cfg, M)
-        emu.deliver(ev)
-        events.append(ev)
-    inputs = FirmwareInputs(uids=np.arange(1, M + 1), calib=emu.calib, light=np.stack(lights, 1),
-                            events=np.concatenate(events), n_ticks=(K + 1) * P)
+    inputs = record_loop(qp, cfg, M, K, seed=6)
     assert inputs.events.size > 100
     want = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
     files = render_firmware(qp, generator_version="test")

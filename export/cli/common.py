@@ -20,6 +20,9 @@ EXIT_OK = 0
 EXIT_FAIL = 1  #: does not fit, or a verification failed
 EXIT_USER_ERROR = 2
 DEFAULT_POLICY = ("data", "default_policy.npz")  #: the shipped reference policy, inside the export package
+#: ``--policy NAME`` for a shipped policy (when no file of that name exists)
+SHIPPED_POLICIES = {"default": DEFAULT_POLICY,
+                    "searcher": ("data", "searcher_policy.npz")}  #: sim.baselines' searcher, TUNED["kilobot"]
 
 
 class Parser(argparse.ArgumentParser):
@@ -50,14 +53,15 @@ def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:
 
 
 def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None = None) -> FloatPolicy:
-    """The policy of ``--policy``, ``--onnx`` (with ``--world-json``), or the shipped default policy."""
+    """The policy of ``--policy`` (a file, or the name of a shipped policy: ``searcher``, ``default``), ``--onnx``
+    (with ``--world-json``), or the shipped default policy."""
     if onnx is not None:
         return load_onnx_policy(onnx, world_json=world_json)
     if world_json is not None:
         raise ExportError("--world-json only goes with --onnx")
-    if policy is not None:
+    if policy is not None and (policy.exists() or str(policy) not in SHIPPED_POLICIES):
         return load_policy(policy)
-    ref = resources.files("export").joinpath(*DEFAULT_POLICY)
+    ref = resources.files("export").joinpath(*SHIPPED_POLICIES[str(policy or "default")])
     with ExitStack() as stack:
         return load_policy(stack.enter_context(resources.as_file(ref)))
 

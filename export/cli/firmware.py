@@ -51,7 +51,9 @@ def export_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
-    src.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
+    src.add_argument("--policy", type=Path,
+                     help="policy artifact .npz, or 'searcher': the hand-written searcher of sim/baselines.py "
+                          "(default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
     ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",

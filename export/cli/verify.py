@@ -44,7 +44,7 @@ def verify_parser() -> argparse.ArgumentParser:
                              "vs by the float actor, same episodes. Exit 0 pass, 1 fail, 2 bad input.")
     ap.add_argument("--closed-loop", action="store_true", required=True,
                     help="run the closed-loop comparison (the verification this command does)")
-    ap.add_argument("--policy", type=Path, help="policy artifact .npz (default: the shipped default policy)")
+    ap.add_argument("--policy", type=Path, help="policy artifact .npz, or 'searcher' (the hand-written searcher; default: the shipped default policy)")
     ap.add_argument("--robots", type=robots_arg, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")
     ap.add_argument("--episodes", type=episodes_arg, default=200, help="episodes per robot count (default 200)")

@@ -227,6 +227,15 @@ def _policy_context(qp: QuantizedActor, uids: tuple[int, ...]) -> dict[str, Any]
             **spec.variables}
 
 
+def _dense_c(qp: QuantizedActor) -> str:
+    """The dense kernels, inlined when the actor has dense layers (a rule-based actor has none)."""
+    if not qp.layers:
+        return "/* (no dense layers: the kernel is left out) */\n"
+    return ("#define KF_DENSE_ALL_FAST 1 /* every layer runs the 24-bit AVR kernel: "
+            "the portable kernel is left out of AVR builds */\n"
+            if kernel.all_fast(qp.layers) else "") + inline_sources(DENSE_SOURCES)
+
+
 def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None = None,
                     msg_type: int = fw.DEFAULT_MSG_TYPE, generator_version: str | None = None) -> dict[str, str]:
     """The generated programs: ``{"kilobot_policy.c": ..., "kilobot_target.c": ...}``.
@@ -253,9 +262,7 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
                                      ["One program for every robot: robots whose kilo_uid is a target uid act",
                                       "as the beacon, all others as searchers running the policy."],
                                      uids, msg_type),
-                      dense_c=("#define KF_DENSE_ALL_FAST 1 /* every layer runs the 24-bit AVR kernel: "
-                               "the portable kernel is left out of AVR builds */\n"
-                               if kernel.all_fast(qp.layers) else "") + inline_sources(DENSE_SOURCES))
+                      dense_c=_dense_c(qp))
     target_ctx = dict(common, banner=_banner(TARGET_FILE, qp, generator_version,
                                              ["Beacon-only program: whatever its kilo_uid, this robot is the target",
                                               "(it never moves, shines blue and sends role = 1)."],

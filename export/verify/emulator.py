@@ -197,7 +197,7 @@ class FirmwareEmulator:
         self.steps_done = 0
         self.wall = np.zeros(R, bool)
         self.q = np.zeros((R, 2), np.uint8)
-        self.state = self.qp.initial_state(R)  # the actor's state as setup() leaves it
+        self.state = self.qp.setup_state(self.uids)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
         self.turn = np.zeros(R, np.uint8)
         self.turn_mode = np.full(R, MODE_STOP, np.uint8)

@@ -209,6 +209,11 @@ class QuantizedActor(ABC):
     def initial_state(self, n: int) -> Any:
         """The integer state of ``n`` robots after setup()."""
 
+    def setup_state(self, uids: np.ndarray) -> Any:
+        """The integer state setup() leaves on robots with these kilo_uids (R,); a kind whose state
+        depends on the uid (a random generator seeded from it) overrides this."""
+        return self.initial_state(int(np.asarray(uids).shape[0]))
+
     @abstractmethod
     def step_int(self, x: np.ndarray, state: Any) -> tuple[np.ndarray, Any]:
         """The firmware's control step: int8 tuples (R, D) -> (uint8 commands (R, 2), new state)."""

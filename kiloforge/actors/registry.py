@@ -12,8 +12,9 @@ from .base import ActorKind
 from .gru import GRU
 from .lstm import LSTM
 from .mlp import MLP
+from .searcher import SEARCHER
 
-KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM)}
+KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER)}
 
 
 def kind_named(name: object) -> ActorKind:

@@ -1,0 +1,524 @@
+"""Actor kind ``"searcher"``: the hand-written run-and-tumble searcher of :mod:`sim.baselines` as firmware.
+
+The float actor is :class:`sim.baselines.HandWrittenSearcher` itself; its artifact holds no arrays,
+only the :class:`~sim.baselines.SearcherParams` in the meta (``params``: every field, ints as ints,
+floats as JSON floats, so a file reads back to exactly the searcher it was written from). The
+shipped one is ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``), so
+``python -m export --policy searcher`` renders it. When the preset or the tuned parameters change, rewrite it with
+``save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")``
+(tests/test_searcher_firmware.py fails on a stale file).
+
+The integer searcher (:meth:`QuantizedSearcher.step_int`, rendered by
+``firmware_templates/actors/searcher.c.j2``) runs the float searcher's rules in the same order on
+the int8 observation every firmware builds (wall, target, neighbour flag and RBF histogram at
+``e_in``; the action part of the tuple is ignored) and a few bytes of state. What changes:
+
+* **observations**: ``wall = 2 obs_wall > ONE``, ``heard = obs_target >= 0``, ``nbr = 2 obs_nbr > ONE``
+  (the float ``> 0.5`` on values 0 / 1); the stop rule ``tdist <= stop_dist`` is
+  ``obs_target <= STOP_Q = floor(stop_dist * 2**e_in)``, exact on quantised distances; the neighbour
+  proximity ``Σ_k rbf_k (n - k) / n`` is ``Σ_k obs_rbf_k (n - k)`` in int32 (the float one times
+  ``n * 2**e_in``, so every comparison of two scores agrees). The only differences from the float
+  searcher are those of the observation's quantisation (1/64 of the comm radius at ``e_in = 6``).
+* **counters** saturate where the float ones run on without changing a decision: ``wall_cool``
+  stops at 0 and ``run_left`` at -1 (only ``<= 0`` and ``max(run_left, cooldown >= 0)`` read them),
+  ``fails`` and ``miss`` at 255 (compared with thresholds <= 254). "Run forever" is ``BIG = 2**20``
+  periods, as in the float searcher.
+* **randomness**: no NumPy generator on a robot. Each robot owns a xorshift32 word (Marsaglia's
+  13/17/5 triple), seeded in ``setup()`` from its ``kilo_uid`` (``uid * 0x9E3779B1 + 0x7F4A7C15``,
+  never 0), stepped once every control period whether its draws are used or not (as the float
+  searcher draws every period). Its four bytes are the period's draws: byte 0 the turn direction
+  (left when < 128), byte 1 the tumble ``1 + (b * tumble_max >> 8)``, byte 2 the wall turn
+  ``wall_turn_min + (b * span >> 8)``, byte 3 the run length ``RUN[b]``, a 256-entry table of
+  :func:`sim.baselines.run_lengths` at ``u = (b + 0.5) / 256``. So each uniform integer has
+  probabilities within 1/256 of the float's, and the run-length CDF is within 1/512 of the float's
+  (tests/test_searcher_firmware.py). kilolib's ``rand_soft`` is not used: its generator is
+  kilolib's and no emulator could follow it bit for bit; this one the emulator models exactly, on
+  the robot, under Kilombo and in the host and AVR builds alike. Robots with equal uids draw alike.
+
+:class:`FirmwareDrawSearcher` is the float searcher taking its draws from these bytes: fed the
+dequantised observations it gives exactly the integer searcher's commands (the test of the integer
+reference), and the error report compares it on recorded float observations with the integer
+searcher on the quantised ones.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Mapping
+
+import numpy as np
+
+from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams, run_lengths
+from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
+from sim.motion import action_to_u8
+
+from .. import numfmt
+from ..artifact import plain_provenance
+from ..errors import PolicyError, QuantizeError
+from ..validate import show
+from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor,
+                   RenderSpec, Resize, check_world, invalid, sensing_tables)
+
+BIG = 1 << 20  #: "run until something happens" (periods), as in sim.baselines
+RUN_TABLE_SIZE = 256  #: one entry per value of the run-length draw byte
+SEED_MUL = 0x9E3779B1  #: kilo_uid -> xorshift32 seed: uid * SEED_MUL + SEED_ADD (mod 2**32)
+SEED_ADD = 0x7F4A7C15
+COUNT_MAX = 255  #: fails and miss saturate here (uint8)
+BYTE_LIMITS = {"tumble_max_steps": 255, "wall_turn_max": 255, "uturn_steps": 255, "settle_patience": COUNT_MAX - 1,
+               "settle_hold": COUNT_MAX - 1, "run_max_steps": 0xFFFF}  #: what the firmware's fields hold
+STATE_BYTES = 4 + 4 + 4 + 7  #: rng, run_left, prev_score (uint32/int32) + seven uint8 counters and flags
+_INT_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("int", int)}
+_BOOL_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("bool", bool)}
+
+
+# --------------------------------------------------------------------------------------------
+# The float searcher and its random draws
+# --------------------------------------------------------------------------------------------
+class SeededSearcher(HandWrittenSearcher):
+    """The float searcher; ``reset`` without a generator takes the next child of its own seed sequence."""
+
+    def __init__(self, cfg: WorldConfig, params: SearcherParams, seed: int = 0) -> None:
+        super().__init__(cfg, params)
+        self._seeds = np.random.SeedSequence(seed)
+
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator | None = None) -> None:
+        super().reset(n_envs, n_robots, rng if rng is not None else np.random.default_rng(self._seeds.spawn(1)[0]))
+
+
+def rng_seed(uids: np.ndarray) -> np.ndarray:
+    """(R,) uint32 xorshift32 state setup() leaves for these kilo_uids (never 0).
+
+    >>> rng_seed(np.array([0, 1])).tolist()
+    [2135587861, 4130418118]
+    """
+    x = (np.asarray(uids, np.uint64) * SEED_MUL + SEED_ADD) & 0xFFFFFFFF
+    return np.where(x == 0, 1, x).astype(np.uint32)
+
+
+def xorshift32(x: np.ndarray) -> np.ndarray:
+    """One step of Marsaglia's xorshift32 (13, 17, 5) on uint32 words.
+
+    >>> xorshift32(np.array([1], np.uint32)).tolist()
+    [270369]
+    """
+    x = np.asarray(x, np.uint32)
+    x = x ^ (x << np.uint32(13))
+    x = x ^ (x >> np.uint32(17))
+    return x ^ (x << np.uint32(5))
+
+
+def draw_bytes(word: np.ndarray) -> np.ndarray:
+    """(R, 4) int64 bytes of xorshift32 words: direction, tumble, wall turn, run length."""
+    w = np.asarray(word, np.uint32).astype(np.int64)
+    return np.stack([(w >> (8 * i)) & 0xFF for i in range(4)], -1)
+
+
+def run_table(p: SearcherParams) -> np.ndarray:
+    """(256,) uint16 run lengths RUN[b] = run_lengths(p, (b + 0.5) / 256)."""
+    return run_lengths(p, (np.arange(RUN_TABLE_SIZE) + 0.5) / RUN_TABLE_SIZE).astype(np.uint16)
+
+
+def firmware_draws(p: SearcherParams, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The draws of :meth:`sim.baselines.HandWrittenSearcher.draws` from the firmware's bytes (..., 4)."""
+    b = np.asarray(b, np.int64)
+    dirs = np.where(b[..., 0] < 128, 1, -1).astype(np.int8)
+    tumble = 1 + ((b[..., 1] * p.tumble_max_steps) >> 8)
+    wall = p.wall_turn_min + ((b[..., 2] * (p.wall_turn_max - p.wall_turn_min + 1)) >> 8)
+    return dirs, tumble, wall, run_lengths(p, (b[..., 3] + 0.5) / RUN_TABLE_SIZE)
+
+
+class FirmwareDrawSearcher(HandWrittenSearcher):
+    """The float searcher drawing from the firmware's xorshift32 streams (one per robot, seeded by uid)."""
+
+    def __init__(self, cfg: WorldConfig, params: SearcherParams, uids: np.ndarray) -> None:
+        super().__init__(cfg, params)
+        self.uids = np.asarray(uids, np.uint16)
+
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator | None = None) -> None:
+        assert n_envs * n_robots == self.uids.size, "one uid per robot"
+        super().reset(n_envs, n_robots, np.random.default_rng(0))  # the generator is never drawn from
+        self.word = rng_seed(self.uids).reshape(n_envs, n_robots)
+
+    def draws(self, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        self.word = xorshift32(self.word)
+        return firmware_draws(self.p, draw_bytes(self.word))
+
+
+# --------------------------------------------------------------------------------------------
+# The float policy (the artifact)
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class SearcherPolicy(FloatPolicy):
+    """The hand-written searcher with its parameters in a world; no arrays."""
+
+    kind: ClassVar[str] = "searcher"
+    params: SearcherParams
+    world: WorldConfig
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_world(self.world)
+        if not isinstance(self.params, SearcherParams):
+            invalid(f"params must be SearcherParams, got {type(self.params).__name__}")
+        object.__setattr__(self, "provenance", plain_provenance(self.provenance))
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        """[tuple width, 2]: no layers, the rules read one tuple."""
+        return [self.world.tuple_dim, ACTION_DIM]
+
+    def describe(self) -> str:
+        p = self.params
+        return (f"hand-written searcher (run and tumble; run {p.run_min_steps:g}..{p.run_max_steps} periods, "
+                f"alpha {p.run_alpha:g}, stop at {p.stop_dist:g} comm radius)")
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def kind_meta(self) -> dict[str, Any]:
+        return {"params": dataclasses.asdict(self.params)}
+
+    def initial_state(self, n: int) -> SeededSearcher:
+        """A float searcher of n robots (its counters and its own generator, seed 0)."""
+        s = SeededSearcher(self.world, self.params)
+        s.reset(1, n)
+        return s
+
+    def step(self, x: np.ndarray, state: SeededSearcher) -> tuple[np.ndarray, SeededSearcher]:
+        """Tuples (n, D) -> the searcher's commands on their observation part (the state is updated in place)."""
+        obs = np.asarray(x, np.float64)[:, ACTION_DIM:]
+        return state.act(obs[None])[0], state
+
+
+def params_of(meta_params: Any) -> SearcherParams:
+    """SearcherParams of an artifact's ``params`` (every field, of its type); raises PolicyError."""
+    names = [f.name for f in dataclasses.fields(SearcherParams)]
+    if not isinstance(meta_params, dict):
+        raise PolicyError(f"policy: 'params' must be an object, got {show(meta_params)}")
+    missing, extra = [n for n in names if n not in meta_params], sorted(set(meta_params) - set(names))
+    if missing or extra:
+        raise PolicyError(f"policy: 'params' lacks {missing} / has unknown {extra}" if missing and extra else
+                          f"policy: 'params' lacks {', '.join(missing)}" if missing else
+                          f"policy: 'params' has unknown field(s) {', '.join(extra)}")
+    for n in names:
+        v = meta_params[n]
+        if n in _BOOL_FIELDS:
+            ok = isinstance(v, bool)
+        elif n in _INT_FIELDS:
+            ok = isinstance(v, int) and not isinstance(v, bool)
+        else:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if not ok:
+            raise PolicyError(f"policy: params field '{n}' has the wrong type: {show(v)}")
+    try:
+        return SearcherParams(**meta_params)
+    except AssertionError as e:
+        raise PolicyError(f"policy: params: {e}") from None
+
+
+def searcher_policy(world: WorldConfig, params: SearcherParams | None = None,
+                    provenance: Mapping[str, Any] | None = None) -> SearcherPolicy:
+    """The searcher artifact for ``world`` (default parameters: ``TUNED[world.name]``, else the defaults)."""
+    p = params if params is not None else TUNED.get(world.name, SearcherParams())
+    return SearcherPolicy(p, world, dict(provenance or {"notes": f"sim.baselines.HandWrittenSearcher, "
+                                                                  f"TUNED parameters of '{world.name}'"}))
+
+
+# --------------------------------------------------------------------------------------------
+# The integer searcher
+# --------------------------------------------------------------------------------------------
+@dataclass
+class SearcherState:
+    """Per robot (R,): the firmware's searcher fields."""
+
+    rng: np.ndarray  #: uint32 xorshift32 word
+    turn_left: np.ndarray  #: pivot periods still to do
+    turn_dir: np.ndarray  #: 1 left (counter-clockwise), 0 right
+    run_left: np.ndarray  #: straight periods still to do, -1..BIG
+    wall_cool: np.ndarray  #: periods the wall flag is still ignored, >= 0
+    prev_level: np.ndarray
+    prev_score: np.ndarray
+    fails: np.ndarray
+    settled: np.ndarray
+    miss: np.ndarray
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class QuantizedSearcher(QuantizedActor):
+    """The integer searcher (module doc): the float parameters and their firmware constants."""
+
+    kind: ClassVar[str] = "searcher"
+    params: SearcherParams
+    speed_q: int  #: uint8 command of both motors on a straight run (action_to_u8(speed))
+    stop_q: int  #: stop once obs_target <= this (floor(stop_dist * 2**e_in))
+    run_table: np.ndarray  #: (256,) uint16, run_table(params)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        assert 0 <= self.speed_q <= 255 and 0 <= self.stop_q <= numfmt.INT8_MAX, "speed_q / stop_q out of range"
+        assert self.run_table.shape == (RUN_TABLE_SIZE,) and self.run_table.dtype == np.uint16, "run_table shape/dtype"
+
+    @property
+    def layers(self) -> list:
+        """No dense layers."""
+        return []
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        return [self.world.tuple_dim, ACTION_DIM]
+
+    def initial_state(self, n: int) -> SearcherState:
+        """The state of n robots with kilo_uid 0..n-1 (the emulator calls :meth:`setup_state` with the real ones)."""
+        return self.setup_state(np.arange(n))
+
+    def setup_state(self, uids: np.ndarray) -> SearcherState:
+        """What setup() leaves: every field 0, the generator seeded from kilo_uid."""
+        R = np.asarray(uids).shape[0]
+        z = np.zeros(R, np.int64)
+        return SearcherState(rng=rng_seed(uids), turn_left=z, turn_dir=z, run_left=z, wall_cool=z, prev_level=z,
+                             prev_score=z, fails=z, settled=z.astype(bool), miss=z)
+
+    def step_int(self, x: np.ndarray, state: SearcherState) -> tuple[np.ndarray, SearcherState]:
+        """int8 tuples (R, D) and the state -> (uint8 commands (R, 2), the new state); the float rules, in order."""
+        p, one = self.params, int(self.one_q)
+        x = np.asarray(x, np.int64)
+        o = x[:, ACTION_DIM:]
+        n = self.world.n_rbf
+        wall = 2 * o[:, OBS_WALL] > one
+        tq = o[:, OBS_TARGET]
+        heard = tq >= 0
+        nbr = 2 * o[:, OBS_NBR_SENSING] > one
+        prox = o[:, OBS_RBF:OBS_RBF + n] @ (n - np.arange(n))
+        level = np.where(heard, 2, np.where(nbr, 1, 0))
+        score = np.where(heard, -tq, prox)
+        word = xorshift32(state.rng)
+        dirs, tumble, wall_turn, _ = firmware_draws(p, draw_bytes(word))
+        runs = self.run_table.astype(np.int64)[draw_bytes(word)[:, 3]]
+        left = (dirs > 0) if p.turn_sign == 0 else np.full(dirs.shape, p.turn_sign > 0)
+
+        turn_left, turn_dir, run_left = state.turn_left.copy(), state.turn_dir.copy(), state.run_left.copy()
+        settled = state.settled
+        miss = np.where(settled & ~heard, np.minimum(state.miss + 1, COUNT_MAX), 0)
+        leave = settled & (miss >= p.settle_hold)
+        holding = settled & ~leave
+        level = np.where(holding, 2, level)
+        settled = holding
+        turning = turn_left > 0
+        same = (level == state.prev_level) & (level >= 1) & ~holding
+        improved = same & (score > state.prev_score)
+        worse = same & ~improved & ~turning
+        entered = level > state.prev_level
+        lost = (level < state.prev_level) | leave
+
+        def start(mask, steps, run):
+            nonlocal turn_left, turn_dir, run_left
+            turn_left = np.where(mask, steps, turn_left)
+            turn_dir = np.where(mask, left, turn_dir)
+            run_left = np.where(mask, run, run_left)
+
+        start((level == 0) & ~turning & (run_left <= 0), tumble, runs)
+        grad = (level == 2) | ((level == 1) & p.nbr_gradient)
+        start(grad & worse, tumble, BIG)
+        run_left = np.where(grad & improved & ~turning, BIG, run_left)
+        fails = np.where(level == 2, np.where(worse, np.minimum(state.fails + 1, COUNT_MAX), state.fails), 0)
+        hit = wall & (state.wall_cool <= 0) & ~turning
+        start(hit, wall_turn, np.maximum(run_left, p.wall_cooldown))
+        wall_cool = np.where(hit, wall_turn + p.wall_cooldown, np.maximum(state.wall_cool - 1, 0))
+        start(entered, 0, BIG)
+        start(lost & ~entered, p.uturn_steps, runs)
+        fails = np.where(lost | entered, 0, fails)
+        settled = settled | ((level == 2) & heard & ((tq <= self.stop_q) | (fails >= p.settle_patience)))
+
+        turn_now = (turn_left > 0) & ~settled
+        straight = ~turn_now & ~settled
+        q = np.zeros((x.shape[0], ACTION_DIM), np.uint8)
+        q[:, 0] = np.where(turn_now, np.where(turn_dir > 0, 255, 0), np.where(straight, self.speed_q, 0))
+        q[:, 1] = np.where(turn_now, np.where(turn_dir > 0, 0, 255), np.where(straight, self.speed_q, 0))
+        new = SearcherState(rng=word, turn_left=np.where(turn_now, turn_left - 1, turn_left), turn_dir=turn_dir,
+                            run_left=np.where(straight, np.maximum(run_left - 1, -1), run_left), wall_cool=wall_cool,
+                            prev_level=level, prev_score=score, fails=fails, settled=settled, miss=miss)
+        return q, new
+
+    def summary(self) -> dict[str, Any]:
+        return {"kind": self.kind, "format": self.format_name, "rounding": self.rounding, "e_in": int(self.e_in),
+                "params": dataclasses.asdict(self.params), "speed_q": int(self.speed_q), "stop_q": int(self.stop_q),
+                "run_table": {"min": int(self.run_table.min()), "max": int(self.run_table.max()),
+                              "mean": float(self.run_table.mean())},
+                "rng": "xorshift32 (13, 17, 5), seed kilo_uid * 0x9E3779B1 + 0x7F4A7C15",
+                "policy_hash": self.policy_hash, "world": self.world.name}
+
+    def describe(self) -> str:
+        return (f"hand-written searcher: speed {self.speed_q}, stop at target obs <= {self.stop_q}, runs "
+                f"{int(self.run_table.min())}..{int(self.run_table.max())}, e_in {self.e_in}")
+
+
+def quantize_searcher(policy: SearcherPolicy, e_in: int | None = None) -> QuantizedSearcher:
+    """The integer searcher of ``policy`` (raises QuantizeError when a parameter does not fit its field)."""
+    p = policy.params
+    for name, limit in BYTE_LIMITS.items():
+        if getattr(p, name) > limit:
+            raise QuantizeError(f"searcher parameter {name} = {getattr(p, name)} does not fit the firmware (<= {limit})")
+    if p.wall_turn_max + p.wall_cooldown > 255:
+        raise QuantizeError("searcher parameters wall_turn_max + wall_cooldown must be <= 255 (a uint8 counter)")
+    e = numfmt.DEFAULT_INPUT_EXP if e_in is None else int(e_in)
+    if not 0 <= e <= numfmt.DEFAULT_INPUT_EXP:
+        raise QuantizeError(f"e_in must be in 0..{numfmt.DEFAULT_INPUT_EXP}, got {e}")
+    stop_q = min(int(np.floor(p.stop_dist * (1 << e))), numfmt.INT8_MAX)
+    return QuantizedSearcher(params=p, speed_q=int(action_to_u8(np.array(p.speed))), stop_q=stop_q,
+                             run_table=run_table(p), e_in=e, world=policy.world, policy_hash=policy.hash,
+                             **sensing_tables(policy.world, e))
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration (nothing to calibrate) and the error report
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class SearcherCalibration:
+    """The recorded input tuples (S, T, D) of the float searcher's rollouts."""
+
+    seqs: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.seqs.shape[0] * self.seqs.shape[1])
+
+
+@dataclass(frozen=True)
+class SearcherError:
+    """Integer searcher on quantised observations vs the float searcher on the recorded float ones, both
+    drawing from the firmware's streams (uid i + 1 for row i): what quantising the observation changes."""
+
+    du_max: float
+    du_mean: float
+    same_command: float  #: fraction of (robot, step, motor) with equal uint8 commands
+    same_step: float  #: fraction of (robot, step) with both commands equal
+    n_samples: int
+    e_in: int
+
+    def table(self) -> str:
+        return (f"searcher quantisation error over {self.n_samples} recorded steps (e_in = {self.e_in}; same random "
+                f"draws, float vs quantised observations): same uint8 command {100 * self.same_command:.2f}%, both "
+                f"motors {100 * self.same_step:.2f}%, max |du| = {self.du_max:.5f}, mean |du| = {self.du_mean:.5f}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": SEARCHER.name, **dataclasses.asdict(self)}
+
+
+def searcher_error(policy: SearcherPolicy, qp: QuantizedSearcher, calib: SearcherCalibration) -> SearcherError:
+    """:class:`SearcherError` over the calibration sequences."""
+    seqs = np.asarray(calib.seqs, np.float64)
+    S, T, _ = seqs.shape
+    uids = np.arange(1, S + 1)
+    ref = FirmwareDrawSearcher(policy.world, policy.params, uids)
+    ref.reset(1, S)
+    state = qp.setup_state(uids)
+    du, same, both = [], 0, 0
+    for t in range(T):
+        u = ref.act(seqs[None, :, t, ACTION_DIM:])[0]
+        q, state = qp.step_int(qp.quantize_tuple(seqs[:, t]), state)
+        uf = action_to_u8(u)
+        du.append(np.abs(q / 255.0 - u))
+        same += int((q == uf).sum())
+        both += int((q == uf).all(-1).sum())
+    d = np.stack(du)
+    return SearcherError(du_max=float(d.max()), du_mean=float(d.mean()), same_command=same / (2 * S * T),
+                         same_step=both / (S * T), n_samples=S * T, e_in=qp.e_in)
+
+
+# --------------------------------------------------------------------------------------------
+# The kind
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SearcherArch:
+    """The searcher's size does not vary: a fixed state, the run-length table, the rules."""
+
+
+#: code beside the base estimate: the rules and xorshift32 (~0.4 KB) minus the dense kernels the base counts
+#: and this program leaves out; measured: avr-gcc 10,962 B flash for the kilobot searcher vs 14,315 B analytic
+#: with a +700 B guess, so about -2.6 KB
+CODE_B = -2_600
+
+
+class SearcherKind(ActorKind):
+    """The hand-written searcher of sim.baselines (the baseline to flash next to a learned policy)."""
+
+    name: ClassVar[str] = "searcher"
+    template: ClassVar[str] = "actors/searcher.c.j2"
+    c_sources: ClassVar[tuple[str, ...]] = ()
+    budget_usage: ClassVar[str] = "--searcher PRESET"
+    budget_options: ClassVar[tuple[BudgetOption, ...]] = (
+        BudgetOption("--searcher", "the hand-written searcher (its size does not depend on its parameters)",
+                     metavar="PRESET", positive=False, choices=tuple(TUNED)),
+    )
+
+    def from_arrays(self, arrays: dict[str, np.ndarray], meta: dict[str, Any], world: WorldConfig,
+                    provenance: dict[str, Any]) -> SearcherPolicy:
+        if arrays:
+            raise PolicyError(f"policy: a searcher has no arrays, found {', '.join(sorted(arrays))}")
+        if "params" not in meta:
+            raise PolicyError("policy: 'meta' lacks 'params'")
+        return SearcherPolicy(params_of(meta["params"]), world, provenance)
+
+    def swarm_policy(self, policy: SearcherPolicy, world: WorldConfig | None = None) -> SeededSearcher:
+        """The float searcher of sim.baselines (its own generator unless reset gets one)."""
+        return SeededSearcher(world or policy.world, policy.params)
+
+    def calibration(self, policy: SearcherPolicy, seqs: np.ndarray, info: dict[str, Any]) -> SearcherCalibration:
+        return SearcherCalibration(np.asarray(seqs, np.float32), dict(info))
+
+    def quantize(self, policy: SearcherPolicy, calib: SearcherCalibration, *, percentile: float = 100.0,
+                 headroom: float = 1.0, e_in: int | None = None) -> QuantizedSearcher:
+        """No ranges to cover: e_in is the default input exponent unless given."""
+        return quantize_searcher(policy, e_in)
+
+    def error_report(self, policy: SearcherPolicy, qp: QuantizedSearcher, calib: SearcherCalibration) -> SearcherError:
+        return searcher_error(policy, qp, calib)
+
+    def arch_of(self, policy: SearcherPolicy) -> SearcherArch:
+        return SearcherArch()
+
+    def arch_of_quantized(self, qp: QuantizedSearcher) -> SearcherArch:
+        return SearcherArch()
+
+    def budget_spec(self, world: WorldConfig, arch: SearcherArch, e_in: int) -> BudgetSpec:
+        return BudgetSpec(
+            header="hand-written searcher (no dense layers)", layer_sizes=(world.tuple_dim, ACTION_DIM), dense=(),
+            flash=(BudgetItem("flash", "run-length table", 2 * RUN_TABLE_SIZE, f"{RUN_TABLE_SIZE} x uint16"),),
+            memory=(BudgetItem("sram", "searcher state", STATE_BYTES, "rng, run, score (4 B each) + 7 counters"),),
+            scratch=(BudgetItem("sram", "tuple buffer", world.tuple_dim, f"{world.tuple_dim} int8"),),
+            code_b=CODE_B, code_note="(the searcher's rules, without the dense kernels; estimate)")
+
+    def resizes(self, world: WorldConfig, arch: SearcherArch) -> list[Resize]:
+        return []
+
+    def budget_arch(self, values: Mapping[str, Any]) -> SearcherArch | None:
+        return SearcherArch() if values.get("searcher") else None
+
+    def render_spec(self, qp: QuantizedSearcher) -> RenderSpec:
+        p = qp.params
+        return RenderSpec(
+            memory=(),
+            scratch=(
+                CDefine("KF_SPEED", qp.speed_q, comment="motor command of a straight run"),
+                CDefine("KF_STOP_Q", qp.stop_q, comment=f"stop once the target obs <= this ({p.stop_dist:g} at e_in)"),
+                CDefine("KF_TUMBLE_MAX", p.tumble_max_steps, comment="a tumble pivots 1..this many periods"),
+                CDefine("KF_WALL_TURN_MIN", p.wall_turn_min, comment="a wall turn pivots min .. min + span - 1"),
+                CDefine("KF_WALL_TURN_SPAN", p.wall_turn_max - p.wall_turn_min + 1, "uint16_t"),
+                CDefine("KF_WALL_COOLDOWN", p.wall_cooldown, comment="straight periods before the wall counts again"),
+                CDefine("KF_UTURN", p.uturn_steps, comment="pivot periods of the U-turn on losing a level"),
+                CDefine("KF_SETTLE_PATIENCE", p.settle_patience, comment="non-improving periods before stopping"),
+                CDefine("KF_SETTLE_HOLD", p.settle_hold, comment="missed periods before a stopped robot leaves"),
+                CDefine("KF_NBR_GRADIENT", int(p.nbr_gradient), comment="level 1: climb the neighbour proximity"),
+                CDefine("KF_TURN_RANDOM", int(p.turn_sign == 0), comment="1: draw the turn direction"),
+                CDefine("KF_TURN_LEFT", int(p.turn_sign > 0), comment="the fixed direction when not drawn"),
+                CDefine("KF_BIG", BIG, "int32_t", "run until something happens (periods)"),
+                CDefine("KF_SEED_MUL", SEED_MUL, "uint32_t", "xorshift32 seed = kilo_uid * MUL + ADD (never 0)"),
+                CDefine("KF_SEED_ADD", SEED_ADD, "uint32_t"),
+            ),
+            tables=(CTable("KF_RUN", "uint16_t", qp.run_table,
+                           f"RUN[b]: exploration run length (periods) for draw byte b, u = (b + 0.5) / 256",
+                           per_line=12),))
+
+
+SEARCHER = SearcherKind()
