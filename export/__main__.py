@@ -19,4 +19,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kiloforge.cli import run_guarded
+
+    sys.exit(run_guarded("python -m export", lambda: main, sys.argv[1:]))

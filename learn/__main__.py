@@ -15,18 +15,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-import typing
 from pathlib import Path
+
+from kiloforge.cliparse import ArgumentParser, program
 
 from .checkpoint import published_dir
 from .cli import read_json
 from .config import ConfigError
-
-class ArgumentParser(argparse.ArgumentParser):
-    """argparse with one-line errors (exit status 2)."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> ArgumentParser:
@@ -124,9 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
     except (ConfigError, KiloforgeError, ValueError) as e:
-        print(f"python -m learn {args.command}: error: {e}", file=sys.stderr)
+        print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
         return 2
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kiloforge.cli import run_guarded
+
+    sys.exit(run_guarded("python -m learn", lambda: main, sys.argv[1:]))

@@ -101,7 +101,7 @@ def _tyro_error(text: str) -> str:
 
 def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, default_preset: str):
     """(config, run directory, resume, quiet) from the command line; ConfigError (one line) on bad input."""
-    meta = argparse.ArgumentParser(add_help=False)
+    meta = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     for flag in ("--preset", "--config", "--out"):
         meta.add_argument(flag, default=None)
     meta.add_argument("--resume", action="store_true")
@@ -140,8 +140,11 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
     """CLI entry point of one algorithm; returns the exit status."""
     from kiloforge.errors import KiloforgeError
 
+    from kiloforge.cliparse import program
+
     from .train import train
 
+    prog = program(prog)
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)

@@ -2,12 +2,12 @@
 (every number range-checked by :mod:`kiloforge.validate`), policy loading."""
 from __future__ import annotations
 
-import argparse
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
 
 from kiloforge.actors.base import FloatPolicy
+from kiloforge.cliparse import ArgumentParser
 from kiloforge.errors import printable
 from kiloforge.policies import load_policy
 from kiloforge.validate import float_arg, int_arg
@@ -22,8 +22,8 @@ EXIT_USER_ERROR = 2
 DEFAULT_POLICY = ("data", "default_policy.npz")  #: the shipped reference policy, inside the export package
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse that raises instead of exiting, so main() keeps the one-line error contract."""
+class Parser(ArgumentParser):
+    """argparse (no abbreviations) that raises instead of exiting, so main() keeps the one-line error contract."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise ExportError(f"{self.prog}: {message} (see --help)")
