@@ -1,10 +1,17 @@
 """``python -m export`` / ``kiloforge-export``: see :mod:`export.cli.main`."""
 from __future__ import annotations
 
-import sys
-from typing import Sequence
+import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
 
-from kiloforge.interrupts import run_entry_point
+_held: list[int] = []
+_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+try:
+    import sys
+    from typing import Sequence
+
+    from kiloforge.interrupts import run_entry_point
+finally:
+    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
 
 
 def _load():
@@ -15,10 +22,11 @@ def _load():
 
 def main(argv: Sequence[str] | None = None) -> int:
     """:func:`export.cli.main.main`, with a Ctrl-C while its modules load ending in the same one line."""
-    return run_entry_point(_load, argv, "error: interrupted; nothing written (files from an earlier run are unchanged)")
+    return run_entry_point(_load, argv, "error: interrupted; nothing written (files from an earlier run are unchanged)",
+                           _held)
 
 
 if __name__ == "__main__":
     from kiloforge.cli import run_guarded
 
-    sys.exit(run_guarded("python -m export", lambda: main, sys.argv[1:]))
+    sys.exit(run_guarded("python -m export", lambda: main, None))

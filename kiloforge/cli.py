@@ -93,16 +93,16 @@ def missing_extra(err: ModuleNotFoundError) -> tuple[str, str] | None:
     return (top, EXTRAS[top]) if top in EXTRAS else None
 
 
-def run_guarded(prog: str, load: Callable[[], Callable[[list[str]], int]], argv: Sequence[str]) -> int:
-    """``load()(argv)`` (``load`` imports the command and returns its ``main``) with the two checks of the
-    module doc: shadowed packages first, then a missing optional dependency, reported as
-    ``<prog> needs <module>: pip install 'kiloforge[<extra>]'``."""
+def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
+    """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
+    own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
+    optional dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'``."""
     problem = shadowing()
     if problem:
         print(f"{prog}: error: {problem}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        return load()(list(argv))
+        return load()(None if argv is None else list(argv))
     except ModuleNotFoundError as e:
         missing = missing_extra(e)
         if missing is None:

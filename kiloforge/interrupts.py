@@ -6,7 +6,9 @@
   (:mod:`kiloforge.io` publishing a set of files), and raises :class:`Interrupted` after it;
 * :func:`run_entry_point` is what a ``__main__`` module runs: it loads the command's modules with
   Ctrl-C ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
-  the command, and ignores signals once it has returned (nothing is left to interrupt).
+  the command, and ignores signals once the program (``argv`` None) has returned (nothing is left to
+  interrupt). A ``__main__`` module's first lines hold a Ctrl-C back (with the built-in ``_signal``,
+  before this module and its imports load) and pass what they held as ``held``.
 
 Handlers can only be installed from the main thread; elsewhere both are no-ops (Python delivers
 ``KeyboardInterrupt`` to the main thread only).
@@ -77,11 +79,15 @@ def deferred() -> Iterator[None]:
 
 
 def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], argv: Sequence[str] | None,
-                    message: str) -> int:
+                    message: str, held: Sequence[int] = ()) -> int:
     """``load()`` (the imports of a command, returning its ``main``), then ``main(argv)``; a SIGINT while
-    loading prints ``message`` and returns 130."""
+    loading, or one already ``held`` back by the ``__main__`` module's first lines, prints ``message`` and
+    returns 130."""
     import sys
 
+    if held:
+        print(message, file=sys.stderr)
+        return 130
     got: list[int] = []
 
     def on_sigint(signum: int, frame: Any) -> None:
@@ -101,7 +107,7 @@ def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], a
         print(message, file=sys.stderr)
         return 130
     status = main(argv)
-    if _main_thread():
-        for s in SIGNALS:  # finished: only the exit is left
+    if argv is None and _main_thread():  # the program (argv from sys.argv) has finished: only the exit is left
+        for s in SIGNALS:
             signal.signal(s, signal.SIG_IGN)
     return status

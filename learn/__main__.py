@@ -13,15 +13,19 @@ User errors print one line and exit with status 2.
 """
 from __future__ import annotations
 
-import argparse
-import sys
-from pathlib import Path
+import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
 
-from kiloforge.cliparse import ArgumentParser, program
+_held: list[int] = []
+_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+try:
+    import argparse
+    import sys
+    from pathlib import Path
 
-from .checkpoint import published_dir
-from .cli import read_json
-from .config import ConfigError
+    from kiloforge.cliparse import ArgumentParser, program
+    from kiloforge.interrupts import exit_status, run_entry_point
+finally:
+    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
 
 
 def build_parser() -> ArgumentParser:
@@ -62,6 +66,8 @@ def build_parser() -> ArgumentParser:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from kiloforge.policies import load_policy
 
+    from .checkpoint import published_dir
+    from .config import ConfigError
     from .evaluate import evaluate_policies
 
     for name, v, lo in (("--episodes", args.episodes, 1), ("--steps", args.steps, 1), ("--n-envs", args.n_envs, 1)):
@@ -84,6 +90,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    from .cli import read_json
     from .plots import plot_learning_curves
     from .rundir import read_metrics
 
@@ -99,8 +106,17 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _load():
+    """The modules every command needs (torch, NumPy, tyro, the simulator, the trainer)."""
+    from . import cli, train  # noqa: F401
+
+    return _main
+
+
+def _main(argv: list[str] | None = None) -> int:
     from kiloforge.errors import KiloforgeError
+
+    from .config import ConfigError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("train", "train-recurrent"):  # learn/cli.py: tyro parsers of the configs
@@ -121,9 +137,18 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # evaluate publishes all its files or none; plot writes one file atomically
+        print(f"{program('python -m learn ' + args.command)}: error: interrupted; nothing written", file=sys.stderr)
+        return exit_status(e)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m learn`` / ``kiloforge-learn``; a Ctrl-C while its modules load ends in one line."""
+    return run_entry_point(_load, argv,
+                           f"{program('python -m learn')}: error: interrupted while starting; nothing written", _held)
 
 
 if __name__ == "__main__":
     from kiloforge.cli import run_guarded
 
-    sys.exit(run_guarded("python -m learn", lambda: main, sys.argv[1:]))
+    sys.exit(run_guarded("python -m learn", lambda: main, None))

@@ -138,15 +138,15 @@ def parse_train_args(argv: list[str], cls: type[ExperimentConfig], prog: str, de
 def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = TrainConfig,
                prog: str = "python -m learn train", default_preset: str = "default") -> int:
     """CLI entry point of one algorithm; returns the exit status."""
-    from kiloforge.errors import KiloforgeError
-
     from kiloforge.cliparse import program
-
-    from .train import train
+    from kiloforge.errors import KiloforgeError
+    from kiloforge.interrupts import exit_status
 
     prog = program(prog)
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
+        from .train import train
+
         cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)
         note = cfg.budget_note()
         if note:
@@ -155,6 +155,10 @@ def main_train(argv: list[str] | None = None, cls: type[ExperimentConfig] = Trai
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # outside train()'s own handling (which checkpoints): loading, setting up, ending
+        print(f"{prog}: error: interrupted; the run directory keeps its last checkpoint, if any "
+              "(--resume continues it, or restarts a run without one)", file=sys.stderr)
+        return exit_status(e)
     c = res.counters
     best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
     print(f"run: {res.run_dir}  ({res.stopped})")

@@ -201,9 +201,7 @@ class ExperimentConfig:
         need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
              f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")
         if self.randomise != "none":
-            from .groups import randomisation  # raises ConfigError for an unknown name or without sim.variants
-
-            randomisation(self.randomise)
+            randomisation(self.randomise)  # ConfigError for an unknown name
         steps = self.world_config().episode_steps
         need(self.replay_size >= steps * self.n_envs,
              f"replay_size ({self.replay_size}) must hold at least one episode per env "
@@ -369,6 +367,17 @@ def config_from_dict(d: dict[str, Any]) -> ExperimentConfig:
     if algo not in CONFIGS:
         raise ConfigError(f"unknown algorithm '{algo}'; choose one of: {', '.join(CONFIGS)}")
     return CONFIGS[algo].from_dict(d)
+
+
+def randomisation(name: str) -> Any:
+    """``sim.variants.RANDOMISATIONS[name]`` (None for ``none``); one-line ConfigError otherwise."""
+    if name == "none":
+        return None
+    from sim.variants import RANDOMISATIONS
+
+    if name not in RANDOMISATIONS:
+        raise ConfigError(f"unknown randomise '{name}'; choose one of: {', '.join(dict.fromkeys(['none', *RANDOMISATIONS]))}")
+    return RANDOMISATIONS[name]
 
 
 def need(cond: bool, msg: str) -> None:

@@ -8,7 +8,6 @@ robot-transition weighs the same). Each size is evaluated separately.
 """
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
 
@@ -16,23 +15,10 @@ from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
 
 from .augment import PhantomNeighbours
-from .config import ConfigError
+from .config import randomisation
 from .noise import OUNoise
 from .replay import EpisodeReplay
 from .rewards import LearningReward
-
-
-def randomisation(name: str) -> Any:
-    """``sim.variants.RANDOMISATIONS[name]`` (None for ``none``); one-line ConfigError otherwise."""
-    if name == "none":
-        return None
-    try:
-        from sim.variants import RANDOMISATIONS
-    except ImportError:
-        raise ConfigError(f"randomise '{name}' needs sim.variants, which this version of the simulator lacks") from None
-    if name not in RANDOMISATIONS:
-        raise ConfigError(f"unknown randomise '{name}'; choose one of: {', '.join(dict.fromkeys(['none', *RANDOMISATIONS]))}")
-    return RANDOMISATIONS[name]
 
 
 def make_env(world: WorldConfig, n_envs: int, n_robots: int, seed: int, randomise: str = "none") -> SwarmEnv:

@@ -224,4 +224,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from kiloforge.cli import run_guarded
 
-    sys.exit(run_guarded("python -m sim", lambda: main, sys.argv[1:]))
+    sys.exit(run_guarded("python -m sim", lambda: main, None))

@@ -21,10 +21,24 @@ Two presets:
     kilo_ticks (≈1.9/s) with a random phase and loss, Gaussian distance noise, a control period of
     31 kilo_ticks (30.52 Hz ⇒ 1.016 s), motion by the straight / pivot motor schedule of
     :mod:`sim.motion`, and a 500 × 500 mm arena (a common Kilobot table size; 5.9 communication
-    radii wide, close to the thesis's 5 radii). The target beacon is a Kilobot too, and searchers
-    that bump into it push it (``beacon_mobility = 1``): on a real table nothing holds the beacon,
-    and an independent Kilobot simulator running our firmware saw it pushed 26–127 mm per 300 s
-    run. A taped-down beacon, the thesis's fixed target, is ``beacon_mobility = 0``.
+    radii wide, close to the thesis's 5 radii).
+
+    A pivot turns the robot about a leg, not its centre (platform notes: "pivots about a leg with
+    one motor"). A Kilobot stands on three legs, one ahead and two behind at ±125.5° from the
+    heading (Kilombo's ``leg_angle``, docs/kilombo.md); with one motor running, the rear leg on the
+    side of the motor that is off, on the inside of the turn, stays put and the body swings about
+    it. So a left (counter-clockwise) pivot turns about the point ``pivot_offset_mm`` = 16.5 mm
+    (the rim of the body; Kilombo: its 17 mm radius) from the centre at heading + 125.5°, a right
+    pivot about the one at heading - 125.5°, and the centre moves along an arc around it, ≈13 mm/s
+    forwards and towards the turn (direction heading ± 35.5°). ``pivot_offset_mm = 0`` pivots
+    about the centre.
+
+    The target beacon is taped down (``beacon_mobility = 0``): the benchmarks (issue 13's coverage
+    goals, the packing ceiling) assume a stationary beacon, and the flashing instructions tell
+    users to tape it to the table. Untaped, searchers push it (an independent Kilobot simulator
+    running our firmware saw it pushed 146 mm on average per 300 s run); that world is the
+    ``beacon pushed`` robustness variant (``beacon_mobility = 1``) and part of the "table" domain
+    randomisation (:mod:`sim.variants`).
 """
 from __future__ import annotations
 
@@ -69,6 +83,12 @@ class WorldConfig:
     #: beacon standing on the table). Collision worlds only; the task follows the beacon's position
     beacon_mobility: float = 0.0
     # --- motion -----------------------------------------------------------------------------
+    #: tick-level worlds: a pivot turns the robot about a point this far from its centre (a leg;
+    #: 0 = about the centre). Its centre then moves along an arc around that point
+    pivot_offset_mm: float = 0.0
+    #: bearing of the pivot point from the heading, on the side of the turn: a left (counter-
+    #: clockwise) pivot turns about the point at heading + angle, a right pivot at heading - angle
+    pivot_angle_deg: float = 125.5
     v_max_mm_s: float = 10.0  #: straight speed at k_linear = 1 (thesis v_linear,max = 1 cm/s)
     omega_max_rad_s: float = math.pi / 4  #: turn rate at |k_angular| = 1 (thesis 45 deg/s)
     control_period_s: float = 1.0  #: ΔT; for tick-level worlds period_ticks / KILO_TICK_HZ
@@ -117,6 +137,10 @@ class WorldConfig:
              f"arena_half_mm must be in (0, {MAX_ARENA_HALF_MM}], got {self.arena_half_mm}")
         need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
         need(0.0 <= self.beacon_mobility <= 1.0, f"beacon_mobility must be in [0, 1], got {self.beacon_mobility}")
+        need(self.pivot_offset_mm >= 0, f"pivot_offset_mm must be >= 0, got {self.pivot_offset_mm}")
+        need(0.0 <= self.pivot_angle_deg <= 180.0, f"pivot_angle_deg must be in [0, 180], got {self.pivot_angle_deg}")
+        need(self.pivot_offset_mm == 0 or self.tick_level,
+             "pivot_offset_mm > 0 needs a tick-level world (the thesis kinematics turn about the centre)")
         need(self.spawn_margin_mm >= 0 and self.spawn_margin_mm < self.arena_half_mm,
              f"spawn_margin_mm must be in [0, arena_half_mm), got {self.spawn_margin_mm}")
         need(self.v_max_mm_s >= 0, f"v_max_mm_s must be >= 0, got {self.v_max_mm_s}")
@@ -207,7 +231,7 @@ class WorldConfig:
 
 
 #: fields added after policy artifacts were first written, and the value that older worlds had
-_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0}
+_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5}
 
 THESIS = WorldConfig()
 
@@ -216,9 +240,11 @@ KILOBOT = WorldConfig(
     arena_half_mm=250.0,
     robot_radius_mm=16.5,  # 33 mm body (platform notes)
     collisions=True,
-    beacon_mobility=1.0,  # the beacon is a Kilobot standing on the table (see the module doc)
+    beacon_mobility=0.0,  # taped down: the benchmarks' stationary beacon (see the module doc)
     v_max_mm_s=10.0,  # ≈1 cm/s (platform notes)
     omega_max_rad_s=math.pi / 4,  # ≈45 deg/s pivot (platform notes)
+    pivot_offset_mm=16.5,  # about a leg at the rim (platform notes; Kilombo: its 17 mm radius)
+    pivot_angle_deg=125.5,  # the rear legs' bearing from the heading (Kilombo's leg_angle)
     control_period_s=31 / KILO_TICK_HZ,
     tick_level=True,
     period_ticks=31,  # ≈1.016 s at 30.52 Hz

@@ -11,8 +11,17 @@ The heading turns first and the robot then moves along the *new* heading, as wri
 Kilobot (``tick_level`` worlds), once per kilo_tick for ``period_ticks`` ticks: the motor mode of
 :func:`sim.motion.schedule` on the uint8 commands. STRAIGHT moves ``v_max · tick_s`` along the
 heading; LEFT / RIGHT turn by ``± ω_max · tick_s``; STOP does nothing (per-robot factors:
-:class:`MotionParams`). Simplification: a pivot is modelled as a rotation about the robot's centre
-(a real Kilobot pivots about one leg, so its centre also shifts by a few mm per quarter turn).
+:class:`MotionParams`). A pivot turns the robot about its pivot leg (``cfg.pivot_offset_mm`` R from
+the centre, ``cfg.pivot_angle_deg`` α from the heading, on the side of the turn; R = 0: about the
+centre). In complex coordinates, with heading φ before the tick, θ = ±ω_max · tick_s and
+β = ±α (+ for left pivots)::
+
+    leg  p  = z + R exp(i(φ + β))             (stays put during the tick)
+    z'      = p - R exp(i(φ + θ + β)),  φ' = φ + θ
+
+so after m pivot ticks from (z0, φ0) the centre is at ``z0 + R e^{i(φ0+β)} (1 - e^{imθ})``: an arc
+of radius R about the leg, each tick a chord of 2R sin(θ/2) in the direction φ + β - sign(θ)·90° + θ/2
+(for the Kilobot's α = 125.5°: forwards and towards the turn, heading ± 35.5°).
 
 Headings are wrapped to (-π, π]. Walls: robot centres are clipped to ``[-a + r, a - r]`` after every
 tick (a = ``arena_half_mm``, r = ``robot_radius_mm``). Collisions (``cfg.collisions``): after each
@@ -28,16 +37,22 @@ robot (mobility m: 0 = taped down, the robot takes the whole push; 1 = pushed li
 
 How a period is computed (same model as stepping every robot tick by tick, without a Python loop
 over ticks where nothing touches): a robot's period is ``turn`` pivot ticks, then ``straight``
-ticks, then stop, so its collision-free path is closed form, for every tick at once: the heading
-after the pivots, then n straight steps along it (``curve``: a geometric sum of rotated steps).
-Walls too: clipping a coordinate tick by tick equals clipping the unclipped path whenever that
-coordinate moves in one direction during the period (always true for straight runs; a curved path
-that meets a wall and turns back is run tick by tick). Only the envs in which two discs on these
+ticks, then stop, so its collision-free path is closed form, for every tick at once: the arc about
+the pivot leg (above; nothing with a centre pivot), then n straight steps along the heading after
+the pivots (``curve``: a geometric sum of rotated steps). Walls too: clipping a coordinate tick by
+tick equals clipping the unclipped path whenever that coordinate moves in one direction during the
+period (always true for a straight run after a centre pivot), and in general, per coordinate,
+``x_k = min(x0 + D_k, a - r - (max_{j<=k} D_j - D_k))`` for the unclipped displacement D (a running
+maximum; the running minimum for the other wall; :func:`_clip_path`). Only the envs in which two discs on these
 paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
-the period start) are re-run tick by tick from the first such tick, with the collision resolution.
+the period start, travel = arc + straight path length) are re-run tick by tick from the first such
+tick, with the collision resolution; a tick's move there is the closed form's increment, which does
+not depend on where pushes put the robot.
 
 Trigonometry: thesis moves use float32 (:func:`unit`, ~1e-7 relative, below 1e-5 mm per step);
-Kilobot moves take one float64 ``exp(iφ)`` per robot and period. Everything else is float64.
+Kilobot moves take float64 ``exp(iφ)`` per robot and period (and, for arcs, a table of
+``exp(i j ω_max tick_s)``, or one exponential per pivot tick when turn rates vary per robot).
+Everything else is float64.
 """
 from __future__ import annotations
 
@@ -63,6 +78,9 @@ RELAX_OMEGA = 1.5
 #: 32-robot jam reaches OVERLAP_TOL_MM in ~15 sweeps instead of ~120 (measured on captured jams)
 RELAX_MARGIN_MM = 0.05
 MIN_SKIN_FRAC = 0.25  #: candidate pairs within 2r + skin; the skin is at least this x 2r
+#: the skin is this x a period's longest own path: a disc may move skin / 2 (its own path and pushes)
+#: before its env's list is rebuilt (at 2.0, with its own path alone, most crowded periods rebuilt)
+SKIN_TRAVELS = 2.5
 
 
 def wrap_angle(phi: np.ndarray) -> np.ndarray:
@@ -109,14 +127,16 @@ class MotionParams:
 
     ``speed`` scales v_max on straight ticks, ``turn_left`` / ``turn_right`` scale ω_max on left /
     right pivot ticks, ``curve`` is the heading change (rad, + = counter-clockwise) per straight
-    tick (a robot whose calibrated "straight" is not quite straight). The nominal robot is
-    ``1, 1, 1, 0``; :mod:`sim.variants` draws these.
+    tick (a robot whose calibrated "straight" is not quite straight), ``pivot_mm`` the distance of
+    each robot's pivot point from its centre. The nominal robot is ``1, 1, 1, 0`` and the world's
+    ``pivot_offset_mm``; :mod:`sim.variants` draws these.
     """
 
     speed: np.ndarray
     turn_left: np.ndarray
     turn_right: np.ndarray
     curve: np.ndarray | None = None  #: None: every straight is straight
+    pivot_mm: np.ndarray | None = None  #: None: cfg.pivot_offset_mm for every robot
 
 
 class _Contacts:
@@ -129,34 +149,42 @@ class _Contacts:
     """
 
     def __init__(self, z: np.ndarray, n_env: int, n_disc: int, cfg: WorldConfig, skin: float,
-                 mobility: np.ndarray | None) -> None:
+                 mobility: np.ndarray | None, pairs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+        """``z`` (n_env * n_disc,) the positions the list is built at; ``pairs`` (env, i, j), sorted:
+        the pairs within 2r + skin there, when the caller has them already."""
         self.n_env, self.n_disc = n_env, n_disc
         self.diam = 2.0 * cfg.robot_radius_mm
         self.lim = cfg.arena_half_mm - cfg.robot_radius_mm
         self.extent = cfg.arena_half_mm
         self.skin = skin
         self.mobility = mobility  # (n_env,) beacon mobility, or None: no beacon disc (last disc is a robot)
-        self.pe, self.fi, self.fj, self.wi, self.wj = self._pairs(z, np.arange(n_env))
+        if pairs is None:
+            pairs = self._within(z, np.arange(n_env))
+        self.pe, self.fi, self.fj, self.wi, self.wj = self._shares(*pairs)
         self.built_at = z.copy()
 
-    def _pairs(self, z: np.ndarray, envs: np.ndarray) -> tuple:
-        """(env, flat i, flat j, share i, share j) of the candidate pairs of ``envs`` (ascending)."""
+    def _within(self, z: np.ndarray, envs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(env, i, j) of the pairs of ``envs`` (ascending) within 2r + skin at ``z``, sorted."""
         N = self.n_disc
         zz = z.reshape(self.n_env, N)[envs]
         p = grid.pairs_within(zz.view(np.float64).reshape(envs.size, N, 2), self.diam + self.skin, self.extent)
-        pe = envs.take(p.env)
-        fi, fj = pe * N + p.i, pe * N + p.j  # i < j, so the beacon is always j
+        return envs.take(p.env), p.i, p.j
+
+    def _shares(self, pe: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple:
+        """(env, flat i, flat j, share i, share j) of pairs (env, i, j)."""
+        N = self.n_disc
+        fi, fj = pe * N + i, pe * N + j  # i < j, so the beacon is always j
         if self.mobility is None:
             return pe, fi, fj, None, None  # every pair shares its push equally
         # robot-beacon pairs: shares by mobility (robot 1, beacon m): 1 / (1 + m) and m / (1 + m)
-        m = np.where(p.j == N - 1, self.mobility.take(pe), 1.0)
+        m = np.where(j == N - 1, self.mobility.take(pe), 1.0)
         return pe, fi, fj, 2.0 / (1.0 + m), 2.0 * m / (1.0 + m)  # relative to an equal share
 
     def _rebuild(self, z: np.ndarray, envs: np.ndarray) -> None:
         stale = np.zeros(self.n_env, bool)
         stale[envs] = True
         keep = ~stale.take(self.pe)
-        new = self._pairs(z, envs)
+        new = self._shares(*self._within(z, envs))
         order = np.argsort(np.concatenate((self.pe[keep], new[0])), kind="stable")
         old = (self.pe, self.fi, self.fj, self.wi, self.wj)
         self.pe, self.fi, self.fj, self.wi, self.wj = (
@@ -190,6 +218,8 @@ class _Contacts:
         compact_at = 1
         for sweep in range(MAX_RELAX_ITERS):
             if sweep == cap and capped is not None and capped.any():  # capped envs are done
+                if capped[limit_env > 0].all():
+                    return sweep
                 limit = np.where(capped.take(pe), -1.0, limit)
             dz = z.take(fi) - z.take(fj)  # (K,) from j to i
             d = np.abs(dz)
@@ -228,8 +258,10 @@ class Collider:
         assert cfg.robot_radius_mm > 0, "collisions need robot_radius_mm > 0"
         self.cfg = cfg
         self.diam = 2.0 * cfg.robot_radius_mm
-        #: candidate-pair skin: twice the longest straight run of a period at nominal speed
-        self.skin = max(2.0 * cfg.period_ticks * cfg.v_max_mm_s * cfg.tick_s, MIN_SKIN_FRAC * self.diam)
+        #: candidate-pair skin: SKIN_TRAVELS x the longest path of a period at nominal speed (straight run
+        #: or arc about the pivot leg), so a list built at a period's start rarely needs a rebuild
+        travel = cfg.period_ticks * cfg.tick_s * max(cfg.v_max_mm_s, cfg.pivot_offset_mm * cfg.omega_max_rad_s)
+        self.skin = max(SKIN_TRAVELS * travel, MIN_SKIN_FRAC * self.diam)
 
     def resolve(self, pos: np.ndarray, target: np.ndarray | None, tol: float = OVERLAP_TOL_MM,
                 beacon_mobility: float | np.ndarray = 0.0) -> int:
@@ -298,43 +330,56 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         step = dl * motion.speed
         if motion.curve is not None and np.any(motion.curve != 0):
             kappa = motion.curve
+    R = cfg.pivot_offset_mm if motion is None or motion.pivot_mm is None else motion.pivot_mm
+    leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
+    phi0 = heading.copy() if leg else None
     phi_s = heading + t * theta  # heading when the straight ticks start
     k = np.arange(P).reshape(P, 1, 1)
-    n = np.clip(k + 1 - t, 0, s)  # (P, B, M) straight ticks done by the end of tick k
-    go = (k >= t) & (k < t + s)  # (P, B, M) tick k is a straight tick
-    z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
+    n = k + 1 - t  # (P, B, M) straight ticks done by the end of tick k
+    np.maximum(n, 0, out=n)
+    np.minimum(n, s, out=n)
+    u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
+    inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     if kappa is None:
-        e = step * np.exp(1j * phi_s)  # (B, M) displacement of one straight tick
-        inc = None
-        disp = n * e
+        e = step * u_s  # (B, M) displacement of one straight tick
+        disp = _scaled(n, e)
         heading[...] = wrap_angle(phi_s)
     else:  # each straight tick turns by kappa, then moves along the new heading
-        inc = go * (step * np.exp(1j * (phi_s + n * kappa)))
+        inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
         disp = np.cumsum(inc, axis=0)
         heading[...] = wrap_angle(phi_s + s * kappa)
+    travel = s * step  # (B, M) path length of the period: a bound on how far a disc gets
+    if leg:
+        travel = travel + _add_arcs(disp, phi0, theta, t, left, R, cfg, dphi if motion is None else None)
+    z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
     if record is not None and record.dtype == np.float64 and record.flags.c_contiguous:
         zk = record.view(np.complex128).reshape(P, B, M)  # write the ticks straight into the record
         np.add(z0, disp, out=zk)
     else:
         zk = z0 + disp
     zkf = zk.view(np.float64)
-    np.minimum(zkf, lim, out=zkf)  # walls: exact for monotone coordinates (see the module doc)
+    k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
+    if leg or kappa is not None:  # a coordinate may turn back: the robots that meet a wall
+        b, r = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=(0, 3)).nonzero()
+        if b.size:
+            zk[:, b, r] = _clip_path(z0[b, r], disp.reshape(P, B * M).take(b * M + r, axis=1), lim)
+    np.minimum(zkf, lim, out=zkf)  # walls: clipping the path = clipping every tick, for monotone coordinates
     np.maximum(zkf, -lim, out=zkf)
 
-    k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
-    if kappa is not None:  # a curved path along a wall whose coordinate turns back: clip per tick
-        out = (np.abs((z0 + disp).view(np.float64)) > lim).reshape(P, B, M, 2).any(axis=0)  # (B, M, 2)
-        ir, ii = inc.real, inc.imag
-        turns = np.stack([(ir > 0).any(0) & (ir < 0).any(0), (ii > 0).any(0) & (ii < 0).any(0)], -1)
-        k0[(out & turns).any(axis=(1, 2))] = 0
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
-    if collider is not None:
-        np.minimum(k0, _first_contacts(z0, zk, zb, s * step, cfg), out=k0)
+    start = cand = None
+    if collider is not None:  # pairs near enough to touch this period (also the per-tick contact lists)
+        start = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N) discs at the start
+        tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
+        reach = max(2.0 * float(tr.max()), collider.skin)
+        cand = grid.pairs_within(start.view(np.float64).reshape(B, -1, 2), collider.diam + reach + 1e-9,
+                                 cfg.arena_half_mm)
+        np.minimum(k0, _first_contacts(cand, zk, zb, tr, collider.diam), out=k0)
     if (k0 < P).any():
-        _per_tick(zk, zb, z0, go, inc if inc is not None else go * e, k0, cfg, collider,
+        _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider,
                   None if not has_beacon else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)),
-                  target_record)
+                  target_record, start, cand)
     elif target_record is not None:
         target_record[...] = target  # the beacon stays put
     pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
@@ -344,17 +389,71 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
 
 
-def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, travel: np.ndarray,
-                    cfg: WorldConfig) -> np.ndarray:
+def _scaled(n: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``n * e`` for integers n (P, B, M) and complex e (B, M), by two real products (NumPy casts
+    integers to complex an order of magnitude slower than it multiplies)."""
+    out = np.empty(n.shape, np.complex128)
+    f = out.view(np.float64).reshape(n.shape + (2,))
+    np.multiply(n, e.real, out=f[..., 0])
+    np.multiply(n, e.imag, out=f[..., 1])
+    return out
+
+
+def _clip_path(z0: np.ndarray, disp: np.ndarray, lim: float) -> np.ndarray:
+    """Positions (P, K) of paths ``z0 + disp`` (disp (P, K): the unclipped displacement after each
+    tick) clipped to [-lim, lim]² after every tick, in closed form.
+
+    Per coordinate, ``x_{k+1} = min(x_k + dx_k, lim)`` gives ``x_k = min(x0 + D_k, lim - (max_{j<=k}
+    D_j - D_k))`` (D_0 = 0 included), and likewise for the lower wall with the running minimum. Exact
+    for paths that come near one wall per coordinate at most (a period's travel is far below the
+    arena width).
+    """
+    out = []
+    for x0, d in ((z0.real, disp.real), (z0.imag, disp.imag)):
+        x = x0 + d
+        np.minimum(x, lim - (np.maximum(np.maximum.accumulate(d, axis=0), 0.0) - d), out=x)
+        np.maximum(x, (d - np.minimum(np.minimum.accumulate(d, axis=0), 0.0)) - lim, out=x)
+        out.append(x)
+    return out[0] + 1j * out[1]
+
+
+def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarray, left: np.ndarray,
+              R: float | np.ndarray, cfg: WorldConfig, nominal_dphi: float | None) -> np.ndarray:
+    """Add the centre's arcs about the pivot legs to ``disp`` (P, B, M) in place; returns their
+    lengths (B, M), a bound on how far they move the centre.
+
+    ``t`` pivot ticks of θ each (per robot) about the leg at ``c = R exp(i(φ0 + β))`` from the centre
+    (β = +α for left pivots, -α for right ones; the module doc) put the centre at
+    ``z0 + c (1 - exp(i m θ))`` after m of them, and it keeps the whole arc ``c (1 - exp(i t θ))``
+    afterwards. ``nominal_dphi``: θ = ±this for every robot (a table of exp(i j θ) instead of one
+    exponential per robot and tick), or None.
+    """
+    P = disp.shape[0]
+    a = math.radians(cfg.pivot_angle_deg)
+    c = R * np.where(left, complex(math.cos(a), math.sin(a)), complex(math.cos(a), -math.sin(a))) * np.exp(1j * phi0)
+    T = int(t.max())
+    m = np.minimum(np.arange(1, T + 1).reshape(T, 1, 1), t)  # (T, B, M) pivot ticks done by the end of tick k
+    if nominal_dphi is not None:
+        table = np.exp(1j * nominal_dphi * np.arange(-P, P + 1))  # exp(i j dphi), j = -P..P
+        m *= np.where(left, 1, -1)
+        m += P
+        rot = table.take(m)
+    else:
+        rot = np.exp(1j * (theta * m))
+    arc = np.multiply(c, rot, out=rot)
+    np.subtract(c, arc, out=arc)  # (T, B, M) c (1 - exp(i m theta))
+    disp[:T] += arc
+    disp[T:] += arc[-1]
+    return t * (R * np.abs(theta))
+
+
+def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr: np.ndarray,
+                    diam: float) -> np.ndarray:
     """(B,) first tick at which two discs on their collision-free paths ``zk`` (P, B, M) come closer
-    than 2r - OVERLAP_TOL_MM in each env (P: never)."""
+    than 2r - OVERLAP_TOL_MM in each env (P: never). ``cand``: the disc pairs within 2r + the largest
+    ``tr[e, i] + tr[e, j]`` at the period start, ``tr`` (B, N) each disc's path length (0: the beacon)."""
     P, B, M = zk.shape
     first = np.full(B, P, np.int64)
-    diam = 2.0 * cfg.robot_radius_mm
-    allz = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N)
-    tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
-    reach_max = 2.0 * float(tr.max()) if tr.size else 0.0
-    cand = grid.pairs_within(allz.view(np.float64).reshape(B, -1, 2), diam + reach_max + 1e-9, cfg.arena_half_mm)
     if not len(cand):
         return first
     e, i, j = cand.env, cand.i, cand.j
@@ -363,25 +462,33 @@ def _first_contacts(z0: np.ndarray, zk: np.ndarray, zb: np.ndarray | None, trave
     if not near.size:
         return first
     e, i, j = e.take(near), i.take(near), j.take(near)
-    zi = zk[:, e, i]  # (P, K)
+    zf = zk.reshape(P, B * M)  # (take keeps the result C-ordered; fancy indexing here would not)
+    zi = zf.take(e * M + i, axis=1)  # (P, K)
     if zb is None:
-        zj = zk[:, e, j]
+        zj = zf.take(e * M + j, axis=1)
     else:
         beacon = j == M
-        zj = zk[:, e, np.minimum(j, M - 1)]
+        zj = zf.take(e * M + np.minimum(j, M - 1), axis=1)
         zj[:, beacon] = zb[e[beacon]]  # the beacon stays put unless pushed
     touch = np.abs(zi - zj) < diam - OVERLAP_TOL_MM  # (P, K)
     hit = touch.any(axis=0).nonzero()[0]
     if hit.size:
-        np.minimum.at(first, e.take(hit), touch[:, hit].argmax(axis=0))
+        np.minimum.at(first, e.take(hit), touch.take(hit, axis=1).argmax(axis=0))
     return first
 
 
-def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndarray, inc: np.ndarray,
-              k0: np.ndarray, cfg: WorldConfig, collider: Collider | None, mobility: np.ndarray | None,
-              target_record: np.ndarray | None) -> None:
+def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.ndarray, straight: np.ndarray,
+              t: np.ndarray, s: np.ndarray, leg: bool, k0: np.ndarray, cfg: WorldConfig, collider: Collider | None,
+              mobility: np.ndarray | None, target_record: np.ndarray | None, start: np.ndarray | None,
+              cand: grid.Pairs | None) -> None:
     """Re-run the envs with ``k0[e] < P`` tick by tick from their tick k0[e]: move, walls, resolve
-    collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb."""
+    collisions (loose inside the period, strict at the env's last moving tick). Updates zk and zb.
+    ``start`` (B, N): the discs at the period start, ``cand`` the pairs within 2r + skin there (or
+    farther): the contact lists are built from them.
+
+    A tick's move: ``straight`` (P, B, M) increments, or (B, M) the step of every straight tick,
+    when pivots turn about the centre; with ``leg`` pivots, the increments of the unclipped
+    closed-form path ``disp`` (P, B, M)."""
     P, B, M = zk.shape
     sel = (k0 < P).nonzero()[0]
     Bs = sel.size
@@ -390,24 +497,41 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndar
     lim = cfg.arena_half_mm - cfg.robot_radius_mm
     N = M + (zb is not None)
     zs = np.empty((Bs, N), np.complex128)
-    zs[:, :M] = z0[sel] if kmin == 0 else zk[kmin - 1, sel]
+    zs[:, :M] = (z0 if kmin == 0 else zk[kmin - 1]).take(sel, axis=0)
     if zb is not None:
         zs[:, M] = zb[sel]
-    inc_s = inc[:, sel]  # (P, Bs, M)
-    moving_env = go[:, sel].any(axis=2)  # (P, Bs)
     ticks = np.arange(P)[:, None]
+    ts, ss = t[sel], s[sel]
+    go = ticks[..., None] < ts + ss  # (P, Bs, M) robots moving at tick k
+    if leg:
+        d = disp.take(sel, axis=1)
+        inc_s = np.empty_like(d)
+        inc_s[0] = d[0]
+        np.subtract(d[1:], d[:-1], out=inc_s[1:])
+    else:
+        go &= ticks[..., None] >= ts
+        inc_s = straight.take(sel, axis=1) if straight.ndim == 3 else go * straight.take(sel, axis=0)
+    moving_env = go.any(axis=2)  # (P, Bs)
     last = np.where(moving_env.any(axis=0), P - np.argmax(moving_env[::-1], axis=0), 0)  # (Bs,) last moving tick + 1
     last = np.maximum(last, ks + 1)  # an env with contacts resolves strictly at least once
     k_end = int(last.max())
     moving = moving_env.any(axis=1).tolist()
-    starts = {k: (ks == k).nonzero()[0] for k in np.unique(ks).tolist() if k > kmin}  # later envs join here
+    later = (ks > kmin).nonzero()[0]  # envs joining after the first
+    starts = {k: later[ks.take(later) == k] for k in set(ks.take(later).tolist())}
     if collider is not None:
-        contacts = _Contacts(zs.reshape(-1), Bs, N, cfg, collider.skin, None if zb is None else mobility[sel])
+        loc = np.full(B, -1)
+        loc[sel] = np.arange(Bs)
+        le = loc.take(cand.env)
+        near = np.flatnonzero((le >= 0) & (cand.dist <= collider.diam + collider.skin))
+        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
+                             None if zb is None else mobility[sel],
+                             (le.take(near), cand.i.take(near), cand.j.take(near)))
         diam = collider.diam
         strict = ticks == last - 1
         active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
         limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
         resolving = active.any(axis=1).tolist()
+        loose = ~strict
     flat = zs.reshape(-1)
     zsf = flat.view(np.float64)
     body = zs[:, :M]
@@ -421,11 +545,18 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, go: np.ndar
             np.minimum(zsf, lim, out=zsf)
             np.maximum(zsf, -lim, out=zsf)
         if collider is not None and resolving[k]:
-            contacts.relax(flat, limit[k], ~strict[k], TICK_SWEEPS)
+            contacts.relax(flat, limit[k], loose[k], TICK_SWEEPS)
         rec[k - kmin] = zs
-    mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1): an env's own ticks
-    zk[kmin:k_end, sel] = np.where(mine, rec[..., :M], zk[kmin:k_end, sel])
-    zk[k_end:, sel] = body
+    own = rec[..., :M]  # an env's own ticks; before an env's first tick its closed form stays
+    if later.size:
+        mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1)
+        own = np.where(mine, own, zk[kmin:k_end].take(sel, axis=1))
+    if Bs == B:
+        zk[kmin:k_end] = own
+        zk[k_end:] = body
+    else:
+        zk[kmin:k_end, sel] = own
+        zk[k_end:, sel] = body
     if zb is not None:
         if target_record is not None:  # the beacon rests until the first contact
             bz = np.concatenate([np.broadcast_to(zb[sel], (kmin, Bs)), rec[..., M],

@@ -43,8 +43,14 @@ Ambient light (per env and wall, ``wall_zone``)
     set and dimmer light narrows it. ``wall_zone`` is the zone width as a factor on
     ``wall_sense_mm``, drawn per wall (uneven light: one side brighter than the other). The suite
     also has dim (×0.5) and bright (×1.5) tables, uniformly.
+Pivot point (per robot, ``pivot_offset_mm``)
+    A Kilobot pivots about a leg (the nominal ``kilobot`` world, :mod:`sim.kinematics`), but on a
+    slippery or uneven surface the leg slides and the effective pivot point lies closer to the
+    centre: each robot's pivot distance from its centre is drawn uniformly, at the world's
+    ``pivot_angle_deg``. The "table" randomisation spans centre (0) to leg (16.5 mm) pivots; the
+    suite also runs the centre pivot alone.
 Beacon (per env, ``beacon_mobility``)
-    Pushed by collisions like a robot (1), or taped down (0).
+    Taped down (0, the nominal ``kilobot`` world), or pushed by collisions like a robot (1).
 """
 from __future__ import annotations
 
@@ -55,12 +61,13 @@ from typing import Sequence
 
 import numpy as np
 
-from .config import WorldConfig
+from .config import KILOBOT, WorldConfig
 from .kinematics import MotionParams
 
 MOTORS = ("binary", "graded", "mixed")
 MIN_FACTOR = 0.1  #: drawn speed / turn / wheel factors are clipped to at least this (no reversing motors)
 Range = tuple[float, float]
+LEG_PIVOT_MM = KILOBOT.pivot_offset_mm  #: the "leg pivot" variant of a centre-pivot world
 
 
 @dataclass
@@ -95,13 +102,14 @@ class Randomisation:
     dist_noise_mm: Range | None = None  #: std of the distance noise, per env
     wall_zone: Range | None = None  #: factor on wall_sense_mm, per env and wall
     beacon_mobility: Range | None = None  #: per env
+    pivot_offset_mm: Range | None = None  #: pivot point's distance from the centre, per robot
 
     def __post_init__(self) -> None:
         def need(cond: bool, msg: str) -> None:
             if not cond:
                 raise ValueError(f"Randomisation: {msg}")
 
-        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "beacon_mobility"):
+        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "beacon_mobility", "pivot_offset_mm"):
             r = getattr(self, name)
             need(r is None or (len(r) == 2 and 0 <= r[0] <= r[1]), f"{name} must be None or (lo, hi) with 0 <= lo <= hi, got {r}")
         for name in ("speed", "turn", "wall_zone"):
@@ -121,7 +129,8 @@ class Randomisation:
     def moves(self) -> bool:
         """True when motion varies (needs a tick-level world)."""
         return (self.speed is not None or self.turn is not None or self.speed_spread > 0 or self.turn_spread > 0
-                or self.curve_deg_s > 0 or (self.motors != "binary" and self.wheel_spread > 0))
+                or self.curve_deg_s > 0 or (self.motors != "binary" and self.wheel_spread > 0)
+                or self.pivot_offset_mm is not None)
 
     @property
     def radio(self) -> bool:
@@ -142,7 +151,8 @@ class Randomisation:
         out = WorldDraw()
         if self.moves:
             sp, tl, tr, cu = (np.stack([d[k] for d in per_env]) for k in ("speed", "turn_left", "turn_right", "curve"))
-            out.motion = MotionParams(sp, tl, tr, cu if np.any(cu != 0) else None)
+            piv = np.stack([d["pivot_mm"] for d in per_env]) if self.pivot_offset_mm is not None else None
+            out.motion = MotionParams(sp, tl, tr, cu if np.any(cu != 0) else None, piv)
         for key in ("msg_period", "msg_loss", "dist_noise_mm", "wall_zone_mm", "beacon_mobility"):
             if key in per_env[0]:
                 setattr(out, key, np.stack([d[key] for d in per_env]))
@@ -178,6 +188,8 @@ class Randomisation:
             d["wall_zone_mm"] = cfg.wall_sense_mm * rng.uniform(*self.wall_zone, 4)
         if self.beacon_mobility is not None:
             d["beacon_mobility"] = rng.uniform(*self.beacon_mobility)
+        if self.pivot_offset_mm is not None:
+            d["pivot_mm"] = rng.uniform(*self.pivot_offset_mm, M)
         return d
 
 
@@ -186,7 +198,8 @@ RANDOMISATIONS: dict[str, Randomisation] = {
     "none": Randomisation(),
     "table": Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn_spread=0.1, curve_deg_s=2.0,
                            motors="mixed", wheel_spread=0.1, msg_period=(15, 17), msg_success=(0.6, 1.0),
-                           dist_noise_mm=(0.0, 6.0), wall_zone=(0.5, 1.5), beacon_mobility=(0.0, 1.0)),
+                           dist_noise_mm=(0.0, 6.0), wall_zone=(0.5, 1.5), beacon_mobility=(0.0, 1.0),
+                           pivot_offset_mm=(0.0, 16.5)),
 }
 
 
@@ -213,6 +226,10 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
     suite["dim light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 0.5), None)
     suite["bright light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 1.5), None)
     suite["uneven light"] = (cfg, Randomisation(wall_zone=(0.5, 1.5)))
+    if cfg.pivot_offset_mm > 0:
+        suite["centre pivot"] = (r(cfg, pivot_offset_mm=0.0), None)
+    else:
+        suite["leg pivot"] = (r(cfg, pivot_offset_mm=LEG_PIVOT_MM), None)
     if cfg.collisions:
         suite["beacon fixed" if cfg.beacon_mobility > 0 else "beacon pushed"] = (
             r(cfg, beacon_mobility=0.0 if cfg.beacon_mobility > 0 else 1.0), None)

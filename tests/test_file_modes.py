@@ -46,12 +46,12 @@ def test_export_writes_follow_the_umask(tmp_path, mask):
 def test_run_files_follow_the_umask(tmp_path, mask):
     """A trainer's checkpoint and its JSON/CSV files are as readable as its plots."""
     pytest.importorskip("torch")
-    from learn.checkpoint import load_checkpoint, save_checkpoint
+    from learn.checkpoint import load_file, save_file
 
     with umask(mask):
-        save_checkpoint({"w": np.arange(3)}, tmp_path / "checkpoint.pt")
+        save_file({"w": np.arange(3)}, tmp_path / "checkpoint.pt")
         write_atomic(tmp_path / "config.json", "{}\n")
     assert mode(tmp_path / "checkpoint.pt") == 0o666 & ~mask
     assert mode(tmp_path / "config.json") == 0o666 & ~mask
-    np.testing.assert_array_equal(load_checkpoint(tmp_path / "checkpoint.pt")["w"], np.arange(3))
+    np.testing.assert_array_equal(load_file(tmp_path / "checkpoint.pt")["w"], np.arange(3))
     assert (tmp_path / "config.json").read_text() == "{}\n"

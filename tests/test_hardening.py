@@ -413,3 +413,32 @@ def test_staged_files_with_names_chosen_while_writing(tmp_path):
         with kio.staged_files(tmp_path / "ev3", record="evaluation.json", create=True) as stage:
             (stage / "a.png").write_text("x")
     assert not (tmp_path / "ev3").exists()
+
+
+SIGINT_AT_IMPORT = """
+import os, runpy, signal, sys
+pkg, module = sys.argv[1:3]
+class Hook:
+    def find_spec(self, name, path=None, target=None):
+        if name == module:
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, Hook())
+sys.argv = [pkg, *sys.argv[3:]]
+runpy.run_module(pkg, run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.parametrize("pkg, module, args", [
+    ("export", "kiloforge.interrupts", ["--out", "p.c"]),  # before the entry point's own handler exists
+    ("learn", "kiloforge.interrupts", ["train", "--out", "run"]),
+    ("learn", "learn.train", ["train", "--out", "run"]),  # the trainer's modules loading
+    ("learn", "learn.evaluate", ["evaluate", "--policy", "p.npz", "--out", "ev"]),  # a command's own imports
+])
+def test_sigint_while_a_command_loads_is_one_line(tmp_path, pkg, module, args):
+    """A Ctrl-C while python -m export / learn loads its modules ends in one line and exit 130, nothing written."""
+    res = subprocess.run([sys.executable, "-c", SIGINT_AT_IMPORT, pkg, module, *args], cwd=tmp_path, capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
+    assert res.returncode == 130, res.stderr
+    assert "Traceback" not in res.stderr and "interrupted" in assert_one_clean_line(res.stderr)
+    assert list(tmp_path.iterdir()) == []

@@ -1,4 +1,4 @@
-"""The target beacon as a body: pushed by collisions (kilobot preset) or fixed, and the task follows it."""
+"""The target beacon as a body: taped down (kilobot preset) or pushed by collisions, and the task follows it."""
 from __future__ import annotations
 
 import numpy as np
@@ -13,21 +13,28 @@ from sim.rollout import rollout
 
 
 def test_presets_choose_the_beacon():
-    """The kilobot preset's beacon is pushed like a robot; the thesis target is fixed."""
-    assert preset("kilobot").beacon_mobility == 1.0
+    """The kilobot preset's beacon is taped down, as the thesis target is fixed."""
+    assert preset("kilobot").beacon_mobility == 0.0
     assert preset("thesis").beacon_mobility == 0.0
     with pytest.raises(ValueError, match="beacon_mobility"):
         preset("kilobot", beacon_mobility=1.5)
 
 
 def test_world_dicts_of_older_artifacts_are_unchanged():
-    """A fixed beacon is not serialised (older artifacts' worlds and hashes stay the same); a
-    pushable one is, and both round-trip."""
+    """A fixed beacon and a centre pivot are not serialised (older artifacts' worlds and hashes stay
+    the same, and load as taped beacon + centre pivot); a pushable beacon and a leg pivot are, and
+    every world round-trips."""
     from sim.config import WorldConfig
 
-    fixed, pushed = preset("kilobot", beacon_mobility=0.0), preset("kilobot")
-    assert "beacon_mobility" not in fixed.to_dict() and pushed.to_dict()["beacon_mobility"] == 1.0
-    assert WorldConfig.from_dict(fixed.to_dict()) == fixed and WorldConfig.from_dict(pushed.to_dict()) == pushed
+    old = preset("kilobot", beacon_mobility=0.0, pivot_offset_mm=0.0)  # the world older artifacts hold
+    d = old.to_dict()
+    assert not {"beacon_mobility", "pivot_offset_mm", "pivot_angle_deg"} & set(d)
+    assert WorldConfig.from_dict(d).beacon_mobility == 0.0 and WorldConfig.from_dict(d).pivot_offset_mm == 0.0
+    new, pushed = preset("kilobot"), preset("kilobot", beacon_mobility=1.0)
+    assert "beacon_mobility" not in new.to_dict() and new.to_dict()["pivot_offset_mm"] == 16.5
+    assert pushed.to_dict()["beacon_mobility"] == 1.0
+    for w in (old, new, pushed, preset("kilobot", pivot_angle_deg=90.0)):
+        assert WorldConfig.from_dict(w.to_dict()) == w
 
 
 def _pusher(mobility):
@@ -96,9 +103,9 @@ def test_tick_radio_uses_the_beacon_position_at_the_send_tick():
 
 
 def test_rollout_records_the_beacon_track():
-    """A rollout of the searcher in the kilobot world records the pushed beacon's positions, and
-    its in-range flags are measured from them."""
-    cfg = preset("kilobot", episode_steps=120, arena_half_mm=150.0)
+    """A rollout of the searcher in the kilobot world with an untaped beacon records the pushed
+    beacon's positions, and its in-range flags are measured from them."""
+    cfg = preset("kilobot", episode_steps=120, arena_half_mm=150.0, beacon_mobility=1.0)
     res = rollout(SwarmEnv(cfg, 2, 12, seed=1), make_policy("baseline", cfg), 2, seed=3, record=True)
     tr = res.trajectories
     assert tr.target.shape == (2, 121, 2)

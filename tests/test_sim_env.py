@@ -58,8 +58,8 @@ def test_walls_clip_centres():
 
 
 def test_kilobot_tick_schedule_hand_computed():
-    """Pivot ticks then straight ticks, per the uint8 motor schedule (centre rotation)."""
-    cfg = preset("kilobot", collisions=False)
+    """Pivot ticks then straight ticks, per the uint8 motor schedule (centre pivot)."""
+    cfg = preset("kilobot", collisions=False, pivot_offset_mm=0.0)
     env = SwarmEnv(cfg, 1, 3, seed=0)
     env.reset()
     start = np.array([[[0.0, 0.0], [50.0, 0.0], [-50.0, 0.0]]])
@@ -75,8 +75,8 @@ def test_kilobot_tick_schedule_hand_computed():
 
 
 def test_tick_move_records_every_tick():
-    """The per-tick record shows pivoting first (position fixed), then the straight run."""
-    cfg = preset("kilobot", collisions=False)
+    """The per-tick record shows pivoting first (position fixed: centre pivot), then the straight run."""
+    cfg = preset("kilobot", collisions=False, pivot_offset_mm=0.0)
     pos, head = np.zeros((1, 1, 2)), np.zeros((1, 1))
     rec = np.empty((31, 1, 1, 2))
     tick_move(pos, head, np.array([[[200, 100]]], np.uint8), cfg, None, None, rec)

@@ -14,8 +14,10 @@ from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STRAIGHT, mode_at_tick, sched
 
 
 def _reference(pos, heading, q, cfg, motion=None):
-    """Collision-free reference: step every robot tick by tick (pivot, straight, walls each tick).
+    """Collision-free reference: step every robot tick by tick (pivot about the leg, straight, walls
+    each tick).
 
+    A pivot tick finds the leg from the pose, turns, and puts the centre back at R from the leg.
     Returns the (P, B, M, 2) positions after each tick; pos and heading are updated in place.
     """
     P = cfg.period_ticks
@@ -24,12 +26,20 @@ def _reference(pos, heading, q, cfg, motion=None):
     one = np.ones(heading.shape)
     sp, tl, tr = (one, one, one) if motion is None else (motion.speed, motion.turn_left, motion.turn_right)
     curve = np.zeros(heading.shape) if motion is None or motion.curve is None else motion.curve
+    R = cfg.pivot_offset_mm if motion is None or motion.pivot_mm is None else motion.pivot_mm
+    alpha = math.radians(cfg.pivot_angle_deg)
     lim = cfg.arena_half_mm - cfg.robot_radius_mm
     rec = np.empty((P,) + pos.shape)
     for k in range(P):
         m = mode_at_tick(turn, mode, straight, k)
+        for pivot, sign, rate in ((MODE_LEFT, 1.0, tl), (MODE_RIGHT, -1.0, tr)):
+            on = m == pivot
+            beta = sign * alpha
+            leg_x, leg_y = pos[..., 0] + R * np.cos(heading + beta), pos[..., 1] + R * np.sin(heading + beta)
+            heading += np.where(on, sign * dphi * rate, 0.0)
+            pos[..., 0] = np.where(on, leg_x - R * np.cos(heading + beta), pos[..., 0])
+            pos[..., 1] = np.where(on, leg_y - R * np.sin(heading + beta), pos[..., 1])
         st = m == MODE_STRAIGHT
-        heading += np.where(m == MODE_LEFT, dphi * tl, 0.0) - np.where(m == MODE_RIGHT, dphi * tr, 0.0)
         heading += np.where(st, curve, 0.0)
         step = np.where(st, dl * sp, 0.0)
         pos[..., 0] += step * np.cos(heading)
@@ -52,10 +62,15 @@ def _random_case(rng, B, M, cfg, near_walls=False):
     return pos, heading, q
 
 
+PIVOTS = {"leg": {}, "centre": {"pivot_offset_mm": 0.0}, "leg 90 deg": {"pivot_angle_deg": 90.0}}
+
+
+@pytest.mark.parametrize("pivot", list(PIVOTS))
 @pytest.mark.parametrize("near_walls", [False, True])
-def test_closed_form_equals_per_tick_reference(near_walls):
-    """Without collisions the closed-form period equals stepping tick by tick (every tick, 1e-9 mm)."""
-    cfg = preset("kilobot", collisions=False)
+def test_closed_form_equals_per_tick_reference(near_walls, pivot):
+    """Without collisions the closed-form period equals stepping tick by tick (every tick, 1e-9 mm),
+    for leg and centre pivots."""
+    cfg = preset("kilobot", collisions=False, **PIVOTS[pivot])
     rng = np.random.default_rng(3)
     pos, heading, q = _random_case(rng, 6, 40, cfg, near_walls)
     p_ref, h_ref = pos.copy(), heading.copy()
@@ -69,14 +84,17 @@ def test_closed_form_equals_per_tick_reference(near_walls):
         assert (np.abs(pos) == cfg.arena_half_mm - cfg.robot_radius_mm).any()  # the walls did clip
 
 
-def test_per_robot_motion_and_curvature_equal_reference():
-    """Per-robot speed, turn rates and curved straights (arcs, also along walls) match the per-tick reference."""
+@pytest.mark.parametrize("pivot", ["world", "per robot"])
+def test_per_robot_motion_and_curvature_equal_reference(pivot):
+    """Per-robot speed, turn rates, curved straights and pivot offsets (arcs, also along walls)
+    match the per-tick reference."""
     cfg = preset("kilobot", collisions=False)
     rng = np.random.default_rng(8)
     B, M = 5, 30
     pos, heading, q = _random_case(rng, B, M, cfg, near_walls=True)
     motion = MotionParams(speed=rng.uniform(0.7, 1.3, (B, M)), turn_left=rng.uniform(0.7, 1.3, (B, M)),
-                          turn_right=rng.uniform(0.7, 1.3, (B, M)), curve=rng.normal(0, 0.02, (B, M)))
+                          turn_right=rng.uniform(0.7, 1.3, (B, M)), curve=rng.normal(0, 0.02, (B, M)),
+                          pivot_mm=rng.uniform(0.0, 16.5, (B, M)) if pivot == "per robot" else None)
     for _ in range(6):  # several periods: robots meet walls at all angles
         p_ref, h_ref = pos.copy(), heading.copy()
         want = _reference(p_ref, h_ref, q, cfg, motion)
@@ -85,6 +103,71 @@ def test_per_robot_motion_and_curvature_equal_reference():
         np.testing.assert_allclose(rec, want, rtol=0, atol=1e-9)
         np.testing.assert_allclose(np.cos(heading - h_ref), 1.0, atol=1e-12)
         q = rng.integers(0, 256, (B, M, 2)).astype(np.uint8)
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_leg_pivot_moves_the_centre_along_the_arc(side):
+    """31 ticks of a left (right) pivot turn the heading by +(-)31 dphi about the leg at 16.5 mm and
+    heading +(-)125.5 deg: the leg stays put, the centre stays 16.5 mm from it, and it ends at the
+    hand-computed point, ahead and on the side of the turn."""
+    cfg = preset("kilobot", collisions=False)
+    assert cfg.pivot_offset_mm == 16.5 and cfg.pivot_angle_deg == 125.5
+    sign = 1.0 if side == "left" else -1.0
+    q = np.array([[[255, 0]]] if side == "left" else [[[0, 255]]], np.uint8)
+    pos, heading = np.zeros((1, 1, 2)), np.zeros((1, 1))
+    rec = np.empty((31, 1, 1, 2))
+    tick_move(pos, heading, q, cfg, None, None, rec)
+    dphi = cfg.omega_max_rad_s * cfg.tick_s
+    turn = 31 * dphi  # 0.7978 rad = 45.7 deg
+    a = math.radians(125.5)
+    leg = 16.5 * np.array([math.cos(a), sign * math.sin(a)])  # (-9.582, ±13.432)
+    want = leg - 16.5 * np.array([math.cos(a + turn), sign * math.sin(a + turn)])
+    np.testing.assert_allclose(want, [6.7245, sign * 10.9108], atol=1e-3)  # by hand: 16.5 (cos a - cos(a + 45.7°)), ...
+    np.testing.assert_allclose(heading, [[sign * turn]], atol=1e-12)
+    np.testing.assert_allclose(pos[0, 0], want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(rec[:, 0, 0] - leg, axis=1), 16.5, rtol=0, atol=1e-9)
+    chord = np.linalg.norm(np.diff(np.concatenate([np.zeros((1, 2)), rec[:, 0, 0]]), axis=0), axis=1)
+    np.testing.assert_allclose(chord, 2 * 16.5 * math.sin(dphi / 2), rtol=1e-9)  # 13.3 mm/s along the arc
+    first = rec[0, 0, 0] / np.linalg.norm(rec[0, 0, 0])  # first tick: heading ± 35.5 deg (+ dphi / 2)
+    np.testing.assert_allclose(first, [math.cos(math.radians(35.5) + dphi / 2),
+                                       sign * math.sin(math.radians(35.5) + dphi / 2)], atol=1e-9)
+
+
+def test_arc_that_meets_a_wall_and_turns_back():
+    """A left pivot next to the right wall moves the centre into the wall, then away from it: the
+    closed form equals clipping every tick (not clipping the free arc once)."""
+    cfg = preset("kilobot", collisions=False)
+    lim = cfg.arena_half_mm - cfg.robot_radius_mm
+    pos = np.array([[[lim - 0.3, 0.0]]])
+    heading = np.array([[math.radians(90.0 - 35.5 - 20.0)]])  # the arc heads at 70 deg, ends at 116 deg
+    q = np.array([[[255, 0]]], np.uint8)
+    p_ref, h_ref = pos.copy(), heading.copy()
+    want = _reference(p_ref, h_ref, q, cfg)
+    free = _reference(pos.copy(), heading.copy(), q, preset("kilobot", collisions=False, arena_half_mm=1e4))
+    once = np.minimum(free, lim)  # the free arc, clipped afterwards
+    assert (want[:, 0, 0, 0] == lim).any() and np.abs(once - want).max() > 0.1
+    rec = np.empty_like(want)
+    tick_move(pos, heading, q, cfg, None, None, rec)
+    np.testing.assert_allclose(rec, want, rtol=0, atol=1e-9)
+
+
+def test_leg_pivot_then_straight_and_centre_pivot():
+    """A pivot then straight period: the straight run starts where the arc ends, along the new
+    heading; with pivot_offset_mm = 0 the pivot leaves the centre in place."""
+    q = np.array([[[200, 100]]], np.uint8)  # 12 left pivot ticks, then 18 straight ticks
+    dphi = math.pi / 4 / 30.52
+    dl = 10.0 / 30.52
+    a, h = math.radians(125.5), 12 * dphi
+    arc_end = 16.5 * np.array([math.cos(a) - math.cos(a + h), math.sin(a) - math.sin(a + h)])
+    for R, start in ((16.5, arc_end), (0.0, np.zeros(2))):
+        cfg = preset("kilobot", collisions=False, pivot_offset_mm=R)
+        pos, heading = np.zeros((1, 1, 2)), np.zeros((1, 1))
+        rec = np.empty((31, 1, 1, 2))
+        tick_move(pos, heading, q, cfg, None, None, rec)
+        np.testing.assert_allclose(rec[11, 0, 0], start, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(pos[0, 0], start + 18 * dl * np.array([math.cos(h), math.sin(h)]), rtol=0, atol=1e-9)
+        if R == 0.0:
+            assert (rec[:12] == 0).all()
 
 
 def test_contact_free_envs_take_the_closed_form_and_contacts_push():

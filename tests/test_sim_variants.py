@@ -152,8 +152,8 @@ def test_light_variants_move_the_wall_zone():
 
 
 def test_beacon_mobility_per_env():
-    """beacon_mobility (0, 0) tapes every beacon down even in the pushed-beacon preset."""
-    cfg = preset("kilobot")
+    """beacon_mobility (0, 0) tapes every beacon down even in a pushed-beacon world."""
+    cfg = preset("kilobot", beacon_mobility=1.0)
     env = SwarmEnv(cfg, 2, 1, seed=0, randomise=Randomisation(beacon_mobility=(0.0, 0.0)))
     env.reset()
     env.pos[...] = [[[-34.0, 0.0]], [[-34.0, 0.0]]]
@@ -162,6 +162,28 @@ def test_beacon_mobility_per_env():
     env.step_u8(np.full((2, 1, 2), 255, np.uint8))
     np.testing.assert_array_equal(env.target, 0.0)
     np.testing.assert_array_equal(env.world_draw.beacon_mobility, [0.0, 0.0])
+
+
+def test_pivot_offset_per_robot():
+    """pivot_offset_mm draws each robot's pivot distance in the range; a robot drawn 0 pivots in
+    place and one drawn 16.5 mm moves its centre along the leg's arc, as in the world of that offset."""
+    cfg = preset("kilobot", collisions=False, msg_loss=0.0)
+    env = SwarmEnv(cfg, 40, 2, seed=3, randomise=Randomisation(pivot_offset_mm=(0.0, 16.5)))
+    env.reset()
+    piv = env.world_draw.motion.pivot_mm
+    assert piv.shape == (40, 2) and piv.min() >= 0.0 and piv.max() <= 16.5 and piv.std() > 3.0
+    env.world_draw.motion.pivot_mm[0] = [0.0, 16.5]
+    env.pos[0] = [[-100.0, 0.0], [100.0, 0.0]]
+    env.heading[0] = 0.0
+    start = env.pos[0].copy()
+    env.step_u8(np.tile(np.array([255, 0], np.uint8), (40, 2, 1)))
+    np.testing.assert_array_equal(env.pos[0, 0], start[0])
+    leg = SwarmEnv(cfg, 1, 1, seed=0)
+    leg.reset()
+    leg.pos[...], leg.heading[...] = start[1], 0.0
+    leg.step_u8(np.array([[[255, 0]]], np.uint8))
+    np.testing.assert_allclose(env.pos[0, 1], leg.pos[0, 0], rtol=0, atol=1e-9)
+    assert np.linalg.norm(env.pos[0, 1] - start[1]) > 10.0
 
 
 def test_randomisation_reproducible_and_env_e_equals_single_env():
@@ -182,6 +204,8 @@ def test_randomisation_reproducible_and_env_e_equals_single_env():
     again.reset()
     np.testing.assert_array_equal(again.world_draw.motion.speed, d.motion.speed)
     np.testing.assert_array_equal(again.world_draw.msg_period, d.msg_period)
+    np.testing.assert_array_equal(again.world_draw.motion.pivot_mm, d.motion.pivot_mm)
+    assert table.pivot_offset_mm == (0.0, 16.5) and 0.0 <= d.motion.pivot_mm.min() < d.motion.pivot_mm.max() <= 16.5
     for t, a in enumerate(acts):
         np.testing.assert_array_equal(again.step(a)[0], rec[t])
     seqs = env_seed_sequences(7, B)
@@ -218,11 +242,14 @@ def test_suite_lists_the_table_variants():
     suite = robustness_suite(preset("kilobot"))
     want = {"nominal", "speed -30%", "speed +30%", "turn rate -30%", "turn rate +30%", "calibration spread",
             "graded motors", "msg period 15", "msg period 17", "msg success 0.6", "msg success 1.0",
-            "dist noise 0 mm", "dist noise 6 mm", "dim light", "bright light", "uneven light", "beacon fixed"}
+            "dist noise 0 mm", "dist noise 6 mm", "dim light", "bright light", "uneven light", "centre pivot",
+            "beacon pushed"}
     assert set(suite) == want and next(iter(suite)) == "nominal"
     assert suite["msg period 17"][0].msg_period_ticks == 17
     assert suite["msg success 0.6"][0].msg_loss == pytest.approx(0.4)
-    assert suite["beacon fixed"][0].beacon_mobility == 0.0
+    assert suite["beacon pushed"][0].beacon_mobility == 1.0 and suite["centre pivot"][0].pivot_offset_mm == 0.0
+    old = robustness_suite(preset("kilobot", beacon_mobility=1.0, pivot_offset_mm=0.0))  # the other way round
+    assert old["beacon fixed"][0].beacon_mobility == 0.0 and old["leg pivot"][0].pivot_offset_mm == 16.5
     assert math.isclose(suite["turn rate +30%"][0].omega_max_rad_s, 1.3 * math.pi / 4)
 
 

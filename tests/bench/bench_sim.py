@@ -20,8 +20,9 @@ most robots crowd the beacon: the expensive case). Only ``SwarmEnv.step`` is tim
 the policy's), in blocks of 5 steps; a run reports its best block. Each row runs in a fresh
 subprocess; ``--against REV`` also runs it on the ``sim/``
 of git revision REV (``git archive``), alternating the two trees every round, and prints both and
-the speed-up (best and median over rounds). ``--fixed-beacon`` tapes the beacon down in trees that
-have ``beacon_mobility`` (the physics of older trees).
+the speed-up (best and median over rounds). ``--old-physics`` runs every tree with a taped-down
+beacon and a centre pivot where it has ``beacon_mobility`` / ``pivot_offset_mm`` (the physics of
+81d913c and older trees), so only the code differs.
 
 Timing: random actions, after one warm-up step; each row reports the best of several timed
 blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
@@ -109,8 +110,8 @@ from sim.config import WorldConfig, preset
 from sim.env import SwarmEnv
 from sim.baselines import make_policy
 M, B, policy, warm, steps = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
-over = {"beacon_mobility": 0.0} if sys.argv[6] == "fixed" and "beacon_mobility" in {
-    f.name for f in dataclasses.fields(WorldConfig)} else {}
+fields = {f.name for f in dataclasses.fields(WorldConfig)}
+over = {k: 0.0 for k in ("beacon_mobility", "pivot_offset_mm") if k in fields} if sys.argv[6] == "old" else {}
 cfg = preset("kilobot", episode_steps=warm + steps + 5, **over)
 env = SwarmEnv(cfg, B, M, seed=0)
 pol = make_policy(policy, cfg)
@@ -160,7 +161,7 @@ def kilobot_main(args) -> None:
     rows = [(M, B, pol) for pol in ("random", "baseline") for M in (4, 16, 32) for B in (16, 50)]
     if args.quick:
         rows = [(M, 16, pol) for pol in ("random", "baseline") for M in (4, 32)]
-    print(f"# kilobot world, 500 mm arena, {'fixed beacon in both trees' if args.fixed_beacon else 'each tree its own preset'}; "
+    print(f"# kilobot world, 500 mm arena, {'taped beacon and centre pivot in every tree' if args.old_physics else 'each tree its own preset'}; "
           f"ms per SwarmEnv.step (wall), best / median of {args.repeat} rounds; searcher rows after {args.warm} warm-up steps")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numpy {np.__version__}\n")
     head = "| policy | M | B | " + " | ".join(f"{t} ms/step best (median)" for t in trees)
@@ -172,7 +173,7 @@ def kilobot_main(args) -> None:
             for _ in range(args.repeat):  # alternate the trees every round
                 for t, path in trees.items():
                     res[t].append(_kilobot_row(path, M, B, pol, args.warm if pol == "baseline" else 5, args.steps,
-                                               "fixed" if args.fixed_beacon else "preset"))
+                                               "old" if args.old_physics else "preset"))
             best = {t: min(r["wall"] for r in v) for t, v in res.items()}
             med = {t: float(np.median([r["wall"] for r in v])) for t, v in res.items()}
             cells = " | ".join(f"{best[t] * 1e3:.2f} ({med[t] * 1e3:.2f})" for t in trees)
@@ -197,8 +198,8 @@ def main() -> None:
                          "moments show in the best, its typical load in the median)")
     ap.add_argument("--kilobot", action="store_true", help="kilobot-world rows (500 mm arena, random and searcher)")
     ap.add_argument("--against", default=None, help="with --kilobot: also time git revision REV's sim/, alternating")
-    ap.add_argument("--fixed-beacon", action="store_true",
-                    help="with --kilobot: beacon_mobility 0 where the tree has it (same physics as older trees)")
+    ap.add_argument("--old-physics", action="store_true",
+                    help="with --kilobot: taped beacon and centre pivot where the tree has the fields (81d913c's physics)")
     ap.add_argument("--warm", type=int, default=300, help="with --kilobot: searcher warm-up steps (crowding)")
     ap.add_argument("--steps", type=int, default=30, help="with --kilobot: timed steps per row and round")
     args = ap.parse_args()
