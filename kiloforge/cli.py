@@ -60,12 +60,12 @@ COMMANDS = {
 def usage() -> str:
     """``kiloforge --help``: one line per sub-command."""
     width = max(map(len, COMMANDS))
-    lines = [f"usage: kiloforge COMMAND [OPTIONS]   (kiloforge COMMAND --help: the command's options)", "",
+    lines = ["usage: kiloforge COMMAND [OPTIONS]   (kiloforge COMMAND --help: the command's options)", "",
              "Swarm policies from simulation to real Kilobot robots.", "", "commands:"]
     lines += [f"  {name:<{width}}  {c.summary}" for name, c in COMMANDS.items()]
     lines += ["", "  --version  print the version", "  --help     this list", "",
               "Exit status: 0 done, 1 a check failed (does not fit, verification failed), 2 bad input, "
-              "130/143 interrupted. See docs/cli.md."]
+              "130/143 interrupted."]
     return "\n".join(lines)
 
 

@@ -101,3 +101,11 @@ def test_program_names(module_form, name, default, expected):
     with invoked_as(module_form, name):
         assert program(default) == expected
     assert program(default) == default
+
+
+def test_stray_module_in_working_directory_is_named(tmp_path):
+    """Under `python -m kiloforge`, a sim.py in the working directory is one error line naming it, exit 2."""
+    (tmp_path / "sim.py").write_text("raise SystemExit('the stray sim.py ran')\n")
+    r = kiloforge_run(["sim", "--help"], tmp_path)
+    assert r.returncode == 2 and r.stdout == "" and r.stderr.count("\n") == 1
+    assert "sim.py" in r.stderr and "replaces kiloforge's 'sim' package" in r.stderr
