@@ -27,4 +27,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kiloforge.cli import run_guarded
+
+    sys.exit(run_guarded("python -m export", lambda: main, None))

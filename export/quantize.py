@@ -47,8 +47,8 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
     seeds = np.random.SeedSequence(seed).spawn(len(counts) * episodes)
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(counts) * episodes * T, desc="calibrating", unit="step", leave=False)
+        from kiloforge.progress import progress_bar
+        bar = progress_bar(total=len(counts) * episodes * T, desc="calibrating", unit="step", leave=False)
     chunks: list[np.ndarray] = []
     try:
         for ci, m in enumerate(counts):

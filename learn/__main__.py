@@ -21,19 +21,12 @@ _previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(si
 try:
     import argparse
     import sys
-    import typing
     from pathlib import Path
 
+    from kiloforge.cliparse import ArgumentParser, program
     from kiloforge.interrupts import exit_status, run_entry_point
 finally:
     _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
-
-
-class ArgumentParser(argparse.ArgumentParser):
-    """argparse with one-line errors (exit status 2)."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def build_parser() -> ArgumentParser:
@@ -147,18 +140,20 @@ def _main(argv: list[str] | None = None) -> int:
     try:
         return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
     except (ConfigError, KiloforgeError, ValueError) as e:
-        print(f"python -m learn {args.command}: error: {e}", file=sys.stderr)
+        print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # evaluate publishes all its files or none; plot writes one file atomically
-        print(f"python -m learn {args.command}: error: interrupted; nothing written", file=sys.stderr)
+        print(f"{program('python -m learn ' + args.command)}: error: interrupted; nothing written", file=sys.stderr)
         return exit_status(e)
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m learn`` / ``kiloforge-learn``; a Ctrl-C while its modules load ends in one line."""
-    return run_entry_point(_load, argv, "python -m learn: error: interrupted while starting; nothing written",
-                           _held)
+    return run_entry_point(_load, argv,
+                           f"{program('python -m learn')}: error: interrupted while starting; nothing written", _held)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kiloforge.cli import run_guarded
+
+    sys.exit(run_guarded("python -m learn", lambda: main, None))

@@ -103,7 +103,7 @@ def _tyro_error(text: str) -> str:
 
 def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_preset: str):
     """(config, run directory, resume, quiet) from the command line; ConfigError (one line) on bad input."""
-    meta = argparse.ArgumentParser(add_help=False)
+    meta = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     for flag in ("--preset", "--config", "--out"):
         meta.add_argument(flag, default=None)
     meta.add_argument("--resume", action="store_true")
@@ -180,9 +180,11 @@ TRAINERS = {"magddpg": (_rl_trainer, report_rl), "magrdpg": (_rl_trainer, report
 def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfig,
                prog: str = "python -m learn train", default_preset: str = "default") -> int:
     """CLI entry point of one algorithm; returns the exit status."""
+    from kiloforge.cliparse import program
     from kiloforge.errors import KiloforgeError
     from kiloforge.interrupts import exit_status
 
+    prog = program(prog)
     argv = sys.argv[1:] if argv is None else list(argv)
     load, report = TRAINERS[cls.algorithm]
     try:

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from kiloforge.io import write_atomic
+from kiloforge.progress import progress_bar
 
 from .checkpoint import Checkpointer
 from .config import ConfigError, ESConfig, TrainConfig
@@ -171,9 +172,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             wall_at_start = c.wall_s
             session_start = time.perf_counter()
             if progress:
-                from tqdm import tqdm
-
-                bar = tqdm(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
+                bar = progress_bar(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
                            desc=run_dir.name[:40])
             while gen < cfg.generations:
                 stop.check()
@@ -230,9 +229,7 @@ def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, 
     shares = [max(1, cfg.bc_batch // (len(cfg.n_robots) * M)) for M in cfg.n_robots]
     bar = None
     if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.bc_updates, unit="step", desc="behaviour cloning", dynamic_ncols=True, leave=False)
+        bar = progress_bar(total=cfg.bc_updates, unit="step", desc="behaviour cloning", dynamic_ncols=True, leave=False)
 
     def tick(k: int, loss: float) -> None:
         stop.check()

@@ -287,9 +287,9 @@ def check_with_onnxruntime(path: str | os.PathLike, policy: Any, n: int = 256, s
 
 def main_export_onnx(argv: list[str] | None = None) -> int:
     """``export-onnx --policy P.npz --out actor.onnx [--opset 17]``; returns the exit status."""
-    import argparse
+    from kiloforge.cliparse import ArgumentParser
 
-    ap = argparse.ArgumentParser(prog="python -m learn export-onnx",
+    ap = ArgumentParser(prog="python -m learn export-onnx",
                                  description="Write a policy artifact's float actor as an ONNX model "
                                              "(input 'history' [N, history_dim], output 'action' [N, 2] in [0, 1]).")
     ap.add_argument("--policy", required=True, help="policy artifact (.npz) written by training")

@@ -156,10 +156,10 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
 
                 tb = TensorBoardLog(run_dir, purge_step=c.env_steps if resume else None)
             if progress:
-                from tqdm import tqdm
+                from kiloforge.progress import progress_bar
 
                 total = cfg.total_episodes * T
-                bar = tqdm(total=total, initial=min(c.env_steps, total), unit="step", dynamic_ncols=True,
+                bar = progress_bar(total=total, initial=min(c.env_steps, total), unit="step", dynamic_ncols=True,
                            desc=run_dir.name[:40], smoothing=0.05)
             result.stopped = run_loop(cfg, algo, groups, evaluators, c, sample_rng, env_rng, shares, demo_shares,
                                       stop, bar, tb, run_dir, export, save, log,
@@ -333,9 +333,10 @@ class Preparation:
 
     def bar(self, total: int, unit: str, desc: str):
         """A transient tqdm bar for one phase (a silent no-op bar without ``progress``)."""
-        from tqdm import tqdm
+        from kiloforge.progress import progress_bar
 
-        return tqdm(total=total, unit=unit, desc=desc, dynamic_ncols=True, leave=False, disable=not self.progress)
+        return progress_bar(total=total, unit=unit, desc=desc, dynamic_ncols=True, leave=False,
+                            disable=not self.progress)
 
     def empty_demos(self, g: EnvGroup, t_prev: int) -> EpisodeReplay:
         """A demonstration replay of the shape :meth:`collect` fills (to load from a checkpoint)."""

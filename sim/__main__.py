@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 from kiloforge import io
+from kiloforge.cliparse import ArgumentParser, program
 from kiloforge.errors import KiloforgeError, PolicyError, printable
 from kiloforge.interrupts import exit_status, terminate_raises
 from kiloforge.io import staged_files
@@ -43,8 +44,8 @@ class UserError(Exception):
     """A mistake in the command line or its inputs: reported in one line, exit code 2."""
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, no usage dump
+class _Parser(ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]  # one line, no usage dump
         raise UserError(message)
 
 
@@ -207,13 +208,13 @@ def main(argv: list[str] | None = None) -> int:
             a.argv = argv
             run(a)
     except (UserError, KiloforgeError) as e:
-        print(f"python -m sim: error: {printable(e)}", file=sys.stderr)
+        print(f"{program('python -m sim')}: error: {printable(e)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt as e:
         written = io.published_since(mark)
         what = (f"after writing {', '.join(map(str, written))} (complete)" if written
                 else "; nothing written (files from an earlier run are unchanged)")
-        print(f"python -m sim: interrupted {what}".replace(" ;", ";"), file=sys.stderr)
+        print(f"{program('python -m sim')}: interrupted {what}".replace(" ;", ";"), file=sys.stderr)
         return exit_status(e)
     except SystemExit as e:  # --help
         return int(e.code or 0) if not isinstance(e.code, str) else EXIT_USAGE
@@ -221,4 +222,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kiloforge.cli import run_guarded
+
+    sys.exit(run_guarded("python -m sim", lambda: main, None))

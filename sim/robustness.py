@@ -75,9 +75,9 @@ def run_suite(policy_factory: Callable[[WorldConfig], SwarmPolicy], cfg: WorldCo
     table = SuiteTable(tuple(int(m) for m in robots), int(episodes), T, int(seed))
     bar = None
     if progress:
-        from tqdm import tqdm
+        from kiloforge.progress import progress_bar
 
-        bar = tqdm(total=len(suite) * len(table.robots), unit="run", desc="robustness suite", leave=False)
+        bar = progress_bar(total=len(suite) * len(table.robots), unit="run", desc="robustness suite", leave=False)
     try:
         for name, (world, rand) in suite.items():
             world = dataclasses.replace(world, episode_steps=T)

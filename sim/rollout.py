@@ -148,9 +148,9 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
 
     bar = None
     if progress:
-        from tqdm import tqdm
+        from kiloforge.progress import progress_bar
 
-        bar = tqdm(total=n_batches * T, unit="step", desc=f"{episodes} episodes", leave=False)
+        bar = progress_bar(total=n_batches * T, unit="step", desc=f"{episodes} episodes", leave=False)
     try:
         for k, ss in enumerate(batch_seqs):
             env_ss, pol_ss = ss.spawn(2)

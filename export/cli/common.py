@@ -2,12 +2,12 @@
 (every number range-checked by :mod:`kiloforge.validate`), policy loading."""
 from __future__ import annotations
 
-import argparse
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
 
 from kiloforge.actors.base import FloatPolicy
+from kiloforge.cliparse import ArgumentParser
 from kiloforge.errors import printable
 from kiloforge.policies import load_policy
 from kiloforge.validate import float_arg, int_arg
@@ -25,8 +25,8 @@ SHIPPED_POLICIES = {"default": DEFAULT_POLICY,
                     "searcher": ("data", "searcher_policy.npz")}  #: sim.baselines' searcher, TUNED["kilobot"]
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse that raises instead of exiting, so main() keeps the one-line error contract."""
+class Parser(ArgumentParser):
+    """argparse (no abbreviations) that raises instead of exiting, so main() keeps the one-line error contract."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise ExportError(f"{self.prog}: {message} (see --help)")

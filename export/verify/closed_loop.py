@@ -400,11 +400,11 @@ def compare_many(policy: FloatPolicy, qp: QuantizedActor, robots: Sequence[int],
     T = steps if steps is not None else policy.world.episode_steps
     bar = None
     if progress:
-        from tqdm import tqdm
+        from kiloforge.progress import progress_bar
 
         total = sum(2 * default_n_envs(episodes, m) * math.ceil(episodes / default_n_envs(episodes, m)) * T
                     for m in robots)
-        bar = tqdm(total=total, unit="ep-step", desc="closed loop (float + int8)", leave=False)
+        bar = progress_bar(total=total, unit="ep-step", desc="closed loop (float + int8)", leave=False)
     try:
         return [compare(policy, qp, m, episodes, seed, steps=steps, goal=goal, bar=bar) for m in robots]
     finally:

@@ -12,8 +12,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import typing
 from pathlib import Path
+
+from kiloforge.cliparse import ArgumentParser
 
 from ..config import ConfigError
 from . import trial as tr
@@ -24,13 +25,8 @@ PROG = "python -m learn sweep"
 INSTALL_HINT = "Ray Tune is not installed: pip install 'kiloforge[sweep]'"
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description="Train a grid of configurations × seeds on Ray Tune (local or a cluster), "
+    p = ArgumentParser(prog=PROG, description="Train a grid of configurations × seeds on Ray Tune (local or a cluster), "
                                        "resumably, and aggregate the results over seeds.")
     g = p.add_argument_group("grid (command-line options replace the --file's)")
     g.add_argument("--file", default=None, help="grid file (.json or .toml; see docs/sweeps.md)")

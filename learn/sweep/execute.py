@@ -66,9 +66,10 @@ class Progress:
 
     def __post_init__(self) -> None:
         if self.show and sys.stderr.isatty():
-            from tqdm import tqdm
+            from kiloforge.progress import progress_bar
 
-            self._bar = tqdm(total=self.total, initial=self.done, unit="trial", desc="sweep", dynamic_ncols=True)
+            self._bar = progress_bar(total=self.total, initial=self.done, unit="trial", desc="sweep",
+                                     dynamic_ncols=True)
         self.refresh()
 
     def line(self) -> str:

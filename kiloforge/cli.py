@@ -1,0 +1,137 @@
+"""``kiloforge``: the project's one command; each sub-command runs an existing entry point.
+
+    kiloforge sim --policy baseline --robots 4 --out runs/demo
+    kiloforge train --preset quick --world kilobot --out runs/q
+    kiloforge evaluate --policy runs/q/policy_best.npz --robots 16 --out runs/q/eval
+    kiloforge export --policy runs/q/policy_best.npz --out kilobot_policy.c
+    kiloforge --version
+
+:data:`COMMANDS` maps a sub-command to the module whose ``main(argv)`` runs it and the arguments put
+before the user's (``kiloforge verify ...`` is ``python -m export verify ...``); the flags are the
+delegate's own. Unlike ``python -m ...``, the installed ``kiloforge`` script does not put the working
+directory first on ``sys.path``, so a ``sim.py`` or ``learn.py`` there cannot replace the packages;
+where one does (``python -m kiloforge``, ``PYTHONPATH``) :func:`shadowing` says so in one line. A
+missing optional dependency is one line naming the extra to install (:func:`missing_extra`), exit 2.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+from . import __version__
+from .cliparse import EXIT_USAGE, invoked_as
+from .errors import printable
+
+PACKAGES = ("kiloforge", "sim", "learn", "export", "firmware_templates")  #: the distribution's top-level packages
+
+#: top-level module of an optional dependency -> the extra that installs it (pyproject.toml)
+EXTRAS = {"torch": "learn", "tyro": "learn", "tensorboard": "learn", "onnx": "onnx", "onnxruntime": "onnx",
+          "ray": "sweep", "pettingzoo": "pettingzoo", "gymnasium": "pettingzoo"}
+
+
+@dataclass(frozen=True)
+class Command:
+    module: str  #: the module whose ``main(argv) -> int`` runs the command
+    prefix: tuple[str, ...]  #: arguments put before the user's
+    summary: str  #: one line of ``kiloforge --help``
+
+
+COMMANDS = {
+    "sim": Command("sim.__main__", (), "run a policy in the simulator: metrics, plots, GIF, robustness suite"),
+    "learn": Command("learn.__main__", (), "python -m learn: train, evaluate, plot, sweep, export-onnx"),
+    "train": Command("learn.__main__", ("train",), "train an MLP policy with MAGDDPG (needs kiloforge[learn])"),
+    "train-recurrent": Command("learn.__main__", ("train-recurrent",),
+                               "train a recurrent (GRU/LSTM) policy with MAGRDPG (needs kiloforge[learn])"),
+    "train-es": Command("learn.__main__", ("train-es",),
+                        "train an MLP policy with evolution strategies from a searcher clone (needs kiloforge[learn])"),
+    "evaluate": Command("learn.__main__", ("evaluate",), "evaluate .npz policies against the baselines"),
+    "plot": Command("learn.__main__", ("plot",), "learning curves of run directories"),
+    "sweep": Command("learn.__main__", ("sweep",), "a grid of trainings x seeds on Ray Tune (needs kiloforge[sweep])"),
+    "export-onnx": Command("learn.__main__", ("export-onnx",), "write a policy's float actor as ONNX (needs kiloforge[onnx])"),
+    "export": Command("export.__main__", (), "quantise a policy to int8 and write the Kilobot firmware C (and .hex)"),
+    "verify": Command("export.__main__", ("verify",), "closed loop: int8 firmware emulator vs float actor in the simulator"),
+    "budget": Command("export.__main__", ("budget",), "will an actor of this size fit on a Kilobot?"),
+    "rehash": Command("export.__main__", ("rehash",), "give a policy file one trusts the hash of its contents"),
+}
+
+
+def usage() -> str:
+    """``kiloforge --help``: one line per sub-command."""
+    width = max(map(len, COMMANDS))
+    lines = ["usage: kiloforge COMMAND [OPTIONS]   (kiloforge COMMAND --help: the command's options)", "",
+             "Swarm policies from simulation to real Kilobot robots.", "", "commands:"]
+    lines += [f"  {name:<{width}}  {c.summary}" for name, c in COMMANDS.items()]
+    lines += ["", "  --version  print the version", "  --help     this list", "",
+              "Exit status: 0 done, 1 a check failed (does not fit, verification failed), 2 bad input, "
+              "130/143 interrupted."]
+    return "\n".join(lines)
+
+
+def shadowing() -> str | None:
+    """A one-line explanation when a top-level package of kiloforge is not the installed one (a stray
+    ``sim.py`` in the working directory under ``python -m``), else None."""
+    home = Path(__file__).resolve().parent.parent
+    for name in PACKAGES:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            spec = None
+        origin = spec.origin if spec is not None else None
+        if spec is not None and spec.submodule_search_locations and origin and Path(origin).resolve().parent.parent == home:
+            continue
+        where = f"'{printable(origin)}'" if origin else "another module"
+        return (f"{where} replaces kiloforge's '{name}' package (the working directory comes first on sys.path "
+                f"under python -m); rename it, or run the installed 'kiloforge' command")
+    return None
+
+
+def missing_extra(err: ModuleNotFoundError) -> tuple[str, str] | None:
+    """(module, extra) when ``err`` is a missing optional dependency, else None."""
+    top = (err.name or "").partition(".")[0]
+    return (top, EXTRAS[top]) if top in EXTRAS else None
+
+
+def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
+    """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
+    own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
+    optional dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'``."""
+    problem = shadowing()
+    if problem:
+        print(f"{prog}: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return load()(None if argv is None else list(argv))
+    except ModuleNotFoundError as e:
+        missing = missing_extra(e)
+        if missing is None:
+            raise
+        print(f"{prog} needs {missing[0]}: pip install 'kiloforge[{missing[1]}]'", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``kiloforge`` command; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage(), file=sys.stdout if argv else sys.stderr)
+        return 0 if argv else EXIT_USAGE
+    if argv[0] == "--version":
+        print(f"kiloforge {__version__}")
+        return 0
+    name, rest = argv[0], argv[1:]
+    cmd = COMMANDS.get(name)
+    if cmd is None:
+        print(f"kiloforge: error: unknown command '{printable(name, 60)}'; commands: {', '.join(COMMANDS)} "
+              "(kiloforge --help)", file=sys.stderr)
+        return EXIT_USAGE
+    prog = f"kiloforge {name}"
+    with invoked_as(" ".join(["python -m", cmd.module.partition(".")[0], *cmd.prefix]), prog):
+        return run_guarded(prog, lambda: importlib.import_module(cmd.module).main, [*cmd.prefix, *rest])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""The ``kiloforge`` command (kiloforge.cli): dispatch to sim / learn / export, --version, one-line errors."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import kiloforge
+from kiloforge.cli import COMMANDS, main
+from kiloforge.cliparse import invoked_as, program
+
+ROOT = Path(__file__).resolve().parents[1]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+#: run the kiloforge command in a fresh interpreter with torch unimportable (``import torch`` raises
+#: ModuleNotFoundError) and report whether anything imported it
+NO_TORCH = ("import sys; sys.modules['torch'] = None; from kiloforge.cli import main; rc = main(sys.argv[1:]); "
+            "assert 'torch' not in [m.partition('.')[0] for m in sys.modules if sys.modules[m] is not None]; "
+            "sys.exit(rc)")
+
+
+def kiloforge_run(args, cwd, code=None, timeout=300) -> subprocess.CompletedProcess:
+    """``python -m kiloforge ARGS`` (or ``python -c CODE ARGS``) in ``cwd`` with the repository on PYTHONPATH."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "kiloforge"] if code is None else [sys.executable, "-c", code]
+    return subprocess.run([*cmd, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def test_version_prints_package_version(tmp_path):
+    """`kiloforge --version` prints kiloforge.__version__ and exits 0."""
+    r = kiloforge_run(["--version"], tmp_path)
+    assert r.returncode == 0 and r.stdout.strip() == f"kiloforge {kiloforge.__version__}" and r.stderr == ""
+
+
+def test_help_lists_every_subcommand(capsys):
+    """`kiloforge --help` lists sim, learn, export and every other sub-command, exit 0."""
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert {"sim", "learn", "export"} <= set(COMMANDS)
+    for name in COMMANDS:
+        assert f"\n  {name} " in out
+
+
+def test_unknown_subcommand_is_one_line(tmp_path):
+    """An unknown sub-command is one error line naming it, exit 2."""
+    r = kiloforge_run(["frobnicate", "--x"], tmp_path)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.count("\n") == 1 and "'frobnicate'" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_export_from_temp_dir_like_python_dash_m(tmp_path):
+    """`kiloforge export --out X.c` in an empty directory writes the same C file as `python -m export`, without torch."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    r = kiloforge_run(["export", "--out", "kp.c", *FAST], a, code=NO_TORCH)
+    assert r.returncode == 0, r.stderr
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r2 = subprocess.run([sys.executable, "-m", "export", "--out", "kp.c", *FAST], cwd=b, env=env,
+                        capture_output=True, text=True, timeout=300)
+    assert r2.returncode == 0, r2.stderr
+    assert (a / "kp.c").read_bytes() == (b / "kp.c").read_bytes()
+    assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+
+
+def test_sim_help_without_torch(tmp_path):
+    """`kiloforge sim --help` prints sim's options with torch unimportable, and never imports it."""
+    r = kiloforge_run(["sim", "--help"], tmp_path, code=NO_TORCH)
+    assert r.returncode == 0, r.stderr
+    assert "--robots" in r.stdout and "kiloforge sim" in r.stdout
+
+
+def test_learn_train_without_torch_is_one_line(tmp_path):
+    """`kiloforge learn train` with torch missing is the one install-hint line, exit 2, nothing written."""
+    code = "import sys; sys.modules['torch'] = None; from kiloforge.cli import main; sys.exit(main(sys.argv[1:]))"
+    r = kiloforge_run(["learn", "train", "--out", "run"], tmp_path, code=code)
+    assert r.returncode == 2
+    assert r.stderr == "kiloforge learn needs torch: pip install 'kiloforge[learn]'\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_abbreviated_option_refused(capsys):
+    """An abbreviated option (`--rob` for `--robots`) is an error under kiloforge, not silently expanded."""
+    with pytest.raises(SystemExit) as e:
+        main(["learn", "evaluate", "--policy", "p.npz", "--out", "o", "--rob", "4"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn: error: ")
+
+
+@pytest.mark.parametrize("module_form,name,default,expected", [
+    ("python -m learn", "kiloforge learn", "python -m learn train", "kiloforge learn train"),
+    ("python -m learn train", "kiloforge train", "python -m learn train", "kiloforge train"),
+    ("python -m export", "kiloforge export", "python -m exporter", "python -m exporter"),
+    ("python -m sim", "kiloforge sim", "kiloforge sim evaluate", "kiloforge sim evaluate"),
+])
+def test_program_names(module_form, name, default, expected):
+    """program() renames only the python -m form the running sub-command stands for."""
+    assert program(default) == default
+    with invoked_as(module_form, name):
+        assert program(default) == expected
+    assert program(default) == default
+
+
+def test_stray_module_in_working_directory_is_named(tmp_path):
+    """Under `python -m kiloforge`, a sim.py in the working directory is one error line naming it, exit 2."""
+    (tmp_path / "sim.py").write_text("raise SystemExit('the stray sim.py ran')\n")
+    r = kiloforge_run(["sim", "--help"], tmp_path)
+    assert r.returncode == 2 and r.stdout == "" and r.stderr.count("\n") == 1
+    assert "sim.py" in r.stderr and "replaces kiloforge's 'sim' package" in r.stderr
