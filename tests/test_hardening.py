@@ -254,7 +254,7 @@ def _two_exports(tmp_path, capsys):
     rc, _, err = export(["--out", str(out), "--seed", "1"] + FAST, capsys)
     assert rc == 0, err
     old = {n: (tmp_path / n).read_bytes() for n in EXPORT_FILES}
-    return old, ["--out", str(out), "--seed", "2", "--calib-steps", "6"] + FAST[2:]
+    return old, ["--out", str(out), "--seed", "2", "--calib-steps", "6", "--target-uids", "0,7"] + FAST[2:]
 
 
 def test_sigint_inside_the_final_renames_finishes_the_set(tmp_path, capsys, monkeypatch):

@@ -89,7 +89,7 @@ def rng_seed(uids: np.ndarray) -> np.ndarray:
     """(R,) uint32 xorshift32 state setup() leaves for these kilo_uids (never 0).
 
     >>> rng_seed(np.array([0, 1])).tolist()
-    [2135587861, 4130418118]
+    [2135587861, 495056326]
     """
     x = (np.asarray(uids, np.uint64) * SEED_MUL + SEED_ADD) & 0xFFFFFFFF
     return np.where(x == 0, 1, x).astype(np.uint32)
