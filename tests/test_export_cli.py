@@ -252,3 +252,14 @@ def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     rc, _, err = run(["--onnx", str(tmp_path / "actor.onnx"), "--out", str(tmp_path / "k.c"), "--no-avr"] + FAST, capsys)
     assert rc == 0, err
     assert seen["qp"].layer_sizes == p.layer_sizes and seen["qp"].t_prev == 3
+
+
+def test_thesis_world_policy_warns_before_any_output(tmp_path, capsys):
+    """Exporting a policy of a world other than the Kilobot's warns on stderr, naming the world and the fix."""
+    path = tmp_path / "thesis.npz"
+    save_policy(init_policy(preset("thesis"), 2, (8,)), path)
+    rc, _, err = run(["--policy", str(path), "--out", str(tmp_path / "kp.c")] + FAST, capsys)
+    assert rc == 0, err
+    assert "warning: this policy was trained in the 'thesis' world" in err and "--world kilobot" in err
+    rc, _, err = run(["--out", str(tmp_path / "kd.c")] + FAST, capsys)
+    assert rc == 0 and "warning" not in err

@@ -21,6 +21,7 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import seed_arg
+from sim.config import KILOBOT
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
@@ -53,7 +54,7 @@ def export_parser() -> argparse.ArgumentParser:
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--policy", type=Path,
                      help="policy artifact .npz, or 'searcher': the hand-written searcher of sim/baselines.py "
-                          "(default: the shipped reference policy, MAGDDPG-trained on the kilobot world)")
+                          "(default: the shipped reference policy, trained by evolution strategies in the kilobot world)")
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
     ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
@@ -121,6 +122,10 @@ def run_export(argv: Sequence[str]) -> int:
     check_writable([out, target_path, manifest_path])  # fail before the slow part
 
     policy = load(args.policy, args.onnx, args.world_json)
+    if policy.world.name != KILOBOT.name:
+        print(f"warning: this policy was trained in the '{policy.world.name}' world, not the Kilobot's "
+              f"('{KILOBOT.name}': 33 mm bodies, collisions, leg-pivot motion, the Kilobot radio); on robots it "
+              f"will not do what the simulator showed: train with --world {KILOBOT.name}", file=sys.stderr)
     print(describe(policy))
     check_robots(policy.world, args.robots_calib, "--robots-calib")
     budget = bud.for_policy(policy)
