@@ -178,9 +178,12 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 stop.check()
                 if cfg.max_minutes and wall_at_start + time.perf_counter() - session_start >= 60 * cfg.max_minutes:
                     result.stopped = "time"
+                    if c.rows and c.rows[-1]["generation"] != gen:  # the weights it stops with are evaluated
+                        log_row(evaluate(), float("nan"))
+                        save()
                     break
                 t0 = time.perf_counter()
-                fitness, utility = generation(cfg, world, pop, theta, _child(ss_gen, gen), weights, randomise, c)
+                fitness, utility = generation(cfg, world, pop, theta, _child(ss_gen, gen), weights, randomise, c, stop)
                 eps = fitness.pop("eps")
                 theta = adam.step(theta, es_direction(utility, eps, cfg.sigma))
                 gen += 1
@@ -248,19 +251,24 @@ def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, 
 
 
 def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
-               weights: list[float], randomise, c: Counters) -> tuple[dict, np.ndarray]:
-    """One generation's antithetic population on every swarm size: fitness summary and utilities (2 · pairs,)."""
+               weights: list[float], randomise, c: Counters, stop: StopRequest) -> tuple[dict, np.ndarray]:
+    """One generation's antithetic population on every swarm size: fitness summary and utilities (2 · pairs,).
+
+    A stop request between swarm sizes abandons the generation (the weights stay those of the last one)."""
     rng = np.random.default_rng(_child(ss, 0))
     eps = torch.from_numpy(rng.standard_normal((cfg.pairs, pop.n_params)))
     members = torch.cat([theta + cfg.sigma * eps, theta - cfg.sigma * eps])
     utility = np.zeros(2 * cfg.pairs)
     fit = np.zeros(2 * cfg.pairs)
+    episodes = 0
     for i, (M, w) in enumerate(zip(cfg.n_robots, weights)):
         seeds = [_child(ss, 1 + i, e) for e in range(cfg.episodes_per_member)]
         res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, randomise)
+        stop.check()
         f = res.final_coverage.mean(axis=1)
         utility += w * centred_ranks(f)
         fit += w * f
-        c.env_steps += 2 * cfg.pairs * len(seeds) * world.episode_steps
-        c.episodes += 2 * cfg.pairs * len(seeds)
+        episodes += 2 * cfg.pairs * len(seeds)
+    c.episodes += episodes
+    c.env_steps += episodes * world.episode_steps
     return {"mean": float(fit.mean()), "max": float(fit.max()), "eps": eps}, utility

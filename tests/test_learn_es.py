@@ -134,3 +134,33 @@ def test_es_cli_refuses_bad_flags(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pairs" in err[0]
     assert not (tmp_path / "r").exists()
+
+
+def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeypatch):
+    """SIGINT inside a generation abandons it, checkpoints the last finished one (exit 130); resuming ends where an
+    uninterrupted run does."""
+    import os
+    import signal
+
+    import learn.es_train as et
+
+    cfg = ESConfig(**TINY, seed=4)
+    full = train_es(cfg, tmp_path / "full", progress=False, log=_quiet)
+    real, calls = et.rollout_population, []
+
+    def interrupting(*a, **k):
+        calls.append(1)
+        if len(calls) == 5:  # generation 3, first swarm size
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(et, "rollout_population", interrupting)
+    cut = train_es(cfg, tmp_path / "cut", progress=False, log=_quiet)
+    monkeypatch.setattr(et, "rollout_population", real)
+    assert cut.stopped == "interrupted" and cut.exit_status == 130
+    assert load_checkpoint(tmp_path / "cut" / "checkpoint.pt")["es_generation"] == 2
+    train_es(cfg, tmp_path / "cut", resume=True, progress=False, log=_quiet)
+    a = load_checkpoint(full.run_dir / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "cut" / "checkpoint.pt")
+    assert a["es_generation"] == b["es_generation"] == 4 and torch.equal(a["theta"], b["theta"])
+    assert a["counters"]["env_steps"] == b["counters"]["env_steps"]
