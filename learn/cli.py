@@ -30,7 +30,7 @@ import tyro
 
 from sim.config import PRESETS as WORLD_PRESETS
 
-from .config import PRESETS, ConfigBase, ConfigError, ESConfig, ExperimentConfig, RecurrentConfig, TrainConfig
+from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig
 
 _BOX = re.compile(r"[╭╮╰╯│]")
 
