@@ -32,7 +32,7 @@ from .checkpoint import Checkpointer
 from .config import ConfigError, ESConfig, TrainConfig
 from .demos import bc_pretrain, collect_demos, demonstrator
 from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
-from .evaluate import Evaluator, LearnerPolicy, metrics_row
+from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
 from .rundir import Counters, RunResult, check_resumable, finite_or_none, git_hash, prepare_run_dir, rows_to_csv, \
@@ -106,10 +106,8 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
 
     def evaluate() -> dict:
         set_theta(algo, theta)
-        per_size = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, eval_world))) for ev in evaluators}
-        keys = next(iter(per_size.values())).keys()
-        return {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys} | \
-            ({f"{k}_m{M}": v for M, m in per_size.items() for k, v in m.items()} if len(per_size) > 1 else {})
+        mean, per_size = evaluate_sizes(evaluators, lambda: LearnerPolicy(algo, eval_world))
+        return mean | per_size
 
     def log_row(metrics: dict, fitness: float) -> dict:
         row = {"env_steps": c.env_steps, "episodes": c.episodes, "updates": gen, "wall_s": round(c.wall_s, 2),

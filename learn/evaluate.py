@@ -47,6 +47,16 @@ class Evaluator:
         return rollout(self.env, policy, self.episodes, seed=self.seed).metrics()
 
 
+def evaluate_sizes(evaluators: list["Evaluator"], policy) -> tuple[dict[str, float], dict[str, float]]:
+    """Each evaluator (one swarm size) on a fresh ``policy()``: (mean of every metric over the sizes,
+    every size's metrics as ``<metric>_m<M>`` columns — empty with a single size)."""
+    per_size = {ev.n_robots: metrics_row(ev(policy())) for ev in evaluators}
+    keys = next(iter(per_size.values())).keys()
+    mean = {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys}
+    cols = {f"{k}_m{M}": v for M, m in per_size.items() for k, v in m.items()} if len(per_size) > 1 else {}
+    return mean, cols
+
+
 class LearnerPolicy:
     """The learning actor as a deterministic :class:`sim.rollout.SwarmPolicy`: the robots' inputs are
     built by the algorithm's acting object (a T_prev history, or a recurrent state), fed the clipped

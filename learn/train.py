@@ -38,7 +38,7 @@ from kiloforge.io import write_atomic
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
 from .demos import bc_pretrain, collect_demos, demonstrator
-from .evaluate import Evaluator, LearnerPolicy, metrics_row
+from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
 from .groups import EnvGroup, size_shares
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
@@ -271,9 +271,7 @@ def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, 
     from .plots import plot_learning_curves
 
     world = evaluators[0].world
-    per_size = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, world))) for ev in evaluators}
-    keys = next(iter(per_size.values())).keys()
-    metrics = {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys}
+    metrics, per_size = evaluate_sizes(evaluators, lambda: LearnerPolicy(algo, world))
     row = {"env_steps": c.env_steps, "episodes": c.episodes, "updates": c.updates, "wall_s": round(c.wall_s, 2),
            **metrics,
            "train_return": float(np.mean(train_returns)) if train_returns else float("nan"),
@@ -283,9 +281,7 @@ def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, 
            "updates_per_s": c.updates / c.update_s if c.update_s > 0 else float("nan")}
     if demos:
         row["bc_pass"] = mean_finite([x[2] for x in losses])  # NaN while the actor waits
-    if len(per_size) > 1:
-        for M, m in per_size.items():
-            row.update({f"{k}_m{M}": v for k, v in m.items()})
+    row.update(per_size)
     c.rows.append(row)
     c.evals += 1
     export("policy_last.npz", row)
