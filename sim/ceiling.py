@@ -203,8 +203,8 @@ def build_table(prob: Packing, step: float = GRID_STEP_MM, seed: int = 0, progre
     pts = np.full((n, n, kmax, 2), np.nan)
     for (i, j), c in configs.items():
         counts[i, j] = counts[j, i] = c.shape[0]
+        pts[j, i, :c.shape[0]] = c[:, ::-1]  # mirror x <-> y (the diagonal keeps the search's own)
         pts[i, j, :c.shape[0]] = c
-        pts[j, i, :c.shape[0]] = c[:, ::-1]  # mirror x <-> y
     return {"grid_mm": g, "counts": counts, "configs": pts, "seed": np.int64(seed),
             "robot_radius_mm": np.float64(prob.d / 2), "comm_radius_mm": np.float64(prob.R),
             "arena_half_mm": np.float64(prob.L + prob.d / 2)}
