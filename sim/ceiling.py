@@ -79,18 +79,7 @@ def _walls(prob: Packing, dx: float, dy: float) -> tuple[float, float, float, fl
 def violation(points: np.ndarray, prob: Packing, dx: float, dy: float) -> float:
     """Largest violation (mm) of any constraint by ``points`` (K, 2); <= 0 means valid."""
     p = np.asarray(points, np.float64)
-    if p.shape[0] == 0:
-        return -math.inf
-    x_lo, x_hi, y_lo, y_hi = _walls(prob, dx, dy)
-    rho = np.hypot(p[:, 0], p[:, 1])
-    worst = [np.max(rho - prob.R), np.max(prob.d - rho), np.max(p[:, 0] - x_hi), np.max(x_lo - p[:, 0]),
-             np.max(p[:, 1] - y_hi), np.max(y_lo - p[:, 1])]
-    if p.shape[0] > 1:
-        diff = p[:, None, :] - p[None, :, :]
-        dist = np.hypot(diff[..., 0], diff[..., 1])
-        iu = np.triu_indices(p.shape[0], 1)
-        worst.append(np.max(prob.d - dist[iu]))
-    return float(max(worst))
+    return -math.inf if p.shape[0] == 0 else float(_batch_violation(p[None], prob, dx, dy)[0])
 
 
 def is_valid(points: np.ndarray, prob: Packing, dx: float, dy: float) -> bool:
