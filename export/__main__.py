@@ -22,8 +22,10 @@ def _load():
 
 def main(argv: Sequence[str] | None = None) -> int:
     """:func:`export.cli.main.main`, with a Ctrl-C while its modules load ending in the same one line."""
-    return run_entry_point(_load, argv, "error: interrupted; nothing written (files from an earlier run are unchanged)",
-                           _held)
+    from kiloforge.cliparse import error_line, program
+
+    return run_entry_point(_load, argv, error_line(program("python -m export"), "interrupted; nothing written (files "
+                                                   "from an earlier run are unchanged)"), _held)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ from typing import Annotated, Any, ClassVar
 
 import tyro
 
-from sim.config import MAX_EPISODE_STEPS
+from sim.config import BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
 from sim.config import preset as world_preset
@@ -63,7 +63,6 @@ SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
 DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher")  #: values of ``demo_policy`` (learn.demos)
 CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
-MAX_ROBOTS = 256
 
 Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
 HistoryLength = Annotated[int, tyro.conf.arg(aliases=("--history",))]
@@ -389,7 +388,7 @@ class ESConfig(ConfigBase):
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 5  #: evaluate every this many generations (and after the last)
     eval_episodes: int = 16  #: deterministic evaluation episodes per swarm size (fixed seeds)
-    eval_steps: int = 500  #: control steps of an evaluation episode (the benchmark's 500)
+    eval_steps: int = BENCHMARK_STEPS  #: control steps of an evaluation episode (the thesis benchmark's 500)
     max_minutes: float = 0.0  #: stop after the first generation past this wall-clock time (0 = no limit)
     threads: int = 0  #: torch CPU threads; 0 = auto (1)
     seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)
