@@ -136,7 +136,11 @@ def _main(argv: list[str] | None = None) -> int:
         from .sweep import main_sweep
 
         return main_sweep(argv[1:])
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the sub-command, as its own errors are
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
     except (ConfigError, KiloforgeError, ValueError) as e:

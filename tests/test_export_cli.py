@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 HAS_RENDER = (importlib.util.find_spec("export.codegen.render") is not None
               and (ROOT / "firmware_templates" / "kilobot_policy.c.j2").exists())
 HAS_ENV = importlib.util.find_spec("sim.env") is not None
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 
 
 def run(argv, capsys) -> tuple[int, str, str]:
@@ -34,7 +34,8 @@ def run(argv, capsys) -> tuple[int, str, str]:
 
 def one_error_line(err: str) -> str:
     lines = [l for l in err.splitlines() if l.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), f"expected one error line, got {err!r}"
+    assert len(lines) == 1 and lines[0].startswith("python -m export") and ": error: " in lines[0], \
+        f"expected one error line, got {err!r}"
     assert "Traceback" not in err
     return lines[0]
 
@@ -47,7 +48,7 @@ def test_budget_subcommand_fits(capsys):
 
 def test_budget_subcommand_does_not_fit(capsys):
     """budget --history 20 --hidden 64 32 does not fit: exit 1 and what would fit."""
-    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--preset", "kilobot"], capsys)
+    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--world", "kilobot"], capsys)
     assert rc == 1 and "DOES NOT FIT" in out and "would fit: t_prev <= " in out
 
 
@@ -67,7 +68,7 @@ def test_budget_subcommand_bad_args(capsys):
     """A non-numeric history or unknown preset is one error line and exit 2."""
     rc, _, err = run(["budget", "--history", "x"], capsys)
     assert rc == 2 and "--history" in one_error_line(err)
-    rc, _, err = run(["budget", "--history", "3", "--preset", "mars"], capsys)
+    rc, _, err = run(["budget", "--history", "3", "--world", "mars"], capsys)
     assert rc == 2 and "mars" in one_error_line(err)
 
 

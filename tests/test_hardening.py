@@ -23,7 +23,7 @@ from sim.__main__ import main as sim_main
 from sim.config import WorldConfig, preset
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "--calib-steps", "4", "--no-progress", "--no-avr"]
+FAST = ["--robots-calib", "2", "--calib-steps", "4", "--quiet", "--no-avr"]
 EXPORT_FILES = ("kilobot_policy.c", "kilobot_target.c", "kilobot_policy.c.manifest.json")
 
 
@@ -392,7 +392,7 @@ def test_calibration_longer_than_the_worlds_episode(tmp_path, capsys):
     """--calib-steps beyond the world's episode length (301 > 300) calibrates on longer episodes; it was a
     RuntimeError traceback from the simulator."""
     rc, _, err = export(["--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--calib-steps", "301",
-                         "--no-avr", "--no-progress"], capsys)
+                         "--no-avr", "--quiet"], capsys)
     assert rc == 0, err
     assert json.loads((tmp_path / "k.c.manifest.json").read_text())["calibration"]["steps"] == 301
 

@@ -13,7 +13,7 @@ from kiloforge.cli import COMMANDS, main
 from kiloforge.cliparse import invoked_as, program
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 #: run the kiloforge command in a fresh interpreter with torch unimportable (``import torch`` raises
 #: ModuleNotFoundError) and report whether anything imported it
 NO_TORCH = ("import sys; sys.modules['torch'] = None; from kiloforge.cli import main; rc = main(sys.argv[1:]); "

@@ -540,7 +540,7 @@ def test_cli_errors_are_one_line(tmp_path):
         r = subprocess.run([sys.executable, *cmd], cwd=REPO, capture_output=True, text=True)
         assert r.returncode == 2, (cmd, r.stdout, r.stderr)
         lines = r.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith(f"python {cmd[0]} {cmd[1]}: error: "), r.stderr
+        assert len(lines) == 1 and lines[0].startswith("python -m ") and ": error: " in lines[0], r.stderr
         assert "Traceback" not in r.stderr
     assert not (tmp_path / "o.onnx").exists() and not (tmp_path / "p.npz").exists()
 
@@ -580,7 +580,7 @@ def test_onnx_import_cli_writes_policy_artifact(tmp_path):
 def test_export_cli_renders_c_from_onnx(tmp_path):
     """`python -m export --onnx actor.onnx [--world-json W] --out DIR/kilobot_policy.c` renders firmware from ONNX."""
     world = preset("kilobot")
-    fast = ["--robots-calib", "4", "--calib-steps", "20", "--no-progress"]
+    fast = ["--robots-calib", "4", "--calib-steps", "20", "--quiet"]
     with_meta = _save(_good_model(world), tmp_path / "actor.onnx")
     no_meta = _save(_good_model(world, meta=False), tmp_path / "plain.onnx")
     wj = _world_json(tmp_path, {"world": "kilobot", "t_prev": 2})
