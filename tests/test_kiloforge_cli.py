@@ -86,7 +86,7 @@ def test_abbreviated_option_refused(capsys):
     with pytest.raises(SystemExit) as e:
         main(["learn", "evaluate", "--policy", "p.npz", "--out", "o", "--rob", "4"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn: error: ")
+    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn evaluate: error: ")
 
 
 @pytest.mark.parametrize("module_form,name,default,expected", [
