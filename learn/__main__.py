@@ -14,21 +14,23 @@ User errors print one line and exit with status 2.
 """
 from __future__ import annotations
 
-import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
 _held: list[int] = []
-_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
 try:
     import argparse
     import sys
     from pathlib import Path
 
     from kiloforge.cliparse import ArgumentParser, error_line, program, version_line
+    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
     from kiloforge.validate import int_arg, seed_arg
     from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
-    from kiloforge.interrupts import exit_status, run_entry_point
 finally:
-    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def build_parser() -> ArgumentParser:
@@ -142,7 +144,8 @@ def _main(argv: list[str] | None = None) -> int:
         sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         sub.choices[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     try:
-        return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
+        with terminate_raises():
+            return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(error_line(program('python -m learn ' + args.command), e), file=sys.stderr)
         return 2
