@@ -14,19 +14,21 @@ User errors print one line and exit with status 2.
 """
 from __future__ import annotations
 
-import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
 _held: list[int] = []
-_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
 try:
     import argparse
     import sys
     from pathlib import Path
 
     from kiloforge.cliparse import ArgumentParser, program
-    from kiloforge.interrupts import exit_status, run_entry_point
+    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
 finally:
-    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def build_parser() -> ArgumentParser:
@@ -138,7 +140,8 @@ def _main(argv: list[str] | None = None) -> int:
         return main_sweep(argv[1:])
     args = build_parser().parse_args(argv)
     try:
-        return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
+        with terminate_raises():
+            return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
         return 2

@@ -376,6 +376,8 @@ class ESConfig(ConfigBase):
     actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
     # --- start: behaviour cloning of the demonstrator ------------------------------------------
     demo_policy: str = "searcher"  #: demonstrator: searcher (the hand-written searcher, turning left) or none (random init)
+    #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
+    init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
     bc_updates: int = 6000  #: behaviour-cloning Adam steps
     bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning
@@ -415,6 +417,8 @@ class ESConfig(ConfigBase):
                      "eval_every", "eval_episodes", "eval_steps"):
             need(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
         need(self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}")
+        need(not self.init_policy or self.init_policy.endswith(".npz"),
+             f"init_policy must be a policy artifact (.npz) or empty, got '{self.init_policy}'")
         for name in ("bc_lr", "sigma", "lr"):
             v = getattr(self, name)
             need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")

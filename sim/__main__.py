@@ -15,22 +15,31 @@ one line and exit with 2.
 """
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import json
-import os
-import sys
-from pathlib import Path
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
-from kiloforge import io
-from kiloforge.cliparse import ArgumentParser, program
-from kiloforge.errors import KiloforgeError, PolicyError, printable
-from kiloforge.interrupts import exit_status, terminate_raises
-from kiloforge.io import staged_files
-from kiloforge.policies import load_policy, swarm_policy
-from kiloforge.validate import int_arg, seed_arg
+_held: list[int] = []
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
+try:
+    import argparse
+    import dataclasses
+    import json
+    import os
+    import sys
+    from pathlib import Path
 
-from .config import MAX_EPISODE_STEPS, PRESETS, preset
+    from kiloforge import io
+    from kiloforge.cliparse import ArgumentParser, program
+    from kiloforge.errors import KiloforgeError, PolicyError, printable
+    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
+    from kiloforge.io import staged_files
+    from kiloforge.policies import load_policy, swarm_policy
+    from kiloforge.validate import int_arg, seed_arg
+
+    from .config import MAX_EPISODE_STEPS, PRESETS, preset
+finally:
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 EXIT_USAGE = 2
 MAX_ROBOTS = 1024
@@ -199,7 +208,13 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code."""
+    """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code (a Ctrl-C or SIGTERM while it
+    starts ends in one line: 130 / 143)."""
+    return run_entry_point(lambda: _main, argv, f"{program('python -m sim')}: interrupted while starting; nothing "
+                           "written", _held if argv is None else ())
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     mark = io.published_count()
     try:
