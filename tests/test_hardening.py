@@ -447,6 +447,7 @@ def test_sigint_while_a_command_loads_is_one_line(tmp_path, pkg, module, args):
 
 @pytest.mark.parametrize("pkg, module, args", [
     ("sim", "kiloforge.interrupts", ["--out", "o"]),  # before the entry point's own handler exists
+    ("sim", "sim.config", ["--out", "o"]),  # the world definitions (sim/__init__ defers them to first use)
     ("sim", "kiloforge.policies", ["--out", "o"]),  # the policy loader loading
     ("sim", "sim.baselines", ["--policy", "baseline", "--out", "o"]),  # the policy loading
     ("sim", "sim.rollout", ["--policy", "baseline", "--episodes", "1", "--out", "o"]),  # before the first step
