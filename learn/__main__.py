@@ -68,24 +68,24 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from kiloforge.errors import InputError
+    from kiloforge.io import staged_files
     from kiloforge.policies import load_policy
 
-    from .checkpoint import published_dir
-    from .config import ConfigError
     from .evaluate import evaluate_policies
 
     for name, v, lo in (("--episodes", args.episodes, 1), ("--steps", args.steps, 1), ("--n-envs", args.n_envs, 1)):
         if v < lo:
-            raise ConfigError(f"{name} must be >= {lo}, got {v}")
+            raise InputError(f"{name} must be >= {lo}, got {v}")
     if any(m < 1 or m > 1024 for m in args.robots):
-        raise ConfigError(f"--robots must be in 1..1024, got {args.robots}")
+        raise InputError(f"--robots must be in 1..1024, got {args.robots}")
     policies = {}
     for path in args.policy:
         p = load_policy(path)
         name = Path(path).stem if Path(path).parent.name in ("", ".") else f"{Path(path).parent.name}/{Path(path).stem}"
         policies[name] = p
     out = Path(args.out)
-    with published_dir(out) as tmp:  # all files or none: nothing left behind on an error
+    with staged_files(out, record="evaluation.json", create=True) as tmp:  # all files or none
         evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, seed=args.seed,
                           n_envs=args.n_envs, baselines=not args.no_baselines, gif=not args.no_gif,
                           progress=not args.quiet)
@@ -110,17 +110,23 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load():
-    """The modules every command needs (torch, NumPy, tyro, the simulator, the trainer)."""
-    from . import cli, train  # noqa: F401
+#: the commands that need the learn extra (torch, tyro); evaluate runs on the core dependencies
+TRAIN_COMMANDS = ("train", "train-recurrent", "train-es")
 
+
+def _load(argv: list[str] | None):
+    """The modules the command in ``argv`` needs: the trainer (torch, tyro) for a training command, the
+    evaluator (NumPy, the simulator) otherwise; a missing optional dependency raises here."""
+    args = sys.argv[1:] if argv is None else argv
+    if args and args[0] in TRAIN_COMMANDS:
+        from . import cli, train  # noqa: F401
+    else:
+        from . import evaluate  # noqa: F401
     return _main
 
 
 def _main(argv: list[str] | None = None) -> int:
     from kiloforge.errors import KiloforgeError
-
-    from .config import ConfigError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("train", "train-recurrent", "train-es"):  # learn/cli.py: tyro parsers of the configs
@@ -139,7 +145,7 @@ def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
-    except (ConfigError, KiloforgeError, ValueError) as e:
+    except (KiloforgeError, ValueError) as e:  # learn.config.ConfigError is a ValueError
         print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # evaluate publishes all its files or none; plot writes one file atomically
@@ -149,7 +155,7 @@ def _main(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m learn`` / ``kiloforge-learn``; a Ctrl-C while its modules load ends in one line."""
-    return run_entry_point(_load, argv,
+    return run_entry_point(lambda: _load(argv), argv,
                            f"{program('python -m learn')}: error: interrupted while starting; nothing written", _held)
 
 
