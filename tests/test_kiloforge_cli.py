@@ -176,3 +176,11 @@ def test_console_script_without_torch_is_one_line(tmp_path, monkeypatch, capsys)
     assert learn_script() == 2
     assert capsys.readouterr().err == "kiloforge-learn needs torch: pip install 'kiloforge[learn]'\n"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_export_onnx_without_learn_extra(tmp_path):
+    """`python -m learn export-onnx` of the shipped .npz policy runs with torch, tyro and tensorboard unimportable."""
+    pytest.importorskip("onnx")
+    r = kiloforge_run(["export-onnx", "--policy", TINY_EVAL[1], "--out", "a.onnx"], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "a.onnx").stat().st_size > 1000 and r.stdout.startswith("wrote a.onnx: ")
