@@ -29,6 +29,8 @@ from typing import Annotated, Optional
 
 import tyro
 
+from kiloforge.cliparse import version_line
+
 from sim.config import PRESETS as WORLD_PRESETS
 
 from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig
@@ -108,6 +110,7 @@ def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_
     for flag in ("--preset", "--config", "--out"):
         meta.add_argument(flag, default=None)
     meta.add_argument("--resume", action="store_true")
+    meta.add_argument("--version", action="version", version=version_line())
     known, _ = meta.parse_known_args(argv)
     base = base_config(cls, known.preset, known.config, known.resume, known.out, default_preset)
     Args = _args_class(cls)

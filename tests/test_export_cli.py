@@ -20,7 +20,7 @@ from sim.config import preset
 
 KB = preset("kilobot")
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 
 
 def run(argv, capsys) -> tuple[int, str, str]:
@@ -31,7 +31,8 @@ def run(argv, capsys) -> tuple[int, str, str]:
 
 def one_error_line(err: str) -> str:
     lines = [l for l in err.splitlines() if l.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), f"expected one error line, got {err!r}"
+    assert len(lines) == 1 and lines[0].startswith("python -m export") and ": error: " in lines[0], \
+        f"expected one error line, got {err!r}"
     assert "Traceback" not in err
     return lines[0]
 
@@ -44,7 +45,7 @@ def test_budget_subcommand_fits(capsys):
 
 def test_budget_subcommand_does_not_fit(capsys):
     """budget --history 20 --hidden 64 32 does not fit: exit 1 and what would fit."""
-    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--preset", "kilobot"], capsys)
+    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--world", "kilobot"], capsys)
     assert rc == 1 and "DOES NOT FIT" in out and "would fit: t_prev <= " in out
 
 
@@ -64,7 +65,7 @@ def test_budget_subcommand_bad_args(capsys):
     """A non-numeric history or unknown preset is one error line and exit 2."""
     rc, _, err = run(["budget", "--history", "x"], capsys)
     assert rc == 2 and "--history" in one_error_line(err)
-    rc, _, err = run(["budget", "--history", "3", "--preset", "mars"], capsys)
+    rc, _, err = run(["budget", "--history", "3", "--world", "mars"], capsys)
     assert rc == 2 and "mars" in one_error_line(err)
 
 
@@ -172,7 +173,8 @@ def test_bad_arguments(capsys):
 def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     """The shipped default policy exports: C, kilobot_target.c and a manifest with hash and format."""
     out = tmp_path / "kilobot_policy.c"
-    rc, stdout, err = run(["--out", str(out), "--target-uids", "0,5"] + FAST, capsys)
+    loud = [a for a in FAST if a != "--quiet"]  # no bar off a terminal either way; --quiet also drops the hint
+    rc, stdout, err = run(["--out", str(out), "--target-uids", "0,5"] + loud, capsys)
     assert rc == 0, err
     target = tmp_path / "kilobot_target.c"
     manifest = tmp_path / "kilobot_policy.c.manifest.json"
@@ -188,7 +190,7 @@ def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, target.name, manifest.name])
     last = stdout.splitlines()[-2:]  # the next step: the same command with --kilolib, and the flashing guide
     assert last[0] == ("next: .hex images for KiloGUI: python -m export --out " + str(out) + " --target-uids 0,5 "
-                       + " ".join(FAST) + " --kilolib DIR (DIR: your built kilolib checkout)")
+                       + " ".join(loud) + " --kilolib DIR (DIR: your built kilolib checkout)")
     assert "kilo_uid 0, 5 is the beacon" in last[1] and last[1].endswith("docs/flashing.md")
 
 
@@ -228,6 +230,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     out = tmp_path / "robot.c"
     rc, stdout, err = run(["--out", str(out), "--target-uids", "7", "--no-avr"] + FAST, capsys)
     assert rc == 0, err
+    assert "next:" not in stdout  # --quiet: no next-step hint
     qp = seen["qp"]
     assert seen["uids"] == (7,) and qp.world.name == "kilobot" and out.read_text().startswith(f"/* policy {qp.policy_hash}")
     m = json.loads((tmp_path / "robot.c.manifest.json").read_text())

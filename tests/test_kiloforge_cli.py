@@ -14,7 +14,7 @@ from kiloforge.cli import COMMANDS, learn_script, main, missing_dependency
 from kiloforge.cliparse import invoked_as, program
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 #: run the kiloforge command in a fresh interpreter with torch unimportable (``import torch`` raises
 #: ModuleNotFoundError) and report whether anything imported it
 NO_TORCH = ("import sys; sys.modules['torch'] = None; from kiloforge.cli import main; rc = main(sys.argv[1:]); "
@@ -94,7 +94,7 @@ def test_abbreviated_option_refused(capsys):
     with pytest.raises(SystemExit) as e:
         main(["learn", "evaluate", "--policy", "p.npz", "--out", "o", "--rob", "4"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn: error: ")
+    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn evaluate: error: ")
 
 
 @pytest.mark.parametrize("module_form,name,default,expected", [

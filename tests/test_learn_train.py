@@ -87,7 +87,7 @@ def test_resume_refuses_changed_config(tmp_path):
     ("gamma", 1.0, "gamma must be in [0, 1)"),
     ("tau", 0.0, "tau must be in (0, 1]"),
     ("batch_size", 0, "batch_size must be >= 1"),
-    ("n_robots", 0, "n_robots must be in 1..256"),
+    ("n_robots", 0, "n_robots must be in 1..1024"),
     ("world", "mars", "world must be one of"),
     ("actor_hidden", (), "actor_hidden must be one or more widths"),
     ("replay_size", 100, "must hold at least one episode per env"),

@@ -32,7 +32,7 @@ from ..errors import BudgetError, ExportError, VerifyError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import (EXIT_OK, Parser, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
+from .common import (EXIT_OK, Parser, add_quiet, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
                      steps_arg)
 
 
@@ -49,8 +49,8 @@ def _uids(text: str) -> tuple[int, ...]:
 def export_parser() -> argparse.ArgumentParser:
     ap = Parser(prog="python -m export",
                 description="Quantise a policy to int8 and render the Kilobot firmware "
-                            "(sub-command 'budget': will an architecture fit?; 'verify --closed-loop': "
-                            "float actor vs int8 firmware in the simulator).")
+                            "(sub-command 'budget': will an architecture fit?; 'verify': "
+                            "float actor vs int8 firmware in the simulator, closed loop).")
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
@@ -75,7 +75,7 @@ def export_parser() -> argparse.ArgumentParser:
                     help="skip the exact avr-gcc budget even when the AVR toolchain is installed")
     ap.add_argument("--verify", choices=["host", "avr"], default=None,
                     help="host: build the C with the host compiler and check it against the emulator before writing")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet(ap)
     return ap
 
 
@@ -150,7 +150,7 @@ def run_export(argv: Sequence[str]) -> int:
                           + "; ".join(budget.suggest()))
 
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.seed,
-                      steps=args.calib_steps, progress=not args.no_progress and sys.stderr.isatty())
+                      steps=args.calib_steps, progress=not args.quiet and sys.stderr.isatty())
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     report = error_report(policy, qp, calib)
     print(report.table())
@@ -182,5 +182,6 @@ def run_export(argv: Sequence[str]) -> int:
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
     print(f"wrote {out}, {target_path}, {manifest_path}")
-    print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
+    if not args.quiet:
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
     return EXIT_OK
