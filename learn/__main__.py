@@ -76,9 +76,9 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from kiloforge.io import staged_files
     from kiloforge.policies import load_policy
 
-    from .checkpoint import published_dir
     from .evaluate import evaluate_policies
 
     policies = {}
@@ -87,7 +87,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         name = Path(path).stem if Path(path).parent.name in ("", ".") else f"{Path(path).parent.name}/{Path(path).stem}"
         policies[name] = p
     out = Path(args.out)
-    with published_dir(out) as tmp:  # all files or none: nothing left behind on an error
+    with staged_files(out, record="evaluation.json", create=True) as tmp:  # all files or none
         evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, seed=args.seed,
                           n_envs=args.n_envs, baselines=not args.no_baselines, gif=not args.no_gif,
                           progress=not args.quiet)
@@ -112,17 +112,23 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load():
-    """The modules every command needs (torch, NumPy, tyro, the simulator, the trainer)."""
-    from . import cli, train  # noqa: F401
+#: the commands that need the learn extra (torch, tyro); evaluate runs on the core dependencies
+TRAIN_COMMANDS = ("train", "train-recurrent", "train-es")
 
+
+def _load(argv: list[str] | None):
+    """The modules the command in ``argv`` needs: the trainer (torch, tyro) for a training command, the
+    evaluator (NumPy, the simulator) otherwise; a missing optional dependency raises here."""
+    args = sys.argv[1:] if argv is None else argv
+    if args and args[0] in TRAIN_COMMANDS:
+        from . import cli, train  # noqa: F401
+    else:
+        from . import evaluate  # noqa: F401
     return _main
 
 
 def _main(argv: list[str] | None = None) -> int:
     from kiloforge.errors import KiloforgeError
-
-    from .config import ConfigError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("train", "train-recurrent", "train-es"):  # learn/cli.py: tyro parsers of the configs
@@ -146,7 +152,7 @@ def _main(argv: list[str] | None = None) -> int:
     try:
         with terminate_raises():
             return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
-    except (ConfigError, KiloforgeError, ValueError) as e:
+    except (KiloforgeError, ValueError) as e:  # learn.config.ConfigError is a ValueError
         print(error_line(program('python -m learn ' + args.command), e), file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # evaluate publishes all its files or none; plot writes one file atomically
@@ -159,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     if (sys.argv[1:] if argv is None else list(argv)) == ["--version"]:  # without loading torch
         print(version_line())
         return 0
-    return run_entry_point(_load, argv,
+    return run_entry_point(lambda: _load(argv), argv,
                            error_line(program('python -m learn'), "interrupted while starting; nothing written"), _held)
 
 

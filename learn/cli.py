@@ -22,6 +22,7 @@ import io
 import json
 import os
 import re
+import shlex
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -209,6 +210,10 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
     pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
             if (res.run_dir / n).is_file()]
     print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
+    if pols:
+        exporter = "kiloforge export" if prog.startswith("kiloforge") else "python -m export"
+        print(f"  next: {exporter} --policy {shlex.quote(pols[0])} --out kilobot_policy.c   (the firmware C of the "
+              f"{Path(pols[0]).stem.removeprefix('policy_')} policy)")
     return res.exit_status
 
 

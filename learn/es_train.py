@@ -182,7 +182,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             session_start = time.perf_counter()
             if progress:
                 bar = progress_bar(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
-                           desc=run_dir.name[:40])
+                                   desc=run_dir.name[:40], max_seconds=60 * cfg.max_minutes, elapsed=wall_at_start)
             while gen < cfg.generations:
                 stop.check()
                 if cfg.max_minutes and wall_at_start + time.perf_counter() - session_start >= 60 * cfg.max_minutes:

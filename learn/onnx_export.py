@@ -287,6 +287,7 @@ def check_with_onnxruntime(path: str | os.PathLike, policy: Any, n: int = 256, s
 
 def main_export_onnx(argv: list[str] | None = None) -> int:
     """``export-onnx --policy P.npz --out actor.onnx [--opset 17]``; returns the exit status."""
+    from kiloforge.cli import missing_dependency
     from kiloforge.cliparse import ArgumentParser, error_line, program
 
     prog = "python -m learn export-onnx"
@@ -304,8 +305,11 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
     except KiloforgeError as e:
         print(error_line(program(prog), e), file=sys.stderr)
         return 2
-    except ImportError as e:
-        print(error_line(program(prog), f"{e} (pip install 'kiloforge[onnx]')"), file=sys.stderr)
+    except ModuleNotFoundError as e:
+        line = missing_dependency(program(prog), e)
+        if line is None:
+            raise
+        print(line, file=sys.stderr)
         return 2
     sizes = " -> ".join(str(s) for s in pol.layer_sizes)
     print(f"wrote {args.out}: {sizes} ({', '.join(pol.activations)}), opset {args.opset}, world '{pol.world.name}', "

@@ -166,6 +166,16 @@ def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeyp
     assert a["counters"]["env_steps"] == b["counters"]["env_steps"]
 
 
+def test_es_time_budget_bar_in_a_log(tmp_path, capsys):
+    """With max_minutes the ES bar measures the time budget too, shows generations as x/total, and writes no \\r."""
+    train_es(ESConfig(**TINY, seed=2, max_minutes=10.0), tmp_path / "run", progress=True, log=_quiet)
+    err = capsys.readouterr().err
+    assert "\r" not in err and "\x1b" not in err
+    lines = [line for line in err.splitlines() if line.startswith("run:")]
+    assert lines and all("<" in line for line in lines)  # elapsed<remaining of the budget bar
+    assert "4/4 gen" in lines[-1], lines[-1]
+
+
 def test_init_policy_starts_from_the_artifact(tmp_path):
     """--init-policy starts the ascent from the artifact's exact weights (no cloning), records its hash, and
     refuses an artifact of another shape with one line."""

@@ -13,11 +13,13 @@ budget, renders the firmware and writes ``<out>``, ``kilobot_target.c`` beside i
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 from kiloforge.actors.base import QuantizedActor
+from kiloforge.cliparse import program
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import seed_arg
@@ -110,6 +112,19 @@ def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
     return str(check)
 
 
+def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: Sequence[int],
+               kilolib: Path | None) -> list[str]:
+    """The lines printed after a successful export: what to run next to get the policy onto robots."""
+    beacon = f"kilo_uid {', '.join(map(str, target_uids))}"
+    if kilolib is not None:
+        return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {beacon} "
+                f"is the beacon ({target_path.with_suffix('.hex')}: a beacon-only image)",
+                "      before you flash (calibration, lighting, uids): docs/flashing.md"]
+    return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
+            "(DIR: your built kilolib checkout)",
+            f"      then flash them (the robot with {beacon} is the beacon): docs/flashing.md"]
+
+
 def run_export(argv: Sequence[str]) -> int:
     args = export_parser().parse_args(list(argv))
     out: Path = args.out
@@ -167,4 +182,6 @@ def run_export(argv: Sequence[str]) -> int:
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
     print(f"wrote {out}, {target_path}, {manifest_path}")
+    if not args.quiet:
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
     return EXIT_OK
