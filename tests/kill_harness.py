@@ -111,7 +111,8 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
             t_end = time.perf_counter() + 10 * duration + 30
             while proc.poll() is None and time.perf_counter() < t_end and not _reached(d, moment):
                 time.sleep(0.0002)
-            at = time.perf_counter() + rng.uniform(0, 0.06 if moment == "publish" else 0.005)
+            # each draw again halves the window: a SIGINT that came after the program's last line is ignored
+            at = time.perf_counter() + rng.uniform(0, (0.06 if moment == "publish" else 0.005) / 2 ** redraws)
         else:
             at = t0 + rng.uniform(0, end)
         while proc.poll() is None and time.perf_counter() < at:
