@@ -303,6 +303,38 @@ def eval_table(path: Path | dict) -> list[str]:
     return rows
 
 
+def sweep_table(path: Path) -> list[str]:
+    """Markdown rows of a sweep's summary.json: per configuration, each seed's value and mean ± std over seeds."""
+    if not path.exists():
+        return [f"(missing: {path.relative_to(ROOT)})"]
+    d = json.loads(path.read_text())
+
+    def cells(m: dict, digits: int) -> list[str]:
+        seeds = " / ".join(f"{v:.{digits}f}" for _, v in sorted(m["per_seed"].items(), key=lambda kv: int(kv[0])))
+        if m["mean"] is None:
+            return [seeds or "-", "-"]
+        if m["std"] is None:
+            return [seeds, f"{m['mean']:.{digits}f}"]
+        lo, hi = m["ci95"]
+        return [seeds, f"{m['mean']:.{digits}f} ± {m['std']:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"]
+
+    rows = ["| robots | T_prev | seeds | best eval return, per seed | mean ± std [95 % CI] | its final cov, per seed | "
+            "mean ± std [95 % CI] | last final cov, per seed | mean ± std [95 % CI] |",
+            "|---:|---:|---|---|---|---|---|---|---|"]
+    for c in sorted(d["configurations"], key=lambda c: (c["fields"]["n_robots"], c["fields"]["t_prev"])):
+        m = c["metrics"]
+        rows.append(f"| {c['fields']['n_robots']} | {c['fields']['t_prev']} | {', '.join(map(str, c['seeds'])) or '-'} | "
+                    + " | ".join([*cells(m["best_return"], 1), *cells(m["best_final_coverage"], 3),
+                                  *cells(m["last_final_coverage"], 3)]) + " |")
+    left = [t for t in d["trials"] if t["status"] != "finished"]
+    rows.append("\nBest = the evaluation (20 episodes, 200 steps, training size) with the highest return; its final "
+                "coverage beside it; last = the final evaluation. Per-seed values in seed order; ± is the sample "
+                "standard deviation over seeds, [ ] the 95 % CI of the mean (Student t)."
+                + (" Not finished, not in the statistics: " + ", ".join(
+                    f"{t['name']} ({t['status']}, {t['env_steps']:,.0f} env steps)" for t in left) + "." if left else ""))
+    return rows
+
+
 def closed_table(path: Path) -> list[str]:
     """Markdown rows of a closed_loop.json: float vs int8 final coverage and return, ratio, verdict."""
     if not path.exists():
@@ -335,6 +367,8 @@ def plots(args) -> None:
                   f"{s['best_return']:.1f} | {s['best_cov']:.3f} | {s['last_return']:.1f} | {s['last_cov']:.3f} |"
                   for s in summary] or ["(no runs)"]
         lines.append("")
+    for name, png, _ in SWEEPS:
+        lines += [f"## Training, 3 seeds: {name} ({png})", "", *sweep_table(RUNS / name / "summary.json"), ""]
     thesis = merged_eval([OUT / "eval_thesis" / "evaluation.json"])
     if thesis is not None:
         plot_eval(thesis, [], OUT / "eval_thesis")
