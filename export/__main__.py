@@ -1,17 +1,19 @@
 """``python -m export`` / ``kiloforge-export``: see :mod:`export.cli.main`."""
 from __future__ import annotations
 
-import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
 _held: list[int] = []
-_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
 try:
     import sys
     from typing import Sequence
 
     from kiloforge.interrupts import run_entry_point
 finally:
-    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def _load():
@@ -22,8 +24,10 @@ def _load():
 
 def main(argv: Sequence[str] | None = None) -> int:
     """:func:`export.cli.main.main`, with a Ctrl-C while its modules load ending in the same one line."""
-    return run_entry_point(_load, argv, "error: interrupted; nothing written (files from an earlier run are unchanged)",
-                           _held)
+    from kiloforge.cliparse import error_line, program
+
+    return run_entry_point(_load, argv, error_line(program("python -m export"), "interrupted; nothing written (files "
+                                                   "from an earlier run are unchanged)"), _held)
 
 
 if __name__ == "__main__":

@@ -31,6 +31,8 @@ PACKAGES = ("kiloforge", "sim", "learn", "export", "firmware_templates")  #: the
 #: top-level module of an optional dependency -> the extra that installs it (pyproject.toml)
 EXTRAS = {"torch": "learn", "tyro": "learn", "tensorboard": "learn", "onnx": "onnx", "onnxruntime": "onnx",
           "ray": "sweep", "pettingzoo": "pettingzoo", "gymnasium": "pettingzoo"}
+#: top-level module of a core dependency -> its distribution (a broken install: it is installed with kiloforge)
+CORE = {"numpy": "numpy", "jinja2": "jinja2", "matplotlib": "matplotlib", "PIL": "pillow", "tqdm": "tqdm"}
 
 
 @dataclass(frozen=True)
@@ -95,10 +97,20 @@ def missing_extra(err: ModuleNotFoundError) -> tuple[str, str] | None:
     return (top, EXTRAS[top]) if top in EXTRAS else None
 
 
+def missing_dependency(prog: str, err: ModuleNotFoundError) -> str | None:
+    """The one line for a missing dependency of kiloforge (``<prog> needs <module>: pip install ...``),
+    None when ``err`` names a module kiloforge does not depend on."""
+    missing = missing_extra(err)
+    if missing is not None:
+        return f"{prog} needs {missing[0]}: pip install 'kiloforge[{missing[1]}]'"
+    top = (err.name or "").partition(".")[0]
+    return f"{prog} needs {top} (a dependency of kiloforge): pip install {CORE[top]}" if top in CORE else None
+
+
 def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
     """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
     own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
-    optional dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'``."""
+    dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`missing_dependency`)."""
     problem = shadowing()
     if problem:
         print(f"{prog}: error: {problem}", file=sys.stderr)
@@ -106,10 +118,10 @@ def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]]
     try:
         return load()(None if argv is None else list(argv))
     except ModuleNotFoundError as e:
-        missing = missing_extra(e)
-        if missing is None:
+        line = missing_dependency(prog, e)
+        if line is None:
             raise
-        print(f"{prog} needs {missing[0]}: pip install 'kiloforge[{missing[1]}]'", file=sys.stderr)
+        print(line, file=sys.stderr)
         return EXIT_USAGE
 
 
@@ -132,6 +144,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     with invoked_as(" ".join(["python -m", cmd.module.partition(".")[0], *cmd.prefix]), prog):
         return run_guarded(prog, lambda: importlib.import_module(cmd.module).main, [*cmd.prefix, *rest])
 
+
+def _script(package: str) -> Callable[[], int]:
+    """The console script ``kiloforge-<package>``: ``python -m <package>`` with the checks of :func:`run_guarded`."""
+    def script() -> int:
+        return run_guarded(f"kiloforge-{package}", lambda: importlib.import_module(f"{package}.__main__").main, None)
+
+    script.__doc__ = f"Entry point of the ``kiloforge-{package}`` command."
+    return script
+
+
+sim_script, learn_script, export_script = map(_script, ("sim", "learn", "export"))
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -2,17 +2,26 @@
 
 * :class:`ArgumentParser` refuses abbreviated options (``--rob 4`` is an error, not ``--robots 4``)
   and reports a bad command line in one line with exit status 2;
+* every parser has ``--version`` (:func:`version_line`, the same line for every command);
+* :func:`deprecated_alias` keeps an old spelling of a renamed flag working, with a one-line note;
 * :func:`program` is the name a command calls itself in its messages: ``kiloforge train`` when it
   runs under the ``kiloforge`` command (:mod:`kiloforge.cli` sets it with :func:`invoked_as`), else
-  the module's own (``python -m learn train``).
+  the module's own (``python -m learn train``). Every error line reads ``<program>: error: <message>``.
+
+The flags that mean the same thing have one name in every command: ``--world`` (a world preset),
+``--preset`` (a training preset, only in ``learn``), ``--robots`` (swarm sizes, up to
+:data:`sim.config.MAX_ROBOTS`), ``--n-envs`` (environments simulated together), ``--quiet`` (no
+progress output), ``--seed``, ``--episodes``, ``--steps``, ``--out``, ``--policy``.
 """
 from __future__ import annotations
 
 import argparse
+import sys
 import typing
 from contextlib import contextmanager
 from typing import Iterator
 
+from . import __version__
 from .errors import one_line
 
 EXIT_USAGE = 2  #: bad input: a wrong command line, a missing file, a missing optional dependency
@@ -41,12 +50,47 @@ def invoked_as(module_form: str, name: str) -> Iterator[None]:
         _invoked.pop()
 
 
+def version_line() -> str:
+    """What ``--version`` prints, the same for every command: ``kiloforge 0.2.0``."""
+    return f"kiloforge {__version__}"
+
+
+def error_line(prog: str, message: object) -> str:
+    """The one error line every command prints: ``<prog>: error: <message>``."""
+    return f"{prog}: error: {one_line(message)}"
+
+
+class _DeprecatedAlias(argparse.Action):
+    """An old spelling of a flag: stores into the new flag's ``dest`` after a one-line note on stderr."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str = "", **kwargs: typing.Any) -> None:
+        self.new = new
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: typing.Any,
+                 option_string: str | None = None) -> None:
+        print(f"{parser.prog}: note: {option_string} is deprecated, use {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, self.const if self.nargs == 0 else values)
+
+
+def deprecated_alias(parser: argparse.ArgumentParser, old: str, action: argparse.Action) -> None:
+    """Accept ``old`` (hidden from ``--help``) for the flag ``action`` (what ``add_argument`` returned),
+    with a one-line deprecation note when it is used."""
+    parser.add_argument(old, action=_DeprecatedAlias, new=action.option_strings[0], dest=action.dest,
+                        nargs=action.nargs, const=action.const, type=action.type, choices=action.choices,
+                        metavar=action.metavar, help=argparse.SUPPRESS)
+
+
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse without abbreviations, named by :func:`program`, with one-line errors (exit status 2)."""
+    """argparse without abbreviations, named by :func:`program`, with ``--version`` and one-line errors
+    (exit status 2)."""
 
     def __init__(self, *args: typing.Any, prog: str | None = None, **kwargs: typing.Any) -> None:
         kwargs["allow_abbrev"] = False
         super().__init__(*args, prog=None if prog is None else program(prog), **kwargs)
+        if kwargs.get("add_help", True):
+            self.add_argument("--version", action="version", version=version_line(),
+                              help="print the version and exit")
 
     def error(self, message: str) -> typing.NoReturn:
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {one_line(message)}\n")
+        self.exit(EXIT_USAGE, error_line(self.prog, message) + "\n")

@@ -5,9 +5,9 @@
 * :func:`deferred` holds SIGINT and SIGTERM back while a block that must not be cut in two runs
   (:mod:`kiloforge.io` publishing a set of files), and raises :class:`Interrupted` after it;
 * :func:`run_entry_point` is what a ``__main__`` module runs: it loads the command's modules with
-  Ctrl-C ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
+  Ctrl-C (or SIGTERM) ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
   the command, and ignores signals once the program (``argv`` None) has returned (nothing is left to
-  interrupt). A ``__main__`` module's first lines hold a Ctrl-C back (with the built-in ``_signal``,
+  interrupt). A ``__main__`` module's first lines hold a Ctrl-C or SIGTERM back (with the built-in ``_signal``,
   before this module and its imports load) and pass what they held as ``held``.
 
 Handlers can only be installed from the main thread; elsewhere both are no-ops (Python delivers
@@ -80,32 +80,32 @@ def deferred() -> Iterator[None]:
 
 def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], argv: Sequence[str] | None,
                     message: str, held: Sequence[int] = ()) -> int:
-    """``load()`` (the imports of a command, returning its ``main``), then ``main(argv)``; a SIGINT while
-    loading, or one already ``held`` back by the ``__main__`` module's first lines, prints ``message`` and
-    returns 130."""
+    """``load()`` (the imports of a command, returning its ``main``), then ``main(argv)``; a SIGINT or SIGTERM
+    while loading, or one already ``held`` back by the ``__main__`` module's first lines, prints ``message``
+    and returns 128 + the signal (130 / 143)."""
     import sys
 
     if held:
         print(message, file=sys.stderr)
-        return 130
+        return 128 + held[0]
     got: list[int] = []
 
-    def on_sigint(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: Any) -> None:
         got.append(signum)
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGINT, on_sigint) if _main_thread() else None
+    previous = {s: signal.signal(s, on_signal) for s in SIGNALS} if _main_thread() else {}
     try:
         main = load()
     except BaseException:
         if not got:
             raise
     finally:
-        if previous is not None:
-            _restore(signal.SIGINT, previous)
+        for s, h in previous.items():
+            _restore(s, h)
     if got:
         print(message, file=sys.stderr)
-        return 130
+        return 128 + got[0]
     status = main(argv)
     if argv is None and _main_thread():  # the program (argv from sys.argv) has finished: only the exit is left
         for s in SIGNALS:

@@ -14,19 +14,23 @@ User errors print one line and exit with status 2.
 """
 from __future__ import annotations
 
-import _signal  # built in: a Ctrl-C while the imports below load is held back (kiloforge.interrupts)
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
 _held: list[int] = []
-_previous = _signal.signal(_signal.SIGINT, lambda signum, frame: _held.append(signum))
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
 try:
     import argparse
     import sys
     from pathlib import Path
 
-    from kiloforge.cliparse import ArgumentParser, program
-    from kiloforge.interrupts import exit_status, run_entry_point
+    from kiloforge.cliparse import ArgumentParser, error_line, program, version_line
+    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
+    from kiloforge.validate import int_arg, seed_arg
+    from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 finally:
-    _signal.signal(_signal.SIGINT, _signal.default_int_handler if _previous is None else _previous)
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def build_parser() -> ArgumentParser:
@@ -39,12 +43,16 @@ def build_parser() -> ArgumentParser:
     e = sub.add_parser("evaluate", help="evaluate policies against the baselines",
                        description="Evaluate policy artifacts and the random / hand-written baselines.")
     e.add_argument("--policy", nargs="+", required=True, help="policy artifact(s) (.npz)")
-    e.add_argument("--robots", nargs="+", type=int, default=[16, 32], help="swarm sizes (default 16 32)")
-    e.add_argument("--episodes", type=int, default=500, help="episodes per policy and size (default 500)")
-    e.add_argument("--steps", type=int, default=500, help="steps per episode (default 500)")
+    e.add_argument("--robots", nargs="+", type=int_arg(1, MAX_ROBOTS), default=[16, 32],
+                   help="swarm sizes (default 16 32)")
+    e.add_argument("--episodes", type=int_arg(1, 100_000), default=BENCHMARK_EPISODES,
+                   help=f"episodes per policy and size (default {BENCHMARK_EPISODES}, the thesis benchmark's)")
+    e.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=BENCHMARK_STEPS,
+                   help=f"steps per episode (default {BENCHMARK_STEPS}, the thesis benchmark's, for every world; "
+                        "python -m sim runs the world's own episode, thesis 200, kilobot 300)")
     e.add_argument("--out", required=True, help="output directory")
-    e.add_argument("--seed", type=int, default=0, help="episode seed (same for every policy)")
-    e.add_argument("--n-envs", type=int, default=50, help="episodes simulated together (default 50)")
+    e.add_argument("--seed", type=seed_arg, default=0, help="episode seed (same for every policy)")
+    e.add_argument("--n-envs", type=int_arg(1, 100_000), default=50, help="episodes simulated together (default 50)")
     e.add_argument("--no-baselines", action="store_true", help="skip the random and hand-written baselines")
     e.add_argument("--no-gif", action="store_true", help="skip the episode GIF")
     e.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -68,24 +76,18 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from kiloforge.io import staged_files
     from kiloforge.policies import load_policy
 
-    from .checkpoint import published_dir
-    from .config import ConfigError
     from .evaluate import evaluate_policies
 
-    for name, v, lo in (("--episodes", args.episodes, 1), ("--steps", args.steps, 1), ("--n-envs", args.n_envs, 1)):
-        if v < lo:
-            raise ConfigError(f"{name} must be >= {lo}, got {v}")
-    if any(m < 1 or m > 1024 for m in args.robots):
-        raise ConfigError(f"--robots must be in 1..1024, got {args.robots}")
     policies = {}
     for path in args.policy:
         p = load_policy(path)
         name = Path(path).stem if Path(path).parent.name in ("", ".") else f"{Path(path).parent.name}/{Path(path).stem}"
         policies[name] = p
     out = Path(args.out)
-    with published_dir(out) as tmp:  # all files or none: nothing left behind on an error
+    with staged_files(out, record="evaluation.json", create=True) as tmp:  # all files or none
         evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, seed=args.seed,
                           n_envs=args.n_envs, baselines=not args.no_baselines, gif=not args.no_gif,
                           progress=not args.quiet)
@@ -110,17 +112,23 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load():
-    """The modules every command needs (torch, NumPy, tyro, the simulator, the trainer)."""
-    from . import cli, train  # noqa: F401
+#: the commands that need the learn extra (torch, tyro); evaluate runs on the core dependencies
+TRAIN_COMMANDS = ("train", "train-recurrent", "train-es")
 
+
+def _load(argv: list[str] | None):
+    """The modules the command in ``argv`` needs: the trainer (torch, tyro) for a training command, the
+    evaluator (NumPy, the simulator) otherwise; a missing optional dependency raises here."""
+    args = sys.argv[1:] if argv is None else argv
+    if args and args[0] in TRAIN_COMMANDS:
+        from . import cli, train  # noqa: F401
+    else:
+        from . import evaluate  # noqa: F401
     return _main
 
 
 def _main(argv: list[str] | None = None) -> int:
     from kiloforge.errors import KiloforgeError
-
-    from .config import ConfigError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("train", "train-recurrent", "train-es"):  # learn/cli.py: tyro parsers of the configs
@@ -136,21 +144,29 @@ def _main(argv: list[str] | None = None) -> int:
         from .sweep import main_sweep
 
         return main_sweep(argv[1:])
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # named by the sub-command, as its own errors are
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        sub.choices[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     try:
-        return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
-    except (ConfigError, KiloforgeError, ValueError) as e:
-        print(f"{program('python -m learn ' + args.command)}: error: {e}", file=sys.stderr)
+        with terminate_raises():
+            return {"evaluate": cmd_evaluate, "plot": cmd_plot}[args.command](args)
+    except (KiloforgeError, ValueError) as e:  # learn.config.ConfigError is a ValueError
+        print(error_line(program('python -m learn ' + args.command), e), file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # evaluate publishes all its files or none; plot writes one file atomically
-        print(f"{program('python -m learn ' + args.command)}: error: interrupted; nothing written", file=sys.stderr)
+        print(error_line(program('python -m learn ' + args.command), "interrupted; nothing written"), file=sys.stderr)
         return exit_status(e)
 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m learn`` / ``kiloforge-learn``; a Ctrl-C while its modules load ends in one line."""
-    return run_entry_point(_load, argv,
-                           f"{program('python -m learn')}: error: interrupted while starting; nothing written", _held)
+    if (sys.argv[1:] if argv is None else list(argv)) == ["--version"]:  # without loading torch
+        print(version_line())
+        return 0
+    return run_entry_point(lambda: _load(argv), argv,
+                           error_line(program('python -m learn'), "interrupted while starting; nothing written"), _held)
 
 
 if __name__ == "__main__":

@@ -15,15 +15,12 @@ Block files no checkpoint names (and orphan temporary files) are removed when a 
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import re
-import shutil
 import struct
-import tempfile
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable
 
 import numpy as np
 import torch
@@ -183,31 +180,3 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         for name in ("tuples", "states", "rewards"):
             meta[name] = np.concatenate([np.asarray(p[name]) for p in parts]) if parts else np.zeros(0)
     return state
-
-
-@contextlib.contextmanager
-def published_dir(out: str | os.PathLike) -> Iterator[Path]:
-    """Yield a fresh temporary directory beside ``out``; on success its files appear in ``out`` (the
-    directory renamed into place, or its files moved into an existing ``out``), on an error nothing
-    does (the temporary directory is removed, ``out`` is not created)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"'{out}' exists and is not a directory")
-    anchor = out.parent
-    while not anchor.exists():  # create missing parents only on success
-        anchor = anchor.parent
-    try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=anchor))
-    except OSError as e:
-        raise ConfigError(f"cannot write into '{anchor}': {e.strerror or e}") from None
-    try:
-        yield tmp
-        if out.is_dir():
-            for p in tmp.iterdir():
-                os.replace(p, out / p.name)
-            tmp.rmdir()
-        else:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)

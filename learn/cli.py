@@ -22,11 +22,14 @@ import io
 import json
 import os
 import re
+import shlex
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
 import tyro
+
+from kiloforge.cliparse import version_line
 
 from sim.config import PRESETS as WORLD_PRESETS
 
@@ -107,6 +110,7 @@ def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_
     for flag in ("--preset", "--config", "--out"):
         meta.add_argument(flag, default=None)
     meta.add_argument("--resume", action="store_true")
+    meta.add_argument("--version", action="version", version=version_line())
     known, _ = meta.parse_known_args(argv)
     base = base_config(cls, known.preset, known.config, known.resume, known.out, default_preset)
     Args = _args_class(cls)
@@ -206,6 +210,10 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
     pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
             if (res.run_dir / n).is_file()]
     print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
+    if pols:
+        exporter = "kiloforge export" if prog.startswith("kiloforge") else "python -m export"
+        print(f"  next: {exporter} --policy {shlex.quote(pols[0])} --out kilobot_policy.c   (the firmware C of the "
+              f"{Path(pols[0]).stem.removeprefix('policy_')} policy)")
     return res.exit_status
 
 

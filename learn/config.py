@@ -44,7 +44,7 @@ from typing import Annotated, Any, ClassVar
 
 import tyro
 
-from sim.config import MAX_EPISODE_STEPS
+from sim.config import BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
 from sim.config import preset as world_preset
@@ -63,7 +63,6 @@ SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
 DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher")  #: values of ``demo_policy`` (learn.demos)
 CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
-MAX_ROBOTS = 256
 
 Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
 HistoryLength = Annotated[int, tyro.conf.arg(aliases=("--history",))]
@@ -376,6 +375,8 @@ class ESConfig(ConfigBase):
     actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
     # --- start: behaviour cloning of the demonstrator ------------------------------------------
     demo_policy: str = "searcher"  #: demonstrator: searcher (the hand-written searcher, turning left) or none (random init)
+    #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
+    init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
     bc_updates: int = 6000  #: behaviour-cloning Adam steps
     bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning
@@ -389,7 +390,7 @@ class ESConfig(ConfigBase):
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 5  #: evaluate every this many generations (and after the last)
     eval_episodes: int = 16  #: deterministic evaluation episodes per swarm size (fixed seeds)
-    eval_steps: int = 500  #: control steps of an evaluation episode (the benchmark's 500)
+    eval_steps: int = BENCHMARK_STEPS  #: control steps of an evaluation episode (the thesis benchmark's 500)
     max_minutes: float = 0.0  #: stop after the first generation past this wall-clock time (0 = no limit)
     threads: int = 0  #: torch CPU threads; 0 = auto (1)
     seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)
@@ -415,6 +416,8 @@ class ESConfig(ConfigBase):
                      "eval_every", "eval_episodes", "eval_steps"):
             need(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
         need(self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}")
+        need(not self.init_policy or self.init_policy.endswith(".npz"),
+             f"init_policy must be a policy artifact (.npz) or empty, got '{self.init_policy}'")
         for name in ("bc_lr", "sigma", "lr"):
             v = getattr(self, name)
             need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")

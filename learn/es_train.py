@@ -68,10 +68,13 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
              log: Callable[[str], None] = print) -> RunResult:
     """Run ``cfg`` into ``run_dir`` (``resume`` continues its checkpoint); returns counters and why it stopped."""
     cfg.validate()
+    world, eval_world = cfg.world_config(), cfg.eval_world()
+    init = None if resume else init_policy_of(cfg, world)  # refused before anything is written
     run_dir = Path(run_dir)
     resume = prepare_run_dir(run_dir, resume, log)
+    if not resume and init is None:  # --resume of a run that had no checkpoint yet: a fresh start
+        init = init_policy_of(cfg, world)
     ckpt = Checkpointer(run_dir)
-    world, eval_world = cfg.world_config(), cfg.eval_world()
     set_threads(cfg.threads)
     tune_allocator()
     randomise = None
@@ -94,6 +97,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     theta = get_theta(algo)
     adam = Adam(pop.n_params, cfg.lr)
     gen = 0
+    init_hash = ""  # the hash of cfg.init_policy, for the provenance (kept in the checkpoint)
 
     def export(name: str, row: dict) -> None:
         from kiloforge.policies import save_policy
@@ -102,6 +106,8 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "torch": torch.__version__, "trained_robots": list(cfg.n_robots), "generations": gen,
                 "env_steps": c.env_steps, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(row))}
+        if cfg.init_policy:
+            prov["init_policy_hash"] = init_hash
         save_policy(algo.artifact(world, prov), run_dir / name)
 
     def evaluate() -> dict:
@@ -131,7 +137,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         t0 = time.perf_counter()
         c.wall_s = wall_at_start + (time.perf_counter() - session_start)
         ckpt.save({"version": CHECKPOINT_VERSION, "algorithm": cfg.algorithm, "config": cfg.to_dict(),
-                   "es_generation": gen, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
+                   "es_generation": gen, "init_policy_hash": init_hash, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
         c.checkpoint_s += time.perf_counter() - t0
 
     stop = StopRequest()
@@ -146,6 +152,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                     raise ConfigError(f"'{ckpt.path}' is not an ES checkpoint of version {CHECKPOINT_VERSION}")
                 check_resumable(state["config"], cfg)
                 gen = int(state["es_generation"])
+                init_hash = str(state.get("init_policy_hash", ""))
                 theta = state["theta"].double()
                 adam.load_state_dict(state["adam"])
                 c = result.counters = Counters(**state["counters"])
@@ -154,7 +161,11 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 ckpt.clean()
                 write_atomic(run_dir / "config.json", cfg.to_json() + "\n")
                 write_atomic(run_dir / "world.json", json.dumps(world.to_dict(), indent=2, sort_keys=True) + "\n")
-                if cfg.demo_policy != "none":
+                if init is not None:
+                    load_weights(algo, init)
+                    theta, init_hash = get_theta(algo), init.hash
+                    log(f"starting from {cfg.init_policy} (policy hash {init.hash[:12]})")
+                elif cfg.demo_policy != "none":
                     clone(cfg, world, algo, ss_demo, stop, progress, log)
                     theta = get_theta(algo)
                     export("policy_bc.npz", {})
@@ -171,7 +182,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
             session_start = time.perf_counter()
             if progress:
                 bar = progress_bar(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
-                           desc=run_dir.name[:40])
+                                   desc=run_dir.name[:40], max_seconds=60 * cfg.max_minutes, elapsed=wall_at_start)
             while gen < cfg.generations:
                 stop.check()
                 if cfg.max_minutes and wall_at_start + time.perf_counter() - session_start >= 60 * cfg.max_minutes:
@@ -216,6 +227,40 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     c.wall_s = wall_at_start + (time.perf_counter() - session_start)
     write_summary(run_dir, cfg, c, result.stopped)
     return result
+
+
+def init_policy_of(cfg: ESConfig, world):
+    """The MLP artifact ``cfg.init_policy`` (None when empty); a one-line ConfigError unless it loads and is
+    an MLP of the same world, history length, widths and activations as this run's actor."""
+    if not cfg.init_policy:
+        return None
+    from kiloforge.errors import PolicyError
+    from kiloforge.policies import load_policy
+
+    try:
+        p = load_policy(cfg.init_policy)
+    except (PolicyError, OSError) as e:
+        raise ConfigError(f"init_policy: {e}") from None
+    ours = actor_algo(cfg, world).artifact(world, {})
+    same_kind = p.kind == ours.kind
+    what = {"kind": (p.kind, ours.kind), "world": (p.world.to_json(), world.to_json()), "t_prev": (p.t_prev, ours.t_prev),
+            "layers": (p.layer_sizes, ours.layer_sizes) if same_kind else (0, 0),
+            "activations": (list(p.activations), list(ours.activations)) if same_kind else (0, 0)}
+    diff = [k for k, (x, y) in what.items() if x != y]
+    if diff:
+        raise ConfigError(f"init_policy '{cfg.init_policy}' differs from this run in {', '.join(diff)}: "
+                          f"it must be an MLP of the {world.name} world with t_prev {cfg.t_prev} and hidden "
+                          f"{list(cfg.actor_hidden)}")
+    return p
+
+
+def load_weights(algo: MAGDDPG, policy) -> None:
+    """Copy an MLP artifact's weights into the actor."""
+    linears = [m for m in algo.actor.net if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for lin, w, b in zip(linears, policy.weights, policy.biases, strict=True):
+            lin.weight.copy_(torch.tensor(np.array(w, np.float32)))
+            lin.bias.copy_(torch.tensor(np.array(b, np.float32)))
 
 
 def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, stop: StopRequest,

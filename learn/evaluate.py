@@ -105,9 +105,12 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
     from sim.render import animate_episode, plot_coverage
 
     assert policies or baselines, "nothing to evaluate"
-    worlds = {p.world.to_json() for p in policies.values()}
+    worlds: dict[str, list[str]] = {}
+    for name, p in policies.items():
+        worlds.setdefault(p.world.to_json(), []).append(f"{name} ('{p.world.name}')")
     if len(worlds) > 1:
-        raise ValueError("the policies were trained in different worlds; evaluate them separately")
+        raise ValueError("the policies were trained in different worlds: "
+                         + "; ".join(", ".join(names) for names in worlds.values()) + "; evaluate them separately")
     first = next(iter(policies.values()), None)
     world = first.world if first is not None else None
     assert world is not None, "evaluate_policies needs at least one policy (its world is used)"

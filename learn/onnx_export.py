@@ -287,9 +287,11 @@ def check_with_onnxruntime(path: str | os.PathLike, policy: Any, n: int = 256, s
 
 def main_export_onnx(argv: list[str] | None = None) -> int:
     """``export-onnx --policy P.npz --out actor.onnx [--opset 17]``; returns the exit status."""
-    from kiloforge.cliparse import ArgumentParser
+    from kiloforge.cli import missing_dependency
+    from kiloforge.cliparse import ArgumentParser, error_line, program
 
-    ap = ArgumentParser(prog="python -m learn export-onnx",
+    prog = "python -m learn export-onnx"
+    ap = ArgumentParser(prog=prog,
                                  description="Write a policy artifact's float actor as an ONNX model "
                                              "(input 'history' [N, history_dim], output 'action' [N, 2] in [0, 1]).")
     ap.add_argument("--policy", required=True, help="policy artifact (.npz) written by training")
@@ -301,16 +303,19 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
         export_onnx(pol, args.out, opset=args.opset)
         diff, check = check_with_onnxruntime(args.out, pol)
     except KiloforgeError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(error_line(program(prog), e), file=sys.stderr)
         return 2
-    except ImportError as e:
-        print(f"error: {e} (pip install 'kiloforge[onnx]')", file=sys.stderr)
+    except ModuleNotFoundError as e:
+        line = missing_dependency(program(prog), e)
+        if line is None:
+            raise
+        print(line, file=sys.stderr)
         return 2
     sizes = " -> ".join(str(s) for s in pol.layer_sizes)
     print(f"wrote {args.out}: {sizes} ({', '.join(pol.activations)}), opset {args.opset}, world '{pol.world.name}', "
           f"t_prev {pol.t_prev}; {check}")
     if diff is not None and diff > 1e-4:
-        print(f"error: onnxruntime output differs from the policy by {diff:.3g}", file=sys.stderr)
+        print(error_line(program(prog), f"onnxruntime output differs from the policy by {diff:.3g}"), file=sys.stderr)
         return 1
     return 0
 

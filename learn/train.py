@@ -160,7 +160,7 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
 
                 total = cfg.total_episodes * T
                 bar = progress_bar(total=total, initial=min(c.env_steps, total), unit="step", dynamic_ncols=True,
-                           desc=run_dir.name[:40], smoothing=0.05)
+                                   desc=run_dir.name[:40], smoothing=0.05, max_seconds=60 * cfg.max_minutes)
             result.stopped = run_loop(cfg, algo, groups, evaluators, c, sample_rng, env_rng, shares, demo_shares,
                                       stop, bar, tb, run_dir, export, save, log,
                                       lambda: wall_at_start + (time.perf_counter() - session_start))

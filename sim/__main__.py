@@ -1,6 +1,6 @@
 """``python -m sim``: run a policy in the simulator, print task metrics, write plots and a GIF.
 
-    python -m sim --preset thesis --robots 4 --seed 0 --policy baseline --out runs/demo
+    python -m sim --world thesis --robots 4 --seed 0 --policy baseline --out runs/demo
     python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
     python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
 
@@ -15,25 +15,33 @@ one line and exit with 2.
 """
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import json
-import os
-import sys
-from pathlib import Path
+import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
-from kiloforge import io
-from kiloforge.cliparse import ArgumentParser, program
-from kiloforge.errors import KiloforgeError, PolicyError, printable
-from kiloforge.interrupts import exit_status, terminate_raises
-from kiloforge.io import staged_files
-from kiloforge.policies import load_policy, swarm_policy
-from kiloforge.validate import int_arg, seed_arg
+_held: list[int] = []
+_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
+             for _s in (_signal.SIGINT, _signal.SIGTERM)}
+try:
+    import argparse
+    import dataclasses
+    import json
+    import os
+    import sys
+    from pathlib import Path
 
-from .config import MAX_EPISODE_STEPS, PRESETS, preset
+    from kiloforge import io
+    from kiloforge.cliparse import ArgumentParser, deprecated_alias, error_line, program
+    from kiloforge.errors import KiloforgeError, PolicyError, printable
+    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
+    from kiloforge.io import staged_files
+    from kiloforge.policies import load_policy, swarm_policy
+    from kiloforge.validate import int_arg, seed_arg
+
+    from .config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset
+finally:
+    for _s, _h in _previous.items():
+        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 EXIT_USAGE = 2
-MAX_ROBOTS = 1024
 MAX_EPISODES = 100_000
 OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
 SUITE_FILES = ("robustness.md", "robustness.json")  #: the record (kiloforge.io) last, as in OUTPUT_FILES
@@ -52,8 +60,9 @@ class _Parser(ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sim", description="Run a swarm policy in the kiloforge simulator: metrics, "
                 "trajectory plot, coverage plot and an animated GIF.")
-    p.add_argument("--preset", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: thesis, "
-                   "or the artifact's world)")
+    world = p.add_argument("--world", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: "
+                           "thesis, kilobot with --suite, or the artifact's world)")
+    deprecated_alias(p, "--preset", world)
     p.add_argument("--robots", type=int_arg(1, MAX_ROBOTS), nargs="+", default=[4],
                    help="searching robots per env (default 4); with --suite, one or more counts")
     p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
@@ -62,9 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (created if needed)")
     p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
     p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
-                   help="steps per episode (default: the world's)")
-    p.add_argument("--envs", type=int_arg(1, MAX_EPISODES), default=None,
-                   help="envs simulated at once (default: min(episodes, 32))")
+                   help="steps per episode (default: the world's episode, thesis 200, kilobot 300, as trained; "
+                        "learn evaluate's 500 is the thesis benchmark's)")
+    n_envs = p.add_argument("--n-envs", type=int_arg(1, MAX_EPISODES), default=None,
+                            help="envs simulated at once (default: min(episodes, 32))")
+    deprecated_alias(p, "--envs", n_envs)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--suite", choices=SUITES, default=None,
                    help="robustness: final coverage in every world variant (sim.variants) instead of one run")
@@ -72,15 +83,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_args(a: argparse.Namespace) -> None:
-    if a.preset is not None and a.preset not in PRESETS:
-        raise UserError(f"unknown preset '{a.preset}'; choose one of: {', '.join(sorted(PRESETS))}")
+    if a.world is not None and a.world not in PRESETS:
+        raise UserError(f"unknown world '{a.world}'; choose one of: {', '.join(sorted(PRESETS))}")
     if a.suite is None and len(a.robots) != 1:
         raise UserError(f"--robots takes one count without --suite, got {len(a.robots)}")
 
 
 def _load_policy(a: argparse.Namespace):
     """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy."""
-    world = preset(a.preset or ("kilobot" if a.suite else "thesis"))
+    world = preset(a.world or ("kilobot" if a.suite else "thesis"))
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
     if a.policy in ("random", "baseline"):
@@ -101,9 +112,9 @@ def _load_policy(a: argparse.Namespace):
     if a.steps is not None:
         art_world = dataclasses.replace(art_world, episode_steps=a.steps)
     note = None
-    if a.preset is not None and art_world != world:
-        note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from preset "
-                f"'{a.preset}'; using the policy's world")
+    if a.world is not None and art_world != world:
+        note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from --world "
+                f"'{a.world}'; using the policy's world")
     desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
             "hash": art.hash, "layer_sizes": art.layer_sizes}
     return art_world, lambda w: swarm_policy(art, w), desc, note
@@ -133,7 +144,7 @@ def run(a: argparse.Namespace) -> dict:
     from .metrics import compare
     from .rollout import rollout
 
-    n_envs = a.envs or min(a.episodes, 32)
+    n_envs = a.n_envs or min(a.episodes, 32)
     try:
         env = SwarmEnv(world, n_envs, robots, seed=a.seed)
     except ValueError as e:  # e.g. too many discs for the arena
@@ -181,7 +192,7 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
         raise UserError(str(e)) from None
     out = Path(a.out)
     with _staged_output(out, SUITE_FILES) as staging:
-        table = run_suite(factory, world, a.robots, a.episodes, world.episode_steps, a.seed, suite, a.envs,
+        table = run_suite(factory, world, a.robots, a.episodes, world.episode_steps, a.seed, suite, a.n_envs,
                           progress=not a.quiet)
         name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
         report = {"tool": "kiloforge sim", "argv": list(a.argv), "suite": a.suite, "policy": desc,
@@ -199,7 +210,13 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code."""
+    """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code (a Ctrl-C or SIGTERM while it
+    starts ends in one line: 130 / 143)."""
+    return run_entry_point(lambda: _main, argv, f"{program('python -m sim')}: interrupted while starting; nothing "
+                           "written", _held if argv is None else ())
+
+
+def _main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     mark = io.published_count()
     try:
@@ -208,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
             a.argv = argv
             run(a)
     except (UserError, KiloforgeError) as e:
-        print(f"{program('python -m sim')}: error: {printable(e)}", file=sys.stderr)
+        print(error_line(program('python -m sim'), printable(e)), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt as e:
         written = io.published_since(mark)

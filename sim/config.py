@@ -67,6 +67,12 @@ ROLE_TARGET = 1
 KILO_TICK_HZ = 30.52  #: kilo_ticks per second, measured (platform notes: 305 ticks in 10 s)
 MAX_ARENA_HALF_MM = 100_000.0  #: a 200 m arena; larger ones only serve to exhaust memory
 MAX_EPISODE_STEPS = 1_000_000  #: control periods per episode (about 11 days of Kilobot time)
+MAX_ROBOTS = 1024  #: robots per simulated swarm, in every command (--robots) and config
+#: control periods of an evaluation episode in the thesis's benchmark (500 episodes x 500 steps), used
+#: where policies are compared (learn evaluate, sweeps, ES evaluation); sim and export verify run the
+#: world's own episode (WorldConfig.episode_steps: thesis 200, kilobot 300), as the policy was trained
+BENCHMARK_STEPS = 500
+BENCHMARK_EPISODES = 500  #: episodes per policy and swarm size in that benchmark
 
 
 @dataclass(frozen=True)

@@ -603,14 +603,14 @@ def _export_flags(fx: Fixtures, out: str) -> dict[str, list[str]]:
             INTS, "--calib-steps": INTS, "--seed": INTS, "--percentile": FLOATS,
             "--target-uids": ["0", "0,5", "-1", "70000", "a,b", ",,", "1" * 30, "3,", "65535"],
             "--kilolib": [str(fx.root / "nokilolib"), str(fx.dir)], "--verify": ["bogus", "", "HOST"],
-            "--no-avr": [], "--no-progress": []}
+            "--no-avr": [], "--quiet": []}
 
 
 #: values that would make a valid run slow are never drawn (cheap sizes, or invalid ones)
-CHEAP_EXPORT = ["--no-avr", "--no-progress", "--robots-calib", "2", "--calib-steps", "3"]
+CHEAP_EXPORT = ["--no-avr", "--quiet", "--robots-calib", "2", "--calib-steps", "3"]
 CHEAP_SIM = ["--episodes", "1", "--steps", "3", "--quiet"]
 CHEAP_VERIFY = ["--episodes", "2", "--steps", "3", "--robots", "2", "--robots-calib", "2", "--calib-steps", "3",
-                "--no-progress"]
+                "--quiet"]
 
 
 @st.composite
@@ -618,7 +618,7 @@ def export_argv(draw, fx: Fixtures, out: str) -> list[str]:
     """Random argv for ``python -m export`` (the default command or a sub-command)."""
     sub = draw(st.sampled_from(["", "", "", "budget", "verify", "rehash"]))
     if sub == "budget":
-        flags = {"--history": INTS, "--hidden": INTS, "--gru": INTS, "--lstm": INTS, "--preset": ["kilobot", "mars",
+        flags = {"--history": INTS, "--hidden": INTS, "--gru": INTS, "--lstm": INTS, "--world": ["kilobot", "mars",
                                                                                                   "", "thesis"],
                  "--activation": ["elu", "relu", "x"]}
         head = ["budget"]
@@ -652,11 +652,11 @@ def export_argv(draw, fx: Fixtures, out: str) -> list[str]:
 @st.composite
 def sim_argv(draw, fx: Fixtures, out: str) -> list[str]:
     """Random argv for ``python -m sim``."""
-    flags = {"--preset": ["thesis", "kilobot", "moon", ""], "--robots": INTS, "--seed": INTS,
+    flags = {"--world": ["thesis", "kilobot", "moon", ""], "--robots": INTS, "--seed": INTS,
              "--policy": ["random", "baseline"] + fx.paths(),
              "--out": [out, str(Path(out).parent / "other"), "/dev/null", str(fx.policy)],
              "--episodes": ["1", "0", "-1", "x", "100001"], "--steps": ["2", "0", "x", "1000001"],
-             "--envs": ["1", "0", "x"], "--quiet": [], "--suite": ["robustness", "bogus", ""]}
+             "--n-envs": ["1", "0", "x"], "--quiet": [], "--suite": ["robustness", "bogus", ""]}
     argv = list(CHEAP_SIM) + ["--out", out]
     for _ in range(draw(st.integers(0, 4))):
         if draw(st.integers(0, 9)) == 0:

@@ -1,11 +1,19 @@
 #!/usr/bin/env bash
-# Install everything the tests need, then run them. This is the README's test command and what CI runs.
-#  - Debian's AVR toolchain and simavr when missing (apt-get; sudo when not root)
-#  - torch 2.13.0 first (a CPU wheel here; unpinned torch would pull a multi-GB CUDA build)
-#  - kiloforge with the learn, onnx, pettingzoo and test extras
+# Set up the test environment, then run the tests. This is the README's test command and what CI runs.
+# The tests get their own virtual environment, .venv-test in the repository root (git-ignored; delete it
+# to start afresh), so the Python you run this with is left as it is:
+#  - Debian's AVR toolchain and simavr when missing (apt-get; sudo when not root), said before it runs
+#  - in .venv-test: torch 2.13.0 first (a CPU wheel here; unpinned torch would pull a multi-GB CUDA
+#    build), then kiloforge (editable) with the extras the tests use; skipped while pyproject.toml and
+#    this script are unchanged since the last set-up
+# Environment: PYTHON (default python3) creates the venv; TEST_VENV moves it.
 # Extra arguments go to pytest (e.g. `bash tests/run.sh -m slow`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+TORCH="torch==2.13.0"
+EXTRAS="learn,onnx,pettingzoo,sweep,test"  # sweep: the Ray Tune tests (tests/test_sweep_ray.py)
+VENV="${TEST_VENV:-.venv-test}"
 
 need_apt=()
 command -v avr-gcc >/dev/null || need_apt+=(gcc-avr binutils-avr avr-libc)
@@ -14,12 +22,21 @@ command -v simavr >/dev/null || need_apt+=(simavr)
 [ -f /usr/include/simavr/sim_avr.h ] || need_apt+=(libsimavr-dev)
 if [ ${#need_apt[@]} -gt 0 ]; then
     SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-    echo "installing ${need_apt[*]} (Debian packages for the AVR tests)"
+    echo "tests/run.sh: installing Debian packages ${need_apt[*]} with ${SUDO:-root} apt-get" \
+         "(the AVR build and simavr tests need them; without them they skip locally and fail in CI)"
     $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null \
-        || echo "warning: could not install ${need_apt[*]}; AVR tests will skip locally (and fail in CI)"
+        || echo "tests/run.sh: warning: could not install ${need_apt[*]}; AVR tests will skip locally (and fail in CI)"
 fi
 
-python -m pip install -q --upgrade pip >/dev/null
-python -m pip install -q "torch==2.13.0"
-python -m pip install -q -e ".[learn,onnx,pettingzoo,test]"
-python -m pytest -q "$@"
+stamp="$VENV/.kiloforge-test-setup"
+want="$TORCH .[$EXTRAS] $(cat pyproject.toml tests/run.sh | sha256sum | cut -c1-16)"
+if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "tests/run.sh: installing $TORCH and kiloforge[$EXTRAS] (editable) into $VENV, a venv of its own" \
+         "(your Python is not changed)"
+    [ -x "$VENV/bin/python" ] || "${PYTHON:-python3}" -m venv "$VENV"
+    "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
+    "$VENV/bin/python" -m pip install -q "$TORCH"
+    "$VENV/bin/python" -m pip install -q -e ".[$EXTRAS]"
+    echo "$want" >"$stamp"
+fi
+"$VENV/bin/python" -m pytest -q "$@"

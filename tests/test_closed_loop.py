@@ -173,7 +173,7 @@ def test_cli_verify_smoke(tmp_path, capsys):
     save_policy(p, path)
     out = tmp_path / "cl"
     rc = main(["verify", "--closed-loop", "--policy", str(path), "--robots", "4", "6", "--episodes", "3",
-               "--steps", "12", "--robots-calib", "4", "--out", str(out), "--no-progress"])
+               "--steps", "12", "--robots-calib", "4", "--out", str(out), "--quiet"])
     text = capsys.readouterr().out
     assert rc in (0, 1)
     assert "float actor" in text and "int8 firmware" in text and "int8/float" in text
@@ -186,7 +186,7 @@ def test_cli_verify_smoke(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["verify", "--robots", "4"], "--closed-loop"),
+    (["verify", "--robot", "4"], "--robot"),
     (["verify", "--closed-loop", "--policy", "/nonexistent/p.npz"], "does not exist"),
     (["verify", "--closed-loop", "--episodes", "0"], "--episodes: must be in [1, "),
     (["verify", "--closed-loop", "--robots", "5000", "--episodes", "1"], "robots"),
@@ -196,7 +196,7 @@ def test_cli_verify_errors(argv, needle, capsys):
     rc = main(argv)
     err = capsys.readouterr().err
     assert rc == 2
-    assert err.startswith("error: ") and err.count("\n") == 1 and needle in err
+    assert err.startswith("python -m export verify: error: ") and err.count("\n") == 1 and needle in err
 
 
 def test_cli_verify_refuses_unusable_out_before_running(tmp_path, capsys):
@@ -204,7 +204,7 @@ def test_cli_verify_refuses_unusable_out_before_running(tmp_path, capsys):
     f = tmp_path / "afile"
     f.write_text("x")
     for out in (f, f / "sub"):
-        rc = main(["verify", "--closed-loop", "--out", str(out), "--no-progress"])
+        rc = main(["verify", "--closed-loop", "--out", str(out), "--quiet"])
         err = capsys.readouterr().err
-        assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1
+        assert rc == 2 and err.startswith("python -m export verify: error: ") and err.count("\n") == 1
     assert f.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

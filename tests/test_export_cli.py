@@ -20,10 +20,7 @@ from sim.config import preset
 
 KB = preset("kilobot")
 ROOT = Path(__file__).resolve().parents[1]
-HAS_RENDER = (importlib.util.find_spec("export.codegen.render") is not None
-              and (ROOT / "firmware_templates" / "kilobot_policy.c.j2").exists())
-HAS_ENV = importlib.util.find_spec("sim.env") is not None
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 
 
 def run(argv, capsys) -> tuple[int, str, str]:
@@ -34,7 +31,8 @@ def run(argv, capsys) -> tuple[int, str, str]:
 
 def one_error_line(err: str) -> str:
     lines = [l for l in err.splitlines() if l.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), f"expected one error line, got {err!r}"
+    assert len(lines) == 1 and lines[0].startswith("python -m export") and ": error: " in lines[0], \
+        f"expected one error line, got {err!r}"
     assert "Traceback" not in err
     return lines[0]
 
@@ -47,7 +45,7 @@ def test_budget_subcommand_fits(capsys):
 
 def test_budget_subcommand_does_not_fit(capsys):
     """budget --history 20 --hidden 64 32 does not fit: exit 1 and what would fit."""
-    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--preset", "kilobot"], capsys)
+    rc, out, _ = run(["budget", "--history", "20", "--hidden", "64", "32", "--world", "kilobot"], capsys)
     assert rc == 1 and "DOES NOT FIT" in out and "would fit: t_prev <= " in out
 
 
@@ -67,7 +65,7 @@ def test_budget_subcommand_bad_args(capsys):
     """A non-numeric history or unknown preset is one error line and exit 2."""
     rc, _, err = run(["budget", "--history", "x"], capsys)
     assert rc == 2 and "--history" in one_error_line(err)
-    rc, _, err = run(["budget", "--history", "3", "--preset", "mars"], capsys)
+    rc, _, err = run(["budget", "--history", "3", "--world", "mars"], capsys)
     assert rc == 2 and "mars" in one_error_line(err)
 
 
@@ -172,11 +170,11 @@ def test_bad_arguments(capsys):
     assert rc == 2 and "frobnicate" in one_error_line(err)
 
 
-@pytest.mark.skipif(not (HAS_RENDER and HAS_ENV), reason="needs export.codegen.render, its templates and sim.env")
 def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     """The shipped default policy exports: C, kilobot_target.c and a manifest with hash and format."""
     out = tmp_path / "kilobot_policy.c"
-    rc, stdout, err = run(["--out", str(out), "--target-uids", "0,5"] + FAST, capsys)
+    loud = [a for a in FAST if a != "--quiet"]  # no bar off a terminal either way; --quiet also drops the hint
+    rc, stdout, err = run(["--out", str(out), "--target-uids", "0,5"] + loud, capsys)
     assert rc == 0, err
     target = tmp_path / "kilobot_target.c"
     manifest = tmp_path / "kilobot_policy.c.manifest.json"
@@ -190,6 +188,24 @@ def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     assert m["files"]["kilobot_policy.c"]["sha256"] == hashlib.sha256(out.read_bytes()).hexdigest()
     assert "end to end" in stdout and "FITS" in stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, target.name, manifest.name])
+    last = stdout.splitlines()[-2:]  # the next step: the same command with --kilolib, and the flashing guide
+    assert last[0] == ("next: .hex images for KiloGUI: python -m export --out " + str(out) + " --target-uids 0,5 "
+                       + " ".join(loud) + " --kilolib DIR (DIR: your built kilolib checkout)")
+    assert "kilo_uid 0, 5 is the beacon" in last[1] and last[1].endswith("docs/flashing.md")
+
+
+def test_next_steps_name_the_images_and_the_command():
+    """After an export with --kilolib the hint names the .hex to flash; without, the kiloforge command to rerun."""
+    from export.cli.firmware import next_steps
+    from kiloforge.cliparse import invoked_as
+
+    lines = next_steps(["--out", "a b/kp.c", "--kilolib", "kl"], Path("a b/kp.c"), Path("a b/kilobot_target.c"), (0,),
+                       Path("kl"))
+    assert len(lines) == 2 and lines[0].startswith("next: flash a b/kp.hex onto every robot with KiloGUI")
+    assert "a b/kilobot_target.hex" in lines[0] and "kilo_uid 0 " in lines[0] and "docs/flashing.md" in lines[1]
+    with invoked_as("python -m export", "kiloforge export"):
+        lines = next_steps(["--out", "a b/kp.c"], Path("a b/kp.c"), Path("a b/kilobot_target.c"), (3,), None)
+    assert lines[0].startswith("next: .hex images for KiloGUI: kiloforge export --out 'a b/kp.c' --kilolib DIR ")
 
 
 def test_python_dash_m_entry_point(tmp_path):
@@ -202,7 +218,6 @@ def test_python_dash_m_entry_point(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
 
 
-@pytest.mark.skipif(not HAS_ENV, reason="needs sim.env")
 def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     """With a stand-in renderer: calibrate, quantise, write C + target + manifest; --verify failing writes nothing."""
     import types
@@ -215,6 +230,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     out = tmp_path / "robot.c"
     rc, stdout, err = run(["--out", str(out), "--target-uids", "7", "--no-avr"] + FAST, capsys)
     assert rc == 0, err
+    assert "next:" not in stdout  # --quiet: no next-step hint
     qp = seen["qp"]
     assert seen["uids"] == (7,) and qp.world.name == "kilobot" and out.read_text().startswith(f"/* policy {qp.policy_hash}")
     m = json.loads((tmp_path / "robot.c.manifest.json").read_text())
@@ -232,10 +248,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     assert list(out2.iterdir()) == []
 
 
-@pytest.mark.skipif(not (HAS_ENV and importlib.util.find_spec("onnx") is not None
-                         and importlib.util.find_spec("learn.onnx_export") is not None
-                         and importlib.util.find_spec("export.interop.onnx_import") is not None),
-                    reason="needs onnx, learn.onnx_export, export.interop.onnx_import and sim.env")
+@pytest.mark.skipif(importlib.util.find_spec("onnx") is None, reason="needs onnx (kiloforge[onnx])")
 def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     """--onnx reads an ONNX actor (via export.interop.onnx_import) and quantises the same weights."""
     import types

@@ -194,7 +194,7 @@ def test_export_cli_writes_a_gru_program(tmp_path, capsys):
     path = save_policy(p, tmp_path / "gru.npz")
     out = tmp_path / "kilobot_policy.c"
     assert main(["--policy", str(path), "--out", str(out), "--robots-calib", "3", "--calib-steps", "20",
-                 "--no-progress"]) == 0
+                 "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "GRU quantisation error" in text and "GRU actor" in text and "free-running" in text
     c = out.read_text()

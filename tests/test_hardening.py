@@ -23,7 +23,7 @@ from sim.__main__ import main as sim_main
 from sim.config import WorldConfig, preset
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "--calib-steps", "4", "--no-progress", "--no-avr"]
+FAST = ["--robots-calib", "2", "--calib-steps", "4", "--quiet", "--no-avr"]
 EXPORT_FILES = ("kilobot_policy.c", "kilobot_target.c", "kilobot_policy.c.manifest.json")
 
 
@@ -392,7 +392,7 @@ def test_calibration_longer_than_the_worlds_episode(tmp_path, capsys):
     """--calib-steps beyond the world's episode length (301 > 300) calibrates on longer episodes; it was a
     RuntimeError traceback from the simulator."""
     rc, _, err = export(["--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--calib-steps", "301",
-                         "--no-avr", "--no-progress"], capsys)
+                         "--no-avr", "--quiet"], capsys)
     assert rc == 0, err
     assert json.loads((tmp_path / "k.c.manifest.json").read_text())["calibration"]["steps"] == 301
 
@@ -415,16 +415,16 @@ def test_staged_files_with_names_chosen_while_writing(tmp_path):
     assert not (tmp_path / "ev3").exists()
 
 
-SIGINT_AT_IMPORT = """
+SIGNAL_AT_IMPORT = """
 import os, runpy, signal, sys
-pkg, module = sys.argv[1:3]
+sig, pkg, module = sys.argv[1:4]
 class Hook:
     def find_spec(self, name, path=None, target=None):
         if name == module:
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), getattr(signal, sig))
         return None
 sys.meta_path.insert(0, Hook())
-sys.argv = [pkg, *sys.argv[3:]]
+sys.argv = [pkg, *sys.argv[4:]]
 runpy.run_module(pkg, run_name="__main__", alter_sys=True)
 """
 
@@ -437,8 +437,30 @@ runpy.run_module(pkg, run_name="__main__", alter_sys=True)
 ])
 def test_sigint_while_a_command_loads_is_one_line(tmp_path, pkg, module, args):
     """A Ctrl-C while python -m export / learn loads its modules ends in one line and exit 130, nothing written."""
-    res = subprocess.run([sys.executable, "-c", SIGINT_AT_IMPORT, pkg, module, *args], cwd=tmp_path, capture_output=True,
+    res = subprocess.run([sys.executable, "-c", SIGNAL_AT_IMPORT, "SIGINT", pkg, module, *args], cwd=tmp_path,
+                         capture_output=True,
                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
     assert res.returncode == 130, res.stderr
+    assert "Traceback" not in res.stderr and "interrupted" in assert_one_clean_line(res.stderr)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("pkg, module, args", [
+    ("sim", "kiloforge.interrupts", ["--out", "o"]),  # before the entry point's own handler exists
+    ("sim", "sim.config", ["--out", "o"]),  # the world definitions (sim/__init__ defers them to first use)
+    ("sim", "kiloforge.policies", ["--out", "o"]),  # the policy loader loading
+    ("sim", "sim.baselines", ["--policy", "baseline", "--out", "o"]),  # the policy loading
+    ("sim", "sim.rollout", ["--policy", "baseline", "--episodes", "1", "--out", "o"]),  # before the first step
+    ("learn", "learn.evaluate", ["evaluate", "--policy", "p.npz", "--out", "ev"]),
+    ("learn", "torch", ["evaluate", "--policy", "p.npz", "--out", "ev"]),  # the entry point loading torch
+    ("export", "export.cli.main", ["--out", "p.c"]),
+])
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_while_sim_evaluate_or_export_starts_is_one_line(tmp_path, pkg, module, args, sig):
+    """A SIGINT / SIGTERM while python -m sim, learn evaluate or export loads its modules, world or policy, before the
+    first step: exit 130 / 143 with one line and no traceback, nothing written."""
+    res = subprocess.run([sys.executable, "-c", SIGNAL_AT_IMPORT, sig, pkg, module, *args], cwd=tmp_path,
+                         capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
+    assert res.returncode == 128 + getattr(signal, sig), res.stderr
     assert "Traceback" not in res.stderr and "interrupted" in assert_one_clean_line(res.stderr)
     assert list(tmp_path.iterdir()) == []

@@ -1,5 +1,6 @@
 """Killed at random moments (a few, CI-sized; tests/bench/kill_test.py runs 200 exports and 50 trainings):
-an export leaves the old complete set or the new one, a training resumes or restarts (tests/kill_harness.py)."""
+an export leaves the old complete set or the new one, a training resumes or restarts and ends with the
+uninterrupted run's outputs (tests/kill_harness.py)."""
 from __future__ import annotations
 
 import signal
@@ -25,3 +26,41 @@ def test_killed_export_leaves_old_or_new_set(tmp_path, sets, sig, moment):
     r = kh.kill_export(tmp_path / "out", old, new, sig, moment, rng, duration)
     assert r.ok, r
     assert r.after in ("old", "new")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The short MAGDDPG and ES trainings, uninterrupted: {algorithm: (duration, episodes, run directory)}."""
+    root = tmp_path_factory.mktemp("uninterrupted")
+    return {a: kh.uninterrupted_training(root, a, CI_LENGTH[a]) for a in CI_LENGTH}
+
+
+CI_LENGTH = {"magddpg": 4, "es": 4}  #: episodes after warm-up / generations: two checkpoints, then the end
+
+
+@pytest.mark.parametrize("algorithm", ["magddpg", "es"])
+def test_killed_training_resumes_to_the_uninterrupted_outputs(tmp_path, uninterrupted, algorithm):
+    """A training SIGKILLed at a random moment after its first checkpoint and resumed ends with the uninterrupted
+    run's outputs: policy arrays bit-identical, the same meta and metrics but for time taken."""
+    duration, episodes, ref = uninterrupted[algorithm]
+    rng = np.random.default_rng(np.random.SeedSequence([7, len(algorithm)]))
+    r = kh.kill_training(tmp_path / "run", signal.SIGKILL, "training", rng, duration, episodes, ref, algorithm,
+                         CI_LENGTH[algorithm])
+    assert r.ok, r
+    assert r.rc == -signal.SIGKILL and r.how == "resumed" and r.identical
+    assert r.phase in ("checkpoint write", "between checkpoints")
+
+
+def test_output_comparison_sees_a_changed_weight(tmp_path, uninterrupted):
+    """The identical-output check fails on a policy whose one weight differs by one ulp (it can fail)."""
+    import shutil
+
+    _, _, ref = uninterrupted["magddpg"]
+    d = tmp_path / "copy"
+    shutil.copytree(ref, d)
+    assert kh.output_differences(ref, d) == []
+    with np.load(d / "policy_last.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["w0"].flat[0] = np.nextafter(arrays["w0"].flat[0], np.float32(np.inf))
+    np.savez(d / "policy_last.npz", **arrays)
+    assert kh.output_differences(ref, d) == ["policy_last.npz: array w0 differs"]

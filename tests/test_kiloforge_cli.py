@@ -1,6 +1,7 @@
 """The ``kiloforge`` command (kiloforge.cli): dispatch to sim / learn / export, --version, one-line errors."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -9,16 +10,23 @@ from pathlib import Path
 import pytest
 
 import kiloforge
-from kiloforge.cli import COMMANDS, main
+from kiloforge.cli import COMMANDS, learn_script, main, missing_dependency
 from kiloforge.cliparse import invoked_as, program
 
 ROOT = Path(__file__).resolve().parents[1]
-FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--no-progress"]
+FAST = ["--robots-calib", "2", "3", "--calib-steps", "5", "--quiet"]
 #: run the kiloforge command in a fresh interpreter with torch unimportable (``import torch`` raises
 #: ModuleNotFoundError) and report whether anything imported it
 NO_TORCH = ("import sys; sys.modules['torch'] = None; from kiloforge.cli import main; rc = main(sys.argv[1:]); "
             "assert 'torch' not in [m.partition('.')[0] for m in sys.modules if sys.modules[m] is not None]; "
             "sys.exit(rc)")
+
+#: ``python -m learn ARGS`` in a fresh interpreter without the learn extra (torch, tyro, tensorboard unimportable)
+NO_LEARN_EXTRA = ("import runpy, sys; sys.modules.update(torch=None, tyro=None, tensorboard=None); "
+                  "sys.argv = ['learn', *sys.argv[1:]]; runpy.run_module('learn', run_name='__main__', alter_sys=True)")
+#: a tiny evaluation of the shipped default policy
+TINY_EVAL = ["--policy", str(ROOT / "export" / "data" / "default_policy.npz"), "--robots", "4", "--episodes", "2",
+             "--steps", "20", "--n-envs", "2", "--no-gif", "--quiet", "--out", "ev"]
 
 
 def kiloforge_run(args, cwd, code=None, timeout=300) -> subprocess.CompletedProcess:
@@ -86,7 +94,7 @@ def test_abbreviated_option_refused(capsys):
     with pytest.raises(SystemExit) as e:
         main(["learn", "evaluate", "--policy", "p.npz", "--out", "o", "--rob", "4"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn: error: ")
+    assert e.value.code == 2 and err.count("\n") == 1 and "--rob" in err and err.startswith("kiloforge learn evaluate: error: ")
 
 
 @pytest.mark.parametrize("module_form,name,default,expected", [
@@ -109,3 +117,70 @@ def test_stray_module_in_working_directory_is_named(tmp_path):
     r = kiloforge_run(["sim", "--help"], tmp_path)
     assert r.returncode == 2 and r.stdout == "" and r.stderr.count("\n") == 1
     assert "sim.py" in r.stderr and "replaces kiloforge's 'sim' package" in r.stderr
+
+
+def _assert_tiny_evaluation(r: subprocess.CompletedProcess, out: Path) -> None:
+    """The TINY_EVAL run succeeded and wrote its results and plots."""
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr and "wrote" in r.stdout
+    ev = json.loads((out / "evaluation.json").read_text())
+    assert ev["episodes"] == 2 and ev["steps"] == 20 and set(ev["robots"]) == {"4"}
+    assert {"data/default_policy", "hand-written", "random"} <= set(ev["robots"]["4"]["metrics"])
+    assert (out / "coverage_4.png").is_file() and (out / "returns_box_4.png").is_file()
+
+
+def test_learn_evaluate_without_learn_extra(tmp_path):
+    """`python -m learn evaluate` of the shipped .npz policy runs with torch, tyro and tensorboard unimportable."""
+    r = kiloforge_run(["evaluate", *TINY_EVAL], tmp_path, code=NO_LEARN_EXTRA)
+    _assert_tiny_evaluation(r, tmp_path / "ev")
+
+
+def test_kiloforge_evaluate_never_imports_torch(tmp_path):
+    """`kiloforge evaluate` of the shipped .npz policy succeeds with torch unimportable and never imports it."""
+    r = kiloforge_run(["evaluate", *TINY_EVAL], tmp_path, code=NO_TORCH)
+    _assert_tiny_evaluation(r, tmp_path / "ev")
+
+
+@pytest.mark.parametrize("args, prog", [(["train", "--out", "run"], "python -m learn"),
+                                        (["train-es", "--out", "run"], "python -m learn"),
+                                        (["plot", "run"], "python -m learn")])
+def test_python_m_learn_train_without_learn_extra_is_one_line(tmp_path, args, prog):
+    """`python -m learn train` (and train-es, plot) without the learn extra is one install-hint line, exit 2."""
+    r = kiloforge_run(args, tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith(f"{prog} needs ")
+    assert r.stderr.endswith(": pip install 'kiloforge[learn]'\n")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("module, line", [
+    ("torch", "p needs torch: pip install 'kiloforge[learn]'"),
+    ("onnx.helper", "p needs onnx: pip install 'kiloforge[onnx]'"),
+    ("ray", "p needs ray: pip install 'kiloforge[sweep]'"),
+    ("pettingzoo", "p needs pettingzoo: pip install 'kiloforge[pettingzoo]'"),
+    ("PIL", "p needs PIL (a dependency of kiloforge): pip install pillow"),
+    ("matplotlib.pyplot", "p needs matplotlib (a dependency of kiloforge): pip install matplotlib"),
+    ("left_pad", None),
+])
+def test_missing_dependency_line(module, line):
+    """A missing optional or core dependency is one line naming what to pip install; an unknown module is None."""
+    assert missing_dependency("p", ModuleNotFoundError(f"No module named '{module}'", name=module)) == line
+
+
+def test_console_script_without_torch_is_one_line(tmp_path, monkeypatch, capsys):
+    """The kiloforge-learn console script prints the install hint (exit 2) when torch is missing."""
+    monkeypatch.setitem(sys.modules, "torch", None)
+    for name in [m for m in sys.modules if m == "learn.train" or m.startswith("learn.train.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setattr(sys, "argv", ["kiloforge-learn", "train", "--out", str(tmp_path / "run")])
+    assert learn_script() == 2
+    assert capsys.readouterr().err == "kiloforge-learn needs torch: pip install 'kiloforge[learn]'\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_onnx_without_learn_extra(tmp_path):
+    """`python -m learn export-onnx` of the shipped .npz policy runs with torch, tyro and tensorboard unimportable."""
+    pytest.importorskip("onnx")
+    r = kiloforge_run(["export-onnx", "--policy", TINY_EVAL[1], "--out", "a.onnx"], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "a.onnx").stat().st_size > 1000 and r.stdout.startswith("wrote a.onnx: ")

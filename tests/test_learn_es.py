@@ -164,3 +164,40 @@ def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeyp
     b = load_checkpoint(tmp_path / "cut" / "checkpoint.pt")
     assert a["es_generation"] == b["es_generation"] == 4 and torch.equal(a["theta"], b["theta"])
     assert a["counters"]["env_steps"] == b["counters"]["env_steps"]
+
+
+def test_es_time_budget_bar_in_a_log(tmp_path, capsys):
+    """With max_minutes the ES bar measures the time budget too, shows generations as x/total, and writes no \\r."""
+    train_es(ESConfig(**TINY, seed=2, max_minutes=10.0), tmp_path / "run", progress=True, log=_quiet)
+    err = capsys.readouterr().err
+    assert "\r" not in err and "\x1b" not in err
+    lines = [line for line in err.splitlines() if line.startswith("run:")]
+    assert lines and all("<" in line for line in lines)  # elapsed<remaining of the budget bar
+    assert "4/4 gen" in lines[-1], lines[-1]
+
+
+def test_init_policy_starts_from_the_artifact(tmp_path):
+    """--init-policy starts the ascent from the artifact's exact weights (no cloning), records its hash, and
+    refuses an artifact of another shape with one line."""
+    from learn.es_train import actor_algo, init_policy_of, load_weights
+
+    src = train_es(ESConfig(**TINY, seed=4), tmp_path / "src", progress=False, log=_quiet)
+    start = tmp_path / "src" / "policy_last.npz"
+    want = load_policy(start)
+    cfg = ESConfig(**{**TINY, "generations": 1}, seed=4, init_policy=str(start))
+    algo = actor_algo(cfg, cfg.world_config())
+    load_weights(algo, init_policy_of(cfg, cfg.world_config()))
+    got = algo.artifact(cfg.world_config(), {})
+    for a, b in zip(got.weights + got.biases, want.weights + want.biases):
+        np.testing.assert_array_equal(a, b)
+    ft = train_es(cfg, tmp_path / "ft", progress=False, log=_quiet)
+    assert not (tmp_path / "ft" / "policy_bc.npz").exists()
+    # same seed, same evaluation episodes: generation 0 of the new run is the source's last evaluation
+    assert ft.counters.rows[0]["eval_final_coverage"] == src.counters.rows[-1]["eval_final_coverage"]
+    assert load_policy(tmp_path / "ft" / "policy_last.npz").provenance["init_policy_hash"] == want.hash
+    with pytest.raises(ConfigError, match="differs from this run in .*layers"):
+        train_es(ESConfig(**{**TINY, "actor_hidden": (6,)}, init_policy=str(start)), tmp_path / "bad",
+                 progress=False, log=_quiet)
+    assert not (tmp_path / "bad").exists()
+    with pytest.raises(ConfigError, match="init_policy must be"):
+        ESConfig(init_policy="x.pt").validate()

@@ -1,5 +1,6 @@
 """Training loop: determinism, exact resume, config validation, CLI (train / plot / evaluate) smoke tests."""
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -86,7 +87,7 @@ def test_resume_refuses_changed_config(tmp_path):
     ("gamma", 1.0, "gamma must be in [0, 1)"),
     ("tau", 0.0, "tau must be in (0, 1]"),
     ("batch_size", 0, "batch_size must be >= 1"),
-    ("n_robots", 0, "n_robots must be in 1..256"),
+    ("n_robots", 0, "n_robots must be in 1..1024"),
     ("world", "mars", "world must be one of"),
     ("actor_hidden", (), "actor_hidden must be one or more widths"),
     ("replay_size", 100, "must hold at least one episode per env"),
@@ -131,6 +132,8 @@ def test_cli_smoke_train_plot_evaluate(tmp_path, capsys):
         assert main(["train", *TINY_ARGS, "--seed", str(seed), "--out", str(run)]) == 0
         runs.append(run)
     run = runs[0]
+    assert f"  next: python -m export --policy {runs[1] / 'policy_best.npz'} --out kilobot_policy.c" in \
+        capsys.readouterr().out  # the end summary names the best policy and the export command
     for name in ("metrics.csv", "learning_curve.png", "policy_best.npz", "policy_last.npz", "checkpoint.pt",
                  "config.json", "world.json", "summary.json"):
         assert (run / name).is_file(), name
@@ -185,3 +188,13 @@ def test_device_option(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "no CUDA GPU" in err and err.count("\n") == 1
         assert not (tmp_path / "gpu").exists()
+
+
+def test_time_budget_bar_in_a_log(tmp_path, capsys):
+    """With --max-minutes the trainer's bar measures the time budget too, and in a log it writes no \\r."""
+    train(TrainConfig(**{**TINY, "max_minutes": 10.0}).validate(), tmp_path / "run", progress=True)
+    err = capsys.readouterr().err
+    assert "\r" not in err and "\x1b" not in err
+    lines = [l for l in err.splitlines() if l.startswith("run:") or l.startswith("run ")]
+    assert lines and all("<" in l for l in lines)  # elapsed<remaining of the budget bar
+    assert re.search(r"\b120/\d[\d,]* step", lines[-1]), lines[-1]

@@ -282,7 +282,7 @@ def test_export_cli_writes_an_lstm_program(tmp_path, capsys):
     path = save_policy(p, tmp_path / "lstm.npz")
     out = tmp_path / "kilobot_policy.c"
     assert main(["--policy", str(path), "--out", str(out), "--robots-calib", "3", "--calib-steps", "20",
-                 "--no-progress", "--no-avr"]) == 0
+                 "--quiet", "--no-avr"]) == 0
     text = capsys.readouterr().out
     assert "LSTM quantisation error" in text and "LSTM actor" in text and "free-running" in text
     assert "#define KF_HIDDEN 10u" in out.read_text()

@@ -48,3 +48,61 @@ def test_terminal_keeps_tqdm_redraws():
     bar.update(3)
     bar.close()
     assert "\r" in tty.getvalue() and "3/3" in tty.getvalue()
+
+
+class Clock:
+    """A settable time.perf_counter for the budget bar."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_budget_bar_total_is_the_time_budget(monkeypatch):
+    """With max_seconds the bar's total is the time budget and it stands at the larger share spent."""
+    clock = Clock()
+    monkeypatch.setattr("kiloforge.progress.time.perf_counter", clock)
+    bar = progress_bar(total=1000, unit="step", max_seconds=600, file=io.StringIO())
+    assert bar.bar.total == 600 and bar.bar.n == 0
+    bar.update(500)  # half the steps, no time yet: the steps bind
+    assert bar.bar.n == 300
+    clock.now += 450  # 75 % of the time: the time binds (the run stops at the budget, not at 1000 steps)
+    bar.update(10)
+    assert bar.bar.n == 450 and bar.fraction() == 0.75
+    clock.now += 1000  # past the budget: full, never beyond
+    bar.update(10)
+    assert bar.bar.n == 600
+    bar.close()
+
+
+def test_budget_bar_counts_an_earlier_session(monkeypatch):
+    """A resumed run's bar starts at the time already spent (``elapsed``) and shows the work as x/total."""
+    monkeypatch.setattr("kiloforge.progress.time.perf_counter", Clock())
+    log = io.StringIO()
+    bar = progress_bar(total=200, initial=20, unit="gen", desc="es", max_seconds=100, elapsed=40, file=log)
+    assert bar.bar.n == 40 and bar.fraction() == 0.4
+    bar.set_postfix_str("fitness 0.5")
+    bar.close()
+    text = log.getvalue()
+    assert "\r" not in text and "20/200 gen" in text and "fitness 0.5" in text
+
+
+def test_budget_bar_in_a_log_writes_plain_lines():
+    """Redirected, a time-budget bar writes whole lines (no \\r), the last with the work done."""
+    log = io.StringIO()
+    bar = progress_bar(total=50, unit="step", desc="train", max_seconds=3600, file=log)
+    for _ in range(50):
+        bar.update(1)
+    bar.close()
+    text = log.getvalue()
+    assert "\r" not in text and "\x1b" not in text and text.endswith("\n")
+    assert text.splitlines()[-1].startswith("train: 100%") and "50/50 step" in text.splitlines()[-1]
+
+
+def test_without_a_time_budget_the_bar_is_plain_tqdm():
+    """max_seconds 0 (no --max-minutes) is the ordinary bar over the work."""
+    bar = progress_bar(total=7, unit="step", max_seconds=0, file=io.StringIO())
+    assert bar.total == 7 and not hasattr(bar, "fraction")
+    bar.close()

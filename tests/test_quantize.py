@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 
 import numpy as np
 import pytest
@@ -16,7 +15,6 @@ from sim.config import preset
 from sim.motion import action_to_u8
 
 TINY_WORLD = preset("thesis", n_rbf=1)  # obs_dim 4, tuple_dim 6
-HAS_ENV = importlib.util.find_spec("sim.env") is not None
 
 
 def rng(seed: int = 0) -> np.random.Generator:
@@ -183,7 +181,6 @@ def test_forward_int_matches_numfmt_layers():
     np.testing.assert_array_equal(got, y.astype(np.uint8))
 
 
-@pytest.mark.skipif(not HAS_ENV, reason="sim.env (SwarmEnv) not available")
 def test_calibrate_records_rollouts_deterministically():
     """calibrate() records steps x robots rows per episode, every layer's values, same seed same data."""
     w = preset("kilobot")

@@ -230,7 +230,7 @@ def test_export_cli_renders_the_searcher(tmp_path, capsys):
 
     out = tmp_path / "kilobot_policy.c"
     assert main(["--policy", "searcher", "--out", str(out), "--robots-calib", "4", "--calib-steps", "20",
-                 "--no-progress"]) == 0
+                 "--quiet"]) == 0
     assert "searcher quantisation error" in capsys.readouterr().out
     c = out.read_text()
     assert "kf_forward" in c and f"#define KF_STOP_Q {shipped()[1].stop_q}u" in c and "KF_RUN" in c

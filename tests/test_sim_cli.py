@@ -28,7 +28,7 @@ def _one_line_error(capsys) -> str:
 def test_cli_writes_plots_gif_and_metrics(tmp_path, capsys):
     """A tiny baseline run exits 0 and writes valid PNGs, a multi-frame GIF and metrics.json."""
     out = tmp_path / "run"
-    assert main(["--preset", "thesis", "--seed", "3", "--policy", "baseline", "--out", str(out)] + TINY) == 0
+    assert main(["--world", "thesis", "--seed", "3", "--policy", "baseline", "--out", str(out)] + TINY) == 0
     assert sorted(p.name for p in out.iterdir()) == OUTPUTS  # no temp files left behind
     m = json.loads((out / "metrics.json").read_text())
     assert m["robots"] == 2 and m["seed"] == 3 and m["world"]["episode_steps"] == 12
@@ -50,21 +50,21 @@ def test_cli_same_seed_same_metrics(tmp_path):
     """Two runs with the same seed write identical metrics; the random policy runs too."""
     a, b = tmp_path / "a", tmp_path / "b"
     for out in (a, b):
-        assert main(["--policy", "random", "--seed", "9", "--out", str(out), "--envs", "1"] + TINY) == 0
+        assert main(["--policy", "random", "--seed", "9", "--out", str(out), "--n-envs", "1"] + TINY) == 0
     ma = json.loads((a / "metrics.json").read_text())["metrics"]
     mb = json.loads((b / "metrics.json").read_text())["metrics"]
     assert ma == mb
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--preset", "moon"], "unknown preset 'moon'"),
+    (["--world", "moon"], "unknown world 'moon'"),
     (["--robots", "0"], "--robots"),
     (["--robots", "two"], "--robots"),
     (["--episodes", "0"], "--episodes"),
     (["--steps", "-1"], "--steps"),
     (["--policy", "no/such/policy.npz"], "no/such/policy.npz"),
     (["--bogus"], "unrecognized arguments"),
-    (["--preset", "kilobot", "--robots", "400"], "400 robots"),
+    (["--world", "kilobot", "--robots", "400"], "400 robots"),
 ])
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):
     """Bad arguments exit with 2 and one line on stderr naming the problem; nothing is created."""
@@ -90,7 +90,7 @@ def test_cli_unwritable_out_exit_2(tmp_path, capsys):
 
 
 def test_cli_runs_a_policy_artifact_in_its_own_world(tmp_path, capsys):
-    """An artifact runs through its kind's float actor in its own world; a different --preset gives a note."""
+    """An artifact runs through its kind's float actor in its own world; a different --world gives a note."""
     from kiloforge.actors.mlp import MLPPolicy
     from kiloforge.policies import save_policy
     from sim.config import preset
@@ -105,10 +105,10 @@ def test_cli_runs_a_policy_artifact_in_its_own_world(tmp_path, capsys):
     path = tmp_path / "p.npz"
     save_policy(pol, path)
     out = tmp_path / "o"
-    assert main(["--policy", str(path), "--preset", "kilobot", "--out", str(out), "--robots", "2",
+    assert main(["--policy", str(path), "--world", "kilobot", "--out", str(out), "--robots", "2",
                  "--episodes", "1", "--quiet"]) == 0
     err = capsys.readouterr().err
-    assert "differs from preset 'kilobot'" in err
+    assert "differs from --world 'kilobot'" in err
     m = json.loads((out / "metrics.json").read_text())
     assert m["policy"]["kind"] == "artifact" and m["policy"]["actor"] == "mlp"
     assert m["policy"]["architecture"].startswith(f"t_prev {t_prev},")
@@ -131,7 +131,7 @@ def test_python_dash_m_sim_subprocess(tmp_path):
                         capture_output=True, text=True, timeout=300)
     assert ok.returncode == 0, ok.stderr
     assert (out / "metrics.json").is_file()
-    bad = subprocess.run([sys.executable, "-m", "sim", "--preset", "nope", "--out", str(out)], cwd=ROOT,
+    bad = subprocess.run([sys.executable, "-m", "sim", "--world", "nope", "--out", str(out)], cwd=ROOT,
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "Traceback" not in bad.stderr
@@ -158,7 +158,7 @@ def test_cli_robustness_suite(tmp_path, capsys, policy):
 
 @pytest.mark.parametrize("args, needle", [
     (["--robots", "2", "3"], "one count"),
-    (SUITE + ["--preset", "thesis"], "tick-level"),
+    (SUITE + ["--world", "thesis"], "tick-level"),
     (SUITE + ["--robots", "400"], "400 robots"),
 ])
 def test_cli_suite_bad_input_exit_2(tmp_path, capsys, args, needle):

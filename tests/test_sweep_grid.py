@@ -61,7 +61,7 @@ def test_labels_name_what_varies():
     (dict(grid=["lr_actr=1e-4"]), "'lr_actr' is not a TrainConfig field of the magddpg trainer (did you mean lr_actor?)"),
     (dict(grid=["lr_actor=fast"]), "--grid lr_actor: lr_actor: cannot read 'fast' as float"),
     (dict(grid=["n_robots=1.5"]), "cannot read '1.5' as int"),
-    (dict(robots=[0]), "n_robots must be in 1..256, got 0"),
+    (dict(robots=[0]), "n_robots must be in 1..1024, got 0"),
     (dict(grid=["seed=1,2"]), "'seed' has its own option: use --seeds"),
     (dict(grid=["max_minutes=3"]), "use --max-minutes"),
     (dict(robots=[1], grid=["n_robots=2"]), "--robots and --grid n_robots set the same field"),

@@ -1,7 +1,7 @@
 """``python -m export budget``: will an actor of this size fit on a Kilobot, before training?
 
-    python -m export budget --history 20 --hidden 64 32 [--preset kilobot]     (an MLP actor)
-    python -m export budget --gru 32 [--preset kilobot]                        (a GRU actor)
+    python -m export budget --history 20 --hidden 64 32 [--world kilobot]     (an MLP actor)
+    python -m export budget --gru 32 [--world kilobot]                        (a GRU actor)
 
 Every actor kind brings its own size flags (:attr:`kiloforge.actors.base.ActorKind.budget_options`);
 the flags given select the kind. Exit 0 fits, 1 does not (and what would fit), 2 bad input.
@@ -12,6 +12,7 @@ import argparse
 from typing import Sequence
 
 from kiloforge.actors.registry import KINDS
+from kiloforge.cliparse import deprecated_alias
 from sim.config import preset
 
 from ..codegen import budget as bud
@@ -28,7 +29,7 @@ def budget_parser() -> argparse.ArgumentParser:
         for o in kind.budget_options:
             ap.add_argument(o.flag, dest=o.dest, type=positive if o.positive else str, nargs=o.nargs,
                             default=o.default, metavar=o.metavar, choices=o.choices, help=o.help)
-    ap.add_argument("--preset", default="kilobot", help="world preset (default kilobot)")
+    deprecated_alias(ap, "--preset", ap.add_argument("--world", default="kilobot", help="world preset (default kilobot)"))
     return ap
 
 
@@ -36,7 +37,7 @@ def run_budget(argv: Sequence[str]) -> int:
     args = budget_parser().parse_args(list(argv))
     values = vars(args)
     try:
-        world = preset(args.preset)
+        world = preset(args.world)
     except ValueError as e:
         raise ExportError(str(e)) from None
     chosen = [k for k in KINDS.values()

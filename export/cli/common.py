@@ -2,16 +2,17 @@
 (every number range-checked by :mod:`kiloforge.validate`), policy loading."""
 from __future__ import annotations
 
+import argparse
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
 
 from kiloforge.actors.base import FloatPolicy
-from kiloforge.cliparse import ArgumentParser
+from kiloforge.cliparse import ArgumentParser, deprecated_alias
 from kiloforge.errors import printable
 from kiloforge.policies import load_policy
 from kiloforge.validate import float_arg, int_arg
-from sim.config import MAX_EPISODE_STEPS, WorldConfig
+from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, WorldConfig
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
@@ -29,10 +30,9 @@ class Parser(ArgumentParser):
     """argparse (no abbreviations) that raises instead of exiting, so main() keeps the one-line error contract."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        raise ExportError(f"{self.prog}: {message} (see --help)")
+        raise ExportError(f"{message} (see --help)")
 
 
-MAX_ROBOTS = 1024  #: robots per simulated swarm (calibration, verification)
 MAX_EPISODES = 100_000
 
 positive = int_arg(1, 1 << 20)  #: a size flag (layers, history, hidden units); the budget refuses what does not fit
@@ -40,6 +40,12 @@ robots_arg = int_arg(1, MAX_ROBOTS)
 episodes_arg = int_arg(1, MAX_EPISODES)
 steps_arg = int_arg(1, MAX_EPISODE_STEPS)
 percentile_arg = float_arg(0.0, 100.0, lo_open=True)
+
+
+def add_quiet(ap: argparse.ArgumentParser) -> None:
+    """``--quiet`` (no progress bar; one is shown only on a terminal), and its old spelling ``--no-progress``."""
+    deprecated_alias(ap, "--no-progress", ap.add_argument("--quiet", action="store_true",
+                                                          help="no progress bar (one is shown only on a terminal)"))
 
 
 def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:

@@ -13,11 +13,13 @@ budget, renders the firmware and writes ``<out>``, ``kilobot_target.c`` beside i
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 from kiloforge.actors.base import QuantizedActor
+from kiloforge.cliparse import program
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import seed_arg
@@ -30,7 +32,7 @@ from ..errors import BudgetError, ExportError, VerifyError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import (EXIT_OK, Parser, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
+from .common import (EXIT_OK, Parser, add_quiet, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
                      steps_arg)
 
 
@@ -47,8 +49,8 @@ def _uids(text: str) -> tuple[int, ...]:
 def export_parser() -> argparse.ArgumentParser:
     ap = Parser(prog="python -m export",
                 description="Quantise a policy to int8 and render the Kilobot firmware "
-                            "(sub-command 'budget': will an architecture fit?; 'verify --closed-loop': "
-                            "float actor vs int8 firmware in the simulator).")
+                            "(sub-command 'budget': will an architecture fit?; 'verify': "
+                            "float actor vs int8 firmware in the simulator, closed loop).")
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
@@ -73,7 +75,7 @@ def export_parser() -> argparse.ArgumentParser:
                     help="skip the exact avr-gcc budget even when the AVR toolchain is installed")
     ap.add_argument("--verify", choices=["host", "avr"], default=None,
                     help="host: build the C with the host compiler and check it against the emulator before writing")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet(ap)
     return ap
 
 
@@ -110,6 +112,19 @@ def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
     return str(check)
 
 
+def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: Sequence[int],
+               kilolib: Path | None) -> list[str]:
+    """The lines printed after a successful export: what to run next to get the policy onto robots."""
+    beacon = f"kilo_uid {', '.join(map(str, target_uids))}"
+    if kilolib is not None:
+        return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {beacon} "
+                f"is the beacon ({target_path.with_suffix('.hex')}: a beacon-only image)",
+                "      before you flash (calibration, lighting, uids): docs/flashing.md"]
+    return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
+            "(DIR: your built kilolib checkout)",
+            f"      then flash them (the robot with {beacon} is the beacon): docs/flashing.md"]
+
+
 def run_export(argv: Sequence[str]) -> int:
     args = export_parser().parse_args(list(argv))
     out: Path = args.out
@@ -135,7 +150,7 @@ def run_export(argv: Sequence[str]) -> int:
                           + "; ".join(budget.suggest()))
 
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.seed,
-                      steps=args.calib_steps, progress=not args.no_progress and sys.stderr.isatty())
+                      steps=args.calib_steps, progress=not args.quiet and sys.stderr.isatty())
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     report = error_report(policy, qp, calib)
     print(report.table())
@@ -167,4 +182,6 @@ def run_export(argv: Sequence[str]) -> int:
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
     print(f"wrote {out}, {target_path}, {manifest_path}")
+    if not args.quiet:
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
     return EXIT_OK

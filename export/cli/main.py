@@ -10,7 +10,8 @@ import sys
 from typing import Sequence
 
 from kiloforge import io
-from kiloforge.errors import KiloforgeError, one_line
+from kiloforge.cliparse import error_line, program
+from kiloforge.errors import KiloforgeError
 from kiloforge.interrupts import exit_status, terminate_raises
 
 from ..errors import BudgetError, VerifyError
@@ -23,8 +24,10 @@ from .verify import run_verify
 COMMANDS = {"budget": run_budget, "verify": run_verify, "rehash": run_rehash}
 
 
-def _err(msg: str) -> None:
-    print(f"error: {one_line(msg)}", file=sys.stderr)
+def _err(argv: Sequence[str], msg: str) -> None:
+    """``<program>: error: <msg>``, the program being the sub-command (``python -m export verify``)."""
+    name = "python -m export" + (f" {argv[0]}" if argv and argv[0] in COMMANDS else "")
+    print(error_line(program(name), msg), file=sys.stderr)
 
 
 def interrupted_message(written: list) -> str:
@@ -45,11 +48,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return COMMANDS[argv[0]](argv[1:])
             return run_export(argv)
     except (BudgetError, VerifyError) as e:
-        _err(str(e))
+        _err(argv, str(e))
         return EXIT_FAIL
     except KiloforgeError as e:
-        _err(str(e))
+        _err(argv, str(e))
         return EXIT_USER_ERROR
     except KeyboardInterrupt as e:
-        _err(interrupted_message(io.published_since(mark)))
+        _err(argv, interrupted_message(io.published_since(mark)))
         return exit_status(e)

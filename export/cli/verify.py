@@ -1,8 +1,8 @@
-"""``python -m export verify --closed-loop``: float actor vs int8 firmware in the simulator, side by side.
+"""``python -m export verify``: float actor vs int8 firmware in the simulator, side by side.
 
-    python -m export verify --closed-loop [--policy P] [--robots 16 32] [--episodes 200] [--steps N]
-                            [--seed S] [--out DIR] [--robots-calib 4 16] [--calib-episodes 1]
-                            [--calib-steps N] [--calib-seed 0] [--percentile 100] [--goal 0.97]
+    python -m export verify [--policy P] [--robots 16 32] [--episodes 200] [--steps N]
+                [--seed S] [--out DIR] [--robots-calib 4 16] [--calib-episodes 1]
+                [--calib-steps N] [--calib-seed 0] [--percentile 100] [--goal 0.97]
 
 Quantises the policy exactly as ``python -m export`` does with the same calibration options, then
 for each robot count runs the same episodes (same env seeds) twice: with the float actor and with
@@ -30,7 +30,7 @@ from kiloforge.validate import float_arg, seed_arg
 
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
-from .common import (EXIT_FAIL, EXIT_OK, Parser, check_robots, describe, episodes_arg, load, percentile_arg,
+from .common import (EXIT_FAIL, EXIT_OK, Parser, add_quiet, check_robots, describe, episodes_arg, load, percentile_arg,
                      robots_arg, steps_arg)
 
 COVERAGE_PNG = "coverage.png"
@@ -42,8 +42,8 @@ def verify_parser() -> argparse.ArgumentParser:
     ap = Parser(prog="python -m export verify",
                  description="Closed-loop verification: the simulator driven by the int8 firmware emulator "
                              "vs by the float actor, same episodes. Exit 0 pass, 1 fail, 2 bad input.")
-    ap.add_argument("--closed-loop", action="store_true", required=True,
-                    help="run the closed-loop comparison (the verification this command does)")
+    ap.add_argument("--closed-loop", action="store_true",
+                    help="optional: the closed-loop comparison is the only verification this command does")
     ap.add_argument("--policy", type=Path, help="policy artifact .npz, or 'searcher' (the hand-written searcher; default: the shipped default policy)")
     ap.add_argument("--robots", type=robots_arg, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")
@@ -63,7 +63,7 @@ def verify_parser() -> argparse.ArgumentParser:
     ap.add_argument("--calib-seed", type=seed_arg, default=0, help="calibration seed, as export's --seed (default 0)")
     ap.add_argument("--percentile", type=percentile_arg, default=100.0,
                     help="range percentile for exponent choice, as for export (default 100)")
-    ap.add_argument("--no-progress", action="store_true", help="no progress bar (it is shown only on a terminal)")
+    add_quiet(ap)
     return ap
 
 
@@ -141,7 +141,7 @@ def run_verify(argv: Sequence[str]) -> int:
     check_robots(policy.world, args.robots, "--robots")
     check_robots(policy.world, args.robots_calib, "--robots-calib")
 
-    progress = not args.no_progress and sys.stderr.isatty()
+    progress = not args.quiet and sys.stderr.isatty()
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
                       steps=args.calib_steps, progress=progress)
     qp = quantize_policy(policy, calib, percentile=args.percentile)

@@ -75,14 +75,17 @@ def _need_onnx() -> Any:
 
 
 # --- world metadata ----------------------------------------------------------------------------
-def _world_from_obj(obj: Any, where: str, t_prev_text: bool = False) -> tuple[WorldConfig, int]:
-    """``{"world": dict | preset name, "t_prev": int}`` or WorldConfig fields + ``t_prev``."""
+def _world_from_obj(obj: Any, where: str, t_prev_text: bool = False,
+                    t_prev_optional: bool = False) -> tuple[WorldConfig, int | None]:
+    """``{"world": dict | preset name, "t_prev": int}`` or WorldConfig fields + ``t_prev``; with
+    ``t_prev_optional`` (a JSON file) ``t_prev`` may be missing (None: the model's input width tells it),
+    so that a run directory's own ``world.json`` (the WorldConfig fields alone) is accepted."""
     if not isinstance(obj, dict):
         raise OnnxImportError(f"{where}: expected a JSON object with 'world' and 't_prev', got {type(obj).__name__}")
     obj = dict(obj)
-    if "t_prev" not in obj:
+    if "t_prev" not in obj and not t_prev_optional:
         raise OnnxImportError(f"{where}: missing 't_prev' (the number of history tuples the actor reads)")
-    t_prev = _parse_t_prev(obj.pop("t_prev"), where, t_prev_text)
+    t_prev = _parse_t_prev(obj.pop("t_prev"), where, t_prev_text) if "t_prev" in obj else None
     if "world" in obj:
         world_obj: Any = obj.pop("world")
         if obj:
@@ -121,15 +124,15 @@ def _parse_t_prev(v: Any, where: str, text: bool) -> int:
         raise OnnxImportError(str(e)) from None
 
 
-def _read_world_json(path: str | os.PathLike) -> tuple[WorldConfig, int]:
+def _read_world_json(path: str | os.PathLike) -> tuple[WorldConfig, int | None]:
     try:
         obj = read_json_file(path, "world JSON", max_bytes=MAX_WORLD_JSON_BYTES)
     except InputError as e:
         raise OnnxImportError(str(e)) from None
-    return _world_from_obj(obj, f"world JSON {quote(path)}")
+    return _world_from_obj(obj, f"world JSON {quote(path)}", t_prev_optional=True)
 
 
-def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig, int] | None:
+def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig, int | None] | None:
     if META_WORLD not in meta and META_T_PREV not in meta:
         return None
     for key in (META_WORLD, META_T_PREV):
@@ -148,7 +151,7 @@ def default_world_json_path(model_path: str | os.PathLike) -> Path:
     return p.with_name(p.stem + ".world.json")
 
 
-def _resolve_world(meta: dict[str, str], world_json: Any, model_path: Path) -> tuple[WorldConfig, int, str]:
+def _resolve_world(meta: dict[str, str], world_json: Any, model_path: Path) -> tuple[WorldConfig, int | None, str]:
     where = str(model_path)
     from_meta = _world_from_metadata(meta, where)
     if isinstance(world_json, dict):
@@ -159,9 +162,9 @@ def _resolve_world(meta: dict[str, str], world_json: Any, model_path: Path) -> t
         given, src = None, ""
     if from_meta is not None and given is not None:
         (wm, tm), (wg, tg) = from_meta, given
-        if tm != tg or wm.to_dict() != wg.to_dict():
+        if (tg is not None and tm != tg) or wm.to_dict() != wg.to_dict():
             diff = [k for k, v in wm.to_dict().items() if wg.to_dict().get(k) != v]
-            what = f"t_prev {tm} vs {tg}" if tm != tg else f"world fields differ: {', '.join(diff)}"
+            what = f"t_prev {tm} vs {tg}" if tg is not None and tm != tg else f"world fields differ: {', '.join(diff)}"
             raise OnnxImportError(f"{where}: the model's metadata and {src[5:] if src.startswith('json:') else src} "
                                   f"disagree ({what}); a policy runs only in the world it was trained in: drop --world-json")
         return wm, tm, "metadata"
@@ -532,8 +535,14 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
         raise err(f"invalid ONNX model: {first}") from None
 
     world, t_prev, world_src = _resolve_world(meta, world_json, path)
-    need = world.history_dim(t_prev)
     got = weights[0].shape[1] if in_width is None else in_width
+    if t_prev is None:  # a world JSON without t_prev (a run's world.json): the input width gives it
+        if got % world.tuple_dim or not 1 <= got // world.tuple_dim <= MAX_T_PREV:
+            src = world_src[5:] if world_src.startswith("json:") else world_src
+            raise err(f"{src} gives no 't_prev' and the model's input ({got} features) is not a whole "
+                      f"number of {world.tuple_dim}-feature tuples of world '{world.name}'; add \"t_prev\": N")
+        t_prev = got // world.tuple_dim
+    need = world.history_dim(t_prev)
     if got != need:
         raise err(f"the model's input has {got} features but world '{world.name}' with t_prev={t_prev} needs "
                   f"{need} = {t_prev} tuples x {world.tuple_dim} ([a_prev_left, a_prev_right, wall, target, "
@@ -563,21 +572,22 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
 
 def _main(argv: list[str] | None = None) -> int:
     """``python -m export.interop.onnx_import MODEL.onnx [--world-json W.json] --out policy.npz``."""
-    import argparse
     import sys
 
-    ap = argparse.ArgumentParser(prog="python -m export.interop.onnx_import",
+    from kiloforge.cliparse import ArgumentParser, error_line
+
+    ap = ArgumentParser(prog="python -m export.interop.onnx_import",
                                  description="Convert an ONNX MLP actor into a kiloforge policy artifact (.npz).")
     ap.add_argument("model", help="the .onnx file (one input [N, history_dim], one output [N, 2])")
     ap.add_argument("--world-json", default=None, help="JSON with 'world' (dict or preset name) and 't_prev', "
-                    "for models without kiloforge metadata")
+                    "or a run's world.json, for models without kiloforge metadata")
     ap.add_argument("--out", required=True, help="policy artifact to write (.npz)")
     args = ap.parse_args(argv)
     try:
         pol = load_onnx_policy(args.model, args.world_json)
         save_policy(pol, args.out)
     except PolicyError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(error_line(ap.prog, e), file=sys.stderr)
         return 2
     shapes = " -> ".join([str(pol.weights[0].shape[1])] + [f"{w.shape[0]} {a}" for w, a in zip(pol.weights, pol.activations)])
     print(f"wrote {args.out}: {shapes}; world '{pol.world.name}', t_prev {pol.t_prev}")

@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-from kiloforge.cliparse import ArgumentParser
+from kiloforge.cliparse import ArgumentParser, error_line, program
 
 from ..config import ConfigError
 from . import trial as tr
@@ -97,7 +97,7 @@ def main_sweep(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except ConfigError as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
+        print(error_line(program(PROG), e), file=sys.stderr)
         return 2
 
 

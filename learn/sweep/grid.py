@@ -39,6 +39,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_ROBOTS
+
 from ..config import ConfigError
 from . import trial as tr
 
@@ -252,11 +254,11 @@ def build_grid(file: dict | None = None, *, trainer: str | None = None, presets:
 
     er = eval_robots if eval_robots is not None else file.get("eval_robots")
     if er:
-        ep = eval_episodes if eval_episodes is not None else file.get("eval_episodes", 500)
-        st = eval_steps if eval_steps is not None else file.get("eval_steps", 500)
+        ep = eval_episodes if eval_episodes is not None else file.get("eval_episodes", BENCHMARK_EPISODES)
+        st = eval_steps if eval_steps is not None else file.get("eval_steps", BENCHMARK_STEPS)
         er = _as_list(er)
-        if not all(isinstance(m, int) and not isinstance(m, bool) and 1 <= m <= 1024 for m in er):
-            raise ConfigError(f"--eval-robots must be robot counts in 1..1024, got {er}")
+        if not all(isinstance(m, int) and not isinstance(m, bool) and 1 <= m <= MAX_ROBOTS for m in er):
+            raise ConfigError(f"--eval-robots must be robot counts in 1..{MAX_ROBOTS}, got {er}")
         for name, v in (("--eval-episodes", ep), ("--eval-steps", st)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ConfigError(f"{name} must be an integer >= 1, got {v!r}")

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS
+
 from ..config import ConfigError
 
 TRAINERS = ("magddpg", "magrdpg", "es")  #: values of ``--trainer``
@@ -36,8 +38,8 @@ class EvalSpec:
     """The optional evaluation of a trial's best policy against the baselines (``--eval-robots``)."""
 
     robots: tuple[int, ...]
-    episodes: int = 500
-    steps: int = 500
+    episodes: int = BENCHMARK_EPISODES
+    steps: int = BENCHMARK_STEPS
     seed: int = 0
 
 

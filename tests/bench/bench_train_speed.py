@@ -51,6 +51,12 @@ def run(tree: Path, robots: int, minutes: float, out: Path, extra: list[str]) ->
     return json.loads((out / "summary.json").read_text())
 
 
+def rate(summary: dict, metric: str) -> float:
+    """A rate of a run's summary; NaN when the run never did it (no update before the time ran out)."""
+    v = summary.get(metric)
+    return float("nan") if v is None else float(v)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--against", default="81d913c", help="git revision to compare with (default 81d913c)")
@@ -73,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                         tree, extra = trees[k]
                         s = run(tree, M, args.minutes, tmp / f"run_{k}_{M}_{r}", extra)
                         results[(M, k)].append(s)
-                        print(f"round {r + 1} {M:>2} robots {k}: {s['updates_per_s']:.1f} updates/s, "
-                              f"{s['env_steps_per_s']:.0f} env steps/s, {s['updates']} updates, "
+                        print(f"round {r + 1} {M:>2} robots {k}: {rate(s, 'updates_per_s'):.1f} updates/s, "
+                              f"{rate(s, 'env_steps_per_s'):.0f} env steps/s, {s['updates']} updates, "
                               f"eval share {s.get('eval_share', float('nan'))}", flush=True)
     print(f"\nthis tree vs {args.against}: `python -m learn train {' '.join(COMMAND)} --robots M --max-minutes "
           f"{args.minutes}` {' '.join(args.new_args)}; {args.rounds} rounds, medians")
@@ -82,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     print("|---:|---|---:|---:|---:|---|")
     for M in args.robots:
         for m in metrics:
-            old = [s[m] for s in results[(M, "old")]]
-            new = [s[m] for s in results[(M, "new")]]
+            old = [rate(s, m) for s in results[(M, "old")]]
+            new = [rate(s, m) for s in results[(M, "new")]]
             ratios = [n / o for n, o in zip(new, old)]
             print(f"| {M} | {m} | {statistics.median(old):.1f} | {statistics.median(new):.1f} | "
                   f"**{statistics.median(new) / statistics.median(old):.2f}x** | "

@@ -200,7 +200,7 @@ def closed_loop(args) -> None:
     """Float vs int8 in the closed loop: shipped kilobot policy and the 4-robot thesis policy."""
     for policy, name in ((SHIPPED, "closed_loop_kilobot"), (RUNS / "goal4_s1" / "policy_best.npz", "closed_loop_thesis")):
         sh([PY, "-m", "export", "verify", "--closed-loop", "--policy", str(policy), "--robots", "16", "32",
-            "--episodes", str(args.verify_episodes), "--out", str(OUT / name), "--no-progress"], args.dry_run)
+            "--episodes", str(args.verify_episodes), "--out", str(OUT / name), "--quiet"], args.dry_run)
 
 
 def read_curve(run: Path) -> dict[str, list[float]]:

@@ -1,0 +1,87 @@
+"""Several policies across the robustness suite in one run, side by side, on the same episodes.
+
+    python tests/bench/robustness_compare.py export/data/default_policy.npz runs/esdr_s2 baseline \
+        --robots 4 16 32 --episodes 30 --steps 300 --seed 20261202 --out runs/robust_cmp
+
+Each entry is a run directory (its ``policy_best.npz``), a ``.npz`` artifact, or ``baseline`` (the
+hand-written searcher). Every policy meets the same episode seeds in every variant of
+:func:`sim.variants.robustness_suite` (kilobot world: the first policy's). Prints one markdown table
+per robot count: final coverage per variant and policy, its percentage of that policy's nominal
+coverage, and the worst variant of each; writes ``robustness_compare.json`` and ``.md`` to ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from kiloforge.io import write_atomic  # noqa: E402
+from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
+from sim.baselines import make_policy  # noqa: E402
+from sim.config import preset  # noqa: E402
+from sim.robustness import SuiteTable, run_suite  # noqa: E402
+
+
+def factories(entries: list[str]):
+    """(name → policy factory of a world, the world of the first artifact or the kilobot world)."""
+    out, world = {}, None
+    for e in entries:
+        if e == "baseline":
+            out["hand-written"] = lambda w: make_policy("baseline", w)
+            continue
+        p = Path(e)
+        pol = load_policy(p if p.suffix == ".npz" else p / "policy_best.npz")
+        world = world or pol.world
+        out[p.stem if p.suffix == ".npz" else p.name] = lambda w, pol=pol: swarm_policy(pol, w)
+    return out, world or preset("kilobot")
+
+
+def pct(f: float | None) -> str:
+    return "n/a" if f is None else f"{100 * f:.0f}"
+
+
+def table_md(tables: dict[str, SuiteTable], M: int) -> str:
+    names = list(tables)
+    lines = ["| variant | " + " | ".join(f"{n} | %" for n in names) + " |", "|---|" + "---:|---:|" * len(names)]
+    for v in next(iter(tables.values())).cells:
+        cells = " | ".join(f"{t.cells[v][M].mean:.3f} | {pct(t.fraction(v, M))}" for t in tables.values())
+        lines.append(f"| {v} | {cells} |")
+    worst = " | ".join(f"{t.worst(M)[0]} | {pct(t.worst(M)[1])}" for t in tables.values())
+    lines.append(f"| **worst** | {worst} |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
+    ap.add_argument("policies", nargs="+", help="run directories, .npz files, or 'baseline'")
+    ap.add_argument("--robots", nargs="+", type=int, default=[4, 16, 32])
+    ap.add_argument("--episodes", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    makers, world = factories(args.policies)
+    tables = {}
+    for name, make in makers.items():
+        print(f"running {name} ...", flush=True)
+        tables[name] = run_suite(make, world, args.robots, args.episodes, args.steps, args.seed, progress=True)
+    md = [f"# Robustness suite: {', '.join(tables)} ({world.name} world, {args.episodes} episodes x "
+          f"{args.steps} steps, seed {args.seed})"]
+    for M in args.robots:
+        md += [f"\n## {M} robots: final coverage and % of the policy's nominal\n", table_md(tables, M)]
+    text = "\n".join(md) + "\n"
+    print(text)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_atomic(out / "robustness_compare.json",
+                 json.dumps({n: t.to_dict() for n, t in tables.items()}, indent=1, sort_keys=True) + "\n")
+    write_atomic(out / "robustness_compare.md", text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

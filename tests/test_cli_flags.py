@@ -1,0 +1,165 @@
+"""One set of flag names across every command line (sim, learn, export): names, meanings, --version, strictness."""
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+import kiloforge
+from export.cli.budget import budget_parser
+from export.cli.firmware import export_parser
+from export.cli.rehash import rehash_parser
+from export.cli.verify import verify_parser
+from kiloforge.cliparse import version_line
+from sim.__main__ import build_parser as sim_parser
+from sim.config import MAX_ROBOTS
+
+
+
+def learn_parsers() -> dict[str, argparse.ArgumentParser]:
+    """The argparse parsers of ``python -m learn`` (top level, evaluate, plot), built without torch."""
+    from learn.__main__ import build_parser
+
+    top = build_parser()
+    sub = next(a for a in top._actions if isinstance(a, argparse._SubParsersAction))
+    return {"learn": top, "learn evaluate": sub.choices["evaluate"], "learn plot": sub.choices["plot"]}
+
+
+def parsers() -> dict[str, argparse.ArgumentParser]:
+    """Every argparse parser of the project's entry points, by command."""
+    return {"sim": sim_parser(), "export": export_parser(), "export verify": verify_parser(),
+            "export budget": budget_parser(), "export rehash": rehash_parser(), **learn_parsers()}
+
+
+def visible(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    """The options ``--help`` shows (deprecated aliases are hidden), by option string."""
+    return {s: a for a in p._actions if a.help != argparse.SUPPRESS for s in a.option_strings}
+
+
+#: commands that print progress bars, so have --quiet
+PROGRESS = ("sim", "export", "export verify", "learn evaluate")
+#: commands that run several swarm sizes: --robots takes a list
+SIZES = ("sim", "export verify", "learn evaluate")
+
+
+@pytest.mark.parametrize("name", list(parsers()))
+def test_no_old_flag_names(name):
+    """No command shows --envs, --no-progress, or --preset meaning a world; --world is the world preset."""
+    opts = visible(parsers()[name])
+    assert "--envs" not in opts and "--no-progress" not in opts and "--preset" not in opts
+    if "--world" in opts:
+        assert "world preset" in opts["--world"].help
+
+
+@pytest.mark.parametrize("name", list(parsers()))
+def test_every_parser_has_version_and_refuses_abbreviations(name):
+    """Every parser has --version and allow_abbrev off."""
+    p = parsers()[name]
+    assert "--version" in visible(p) and p.allow_abbrev is False
+
+
+@pytest.mark.parametrize("name", PROGRESS)
+def test_quiet_where_progress_is_printed(name):
+    """Every command with a progress bar has --quiet (a flag without a value)."""
+    assert visible(parsers()[name])["--quiet"].nargs == 0
+
+
+@pytest.mark.parametrize("name", SIZES)
+def test_robots_is_a_list_up_to_max_robots(name):
+    """--robots takes one or more counts, each in 1..MAX_ROBOTS, in every command that runs swarm sizes."""
+    p = parsers()[name]
+    assert visible(p)["--robots"].nargs == "+"
+    required = {"sim": ["--out", "o"], "learn evaluate": ["--policy", "p.npz", "--out", "o"]}.get(name, [])
+    a = p.parse_args([*required, "--robots", "2", str(MAX_ROBOTS)])
+    assert a.robots == [2, MAX_ROBOTS]
+    with pytest.raises((SystemExit, Exception)):
+        p.parse_args([*required, "--robots", str(MAX_ROBOTS + 1)])
+
+
+def test_n_envs_is_one_name():
+    """The environments simulated together are --n-envs in sim and learn evaluate."""
+    for name in ("sim", "learn evaluate"):
+        assert "--n-envs" in visible(parsers()[name])
+
+
+def entry_point(command: str):
+    """The ``main(argv)`` of a command: ``sim``, ``export`` or ``learn``."""
+    from export.__main__ import main as export_main
+    from learn.__main__ import main as learn_main
+    from sim.__main__ import main as sim_main
+
+    return {"sim": sim_main, "export": export_main, "learn": learn_main}[command]
+
+
+def call(argv: list[str]) -> int:
+    """Run ``python -m ARGV[0] ARGV[1:]`` in this process; its exit status (SystemExit included)."""
+    try:
+        return entry_point(argv[0])(argv[1:])
+    except SystemExit as e:
+        return int(e.code or 0)
+
+
+@pytest.mark.parametrize("argv,old,new", [
+    (["sim", "--preset", "kilobot", "--envs", "1", "--episodes", "1", "--steps", "3", "--quiet"],
+     ["--preset", "--envs"], ["--world", "--n-envs"]),
+    (["export", "budget", "--preset", "kilobot", "--history", "3", "--hidden", "8"], ["--preset"], ["--world"]),
+])
+def test_deprecated_spellings_still_work_with_a_note(argv, old, new, tmp_path, capsys):
+    """An old flag name still works (documented commands keep running) and prints one deprecation note each."""
+    if argv[0] == "sim":
+        argv = [*argv, "--out", str(tmp_path / "o")]
+    assert call(argv) == 0
+    notes = [ln.split(": note: ")[1] for ln in capsys.readouterr().err.splitlines() if ": note: " in ln]
+    assert notes == [f"{o} is deprecated, use {n}" for o, n in zip(old, new)]
+
+
+@pytest.mark.parametrize("argv", [["sim"], ["export"], ["export", "verify"], ["export", "budget"], ["learn"],
+                                  ["learn", "evaluate"], ["learn", "train"], ["learn", "train-es"]])
+def test_version_on_every_entry_point(argv, capsys):
+    """`python -m <entry point> [sub-command] --version` prints the one version line, exit 0."""
+    assert call([*argv, "--version"]) == 0
+    assert capsys.readouterr().out.strip() == version_line() == f"kiloforge {kiloforge.__version__}"
+
+
+@pytest.mark.parametrize("argv,prog", [
+    (["sim", "--out", "o", "--rob", "4"], "python -m sim"),
+    (["export", "--polic", "x.npz"], "python -m export"),
+    (["export", "verify", "--episode", "1"], "python -m export verify"),
+    (["export", "budget", "--hist", "3"], "python -m export budget"),
+    (["learn", "evaluate", "--policy", "p.npz", "--out", "o", "--step", "3"], "python -m learn evaluate"),
+])
+def test_abbreviation_refused_with_one_error_line(argv, prog, tmp_path, monkeypatch, capsys):
+    """An abbreviated option is refused: exit 2, one line '<prog>: error: ...' naming it, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    assert call(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: ") and argv[-2] in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_verify_runs_without_closed_loop_flag():
+    """`export verify` no longer requires --closed-loop (its only mode), and still accepts it."""
+    p = verify_parser()
+    assert p.parse_args([]).closed_loop is False and p.parse_args(["--closed-loop"]).closed_loop is True
+
+
+def test_steps_defaults_say_why_they_differ():
+    """sim runs the world's episode, learn evaluate the thesis benchmark's 500 steps; both helps say so."""
+    sim_help = visible(parsers()["sim"])["--steps"].help
+    eval_steps = visible(parsers()["learn evaluate"])["--steps"]
+    assert eval_steps.default == 500 and "benchmark" in eval_steps.help and "python -m sim" in eval_steps.help
+    assert parsers()["sim"].parse_args(["--out", "o"]).steps is None and "benchmark" in sim_help
+
+
+def test_mixed_worlds_are_named(tmp_path):
+    """Evaluating policies of different worlds names each policy with its world (item 9), before any output."""
+    from fixtures import init_policy
+    from learn.evaluate import evaluate_policies
+    from sim.config import preset
+
+    pols = {"a": init_policy(preset("thesis"), 2, (4,), "elu", seed=1),
+            "b": init_policy(preset("kilobot"), 2, (4,), "elu", seed=2)}
+    with pytest.raises(ValueError) as e:
+        evaluate_policies(pols, [2], 1, 3, tmp_path / "out", gif=False, progress=False)
+    assert "a ('thesis')" in str(e.value) and "b ('kilobot')" in str(e.value)
+    assert not (tmp_path / "out").exists()
