@@ -1,5 +1,4 @@
 """``python -m export`` / ``kiloforge-export``: see :mod:`export.cli.main`."""
-from __future__ import annotations
 
 import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
@@ -10,6 +9,7 @@ try:
     import sys
     from typing import Sequence
 
+    from kiloforge.cli import run_guarded
     from kiloforge.interrupts import run_entry_point
 finally:
     for _s, _h in _previous.items():
@@ -31,6 +31,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from kiloforge.cli import run_guarded
-
     sys.exit(run_guarded("python -m export", lambda: main, None))

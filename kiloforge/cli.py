@@ -111,7 +111,14 @@ def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]]
     """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
     own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
     dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`missing_dependency`)."""
-    problem = shadowing()
+    from .interrupts import Interrupted, deferred
+
+    try:
+        with deferred():  # the entry point's own handling of Ctrl-C starts in load()(argv)
+            problem = shadowing()
+    except Interrupted as e:
+        print(f"{prog}: error: interrupted before it started; nothing written", file=sys.stderr)
+        return 128 + e.signum
     if problem:
         print(f"{prog}: error: {problem}", file=sys.stderr)
         return EXIT_USAGE

@@ -12,7 +12,6 @@
 ``train`` and ``train-recurrent`` are :mod:`learn.cli` (every config field is a flag, tyro).
 User errors print one line and exit with status 2.
 """
-from __future__ import annotations
 
 import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
@@ -24,6 +23,7 @@ try:
     import sys
     from pathlib import Path
 
+    from kiloforge.cli import run_guarded
     from kiloforge.cliparse import ArgumentParser, error_line, program, version_line
     from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
     from kiloforge.validate import int_arg, seed_arg
@@ -170,6 +170,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from kiloforge.cli import run_guarded
-
     sys.exit(run_guarded("python -m learn", lambda: main, None))

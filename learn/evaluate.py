@@ -6,7 +6,8 @@
 * :func:`evaluate_policies` — ``python -m learn evaluate``: policy artifacts and the random and
   hand-written baselines at several swarm sizes (thesis §5.1.2: 16 and 32 robots, 500 steps,
   500 episodes), with the thesis's plots (mean reward over time, return box plots), a coverage
-  plot, a printed table, a JSON of the numbers and a GIF of one episode.
+  plot, a printed table, a JSON of the numbers and a GIF of one episode. Final coverage is also
+  given as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`; column "of ceiling").
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import numpy as np
 from kiloforge.io import write_atomic
 from kiloforge.policies import swarm_policy
 from sim.baselines import make_policy
+from sim.ceiling import has_ceiling, mean_capacity, open_capacity
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
@@ -122,10 +124,16 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         contenders += [Contender("hand-written", lambda: make_policy("baseline", world)),
                        Contender("random", lambda: make_policy("random", world))]
 
+    with_ceiling = has_ceiling(world)
+    if not with_ceiling:
+        log(f"note: no packing ceiling for the {world.name} world (the shipped table is for the kilobot "
+            "world's bodies, range and arena); the 'of ceiling' column is left out")
     results: dict = {"world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
                      "policies": {n: {"hash": p.hash, "t_prev": p.t_prev, "hidden": p.hidden,
                                       "provenance": p.provenance} for n, p in policies.items()},
                      "robots": {}}
+    if with_ceiling and world.collisions and world.robot_radius_mm > 0:
+        results["packing"] = {"open_capacity": open_capacity(world), "mean_capacity": mean_capacity(world)}
     for M in robots:
         b = max(1, min(n_envs, episodes))
         env = SwarmEnv(world, n_envs=b, n_robots=M, seed=seed)
@@ -134,7 +142,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
             if progress:
                 log(f"evaluating {c.name} with {M} robots: {episodes} episodes of {steps} steps")
             runs[c.name] = rollout(env, c.make(), episodes, seed=seed, record=1, progress=progress)
-        metrics = {n: r.metrics() for n, r in runs.items()}
+        metrics = {n: r.metrics(ceiling=with_ceiling) for n, r in runs.items()}
         table = compare(metrics)
         log(f"\n{M} robots, {steps} steps, {episodes} episodes (mean ± 95 % CI)\n{table}\n")
         plot_reward_over_time({n: r.rewards for n, r in runs.items()}, out_dir / f"reward_over_time_{M}.png",
@@ -154,6 +162,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
             "mean_reward_over_time": {n: r.rewards.mean(axis=0).round(6).tolist() for n, r in runs.items()},
             "returns": {n: r.rewards.sum(axis=1).round(6).tolist() for n, r in runs.items()},
         }
+        if with_ceiling:  # per episode, from each run's own final beacon positions
+            results["robots"][str(M)]["ceiling"] = {n: m.ceiling.round(6).tolist() for n, m in metrics.items()}
 
     write_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
     return results

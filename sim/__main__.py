@@ -13,7 +13,6 @@ preset, or the artifact's) at each ``--robots`` count and writes ``robustness.js
 ``robustness.md`` (final coverage per variant, and as a fraction of nominal). User errors print
 one line and exit with 2.
 """
-from __future__ import annotations
 
 import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
 
@@ -29,6 +28,7 @@ try:
     from pathlib import Path
 
     from kiloforge import io
+    from kiloforge.cli import run_guarded
     from kiloforge.cliparse import ArgumentParser, deprecated_alias, error_line, program
     from kiloforge.errors import KiloforgeError, PolicyError, printable
     from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
@@ -239,6 +239,4 @@ def _main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from kiloforge.cli import run_guarded
-
     sys.exit(run_guarded("python -m sim", lambda: main, None))

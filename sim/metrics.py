@@ -6,7 +6,9 @@ Per episode (arrays over E episodes of T steps):
 * time to find: the first step t (1..T) after which at least one robot is within range;
   ``T`` when no robot ever is (check ``found`` to tell the two apart);
 * final coverage: mean coverage over the last 25 % of the episode (the last ``ceil(T / 4)`` steps);
-* return: the sum of the team rewards.
+* return: the sum of the team rewards;
+* of ceiling (when the episodes' packing ceilings are given, :mod:`sim.ceiling`): final coverage
+  divided by the episode's ceiling, the highest final coverage the beacon's place allows.
 
 :func:`summarise` gives mean, sample std and a 95 % confidence half-width (Student t) over episodes;
 :func:`compare` prints several policies side by side.
@@ -109,6 +111,7 @@ class EpisodeMetrics:
     time_to_find: np.ndarray  # (E,) int steps, T when never found
     found: np.ndarray  # (E,) bool, some robot was in range at some step
     final_coverage: np.ndarray  # (E,) mean coverage over the last 25 %
+    ceiling: np.ndarray | None = None  # (E,) packing ceiling of each episode (None: not computed)
 
     @property
     def episodes(self) -> int:
@@ -119,14 +122,19 @@ class EpisodeMetrics:
         return int(self.coverage.shape[1])
 
     def summary(self) -> dict[str, Summary]:
-        """Summaries of the scalar metrics, keyed by metric name."""
-        return {
+        """Summaries of the scalar metrics, keyed by metric name (``of_ceiling`` and ``ceiling``
+        only when the ceilings are known)."""
+        s = {
             "final_coverage": summarise(self.final_coverage),
             "time_to_find": summarise(self.time_to_find),
             "found_rate": summarise(self.found.astype(np.float64)),
             "mean_coverage": summarise(self.coverage.mean(axis=1)),
             "return": summarise(self.returns),
         }
+        if self.ceiling is not None:
+            s["of_ceiling"] = summarise(self.final_coverage / self.ceiling)
+            s["ceiling"] = summarise(self.ceiling)
+        return s
 
     def to_dict(self, per_episode: bool = True) -> dict:
         """JSON-ready: summaries, plus per-episode values when asked."""
@@ -139,19 +147,25 @@ class EpisodeMetrics:
                 "found": self.found.tolist(),
                 "return": self.returns.tolist(),
             }
+            if self.ceiling is not None:
+                d["per_episode"]["ceiling"] = self.ceiling.tolist()
         return d
 
 
-def episode_metrics(rewards: np.ndarray, coverage: np.ndarray) -> EpisodeMetrics:
-    """Metrics from per-step team rewards (E, T) and coverage (E, T)."""
+def episode_metrics(rewards: np.ndarray, coverage: np.ndarray, ceiling: np.ndarray | None = None) -> EpisodeMetrics:
+    """Metrics from per-step team rewards (E, T) and coverage (E, T); ``ceiling`` (E,): each
+    episode's packing ceiling, when known."""
     r = np.asarray(rewards, np.float64)
     c = np.asarray(coverage, np.float64)
     assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and coverage {c.shape} must both be (E, T)"
+    if ceiling is not None:
+        ceiling = np.asarray(ceiling, np.float64)
+        assert ceiling.shape == r.shape[:1] and np.all(ceiling > 0), f"ceiling must be (E,) > 0, got {ceiling.shape}"
     return EpisodeMetrics(coverage=c, returns=r.sum(axis=1), time_to_find=time_to_find(c),
-                          found=(c > 0).any(axis=1), final_coverage=final_coverage(c))
+                          found=(c > 0).any(axis=1), final_coverage=final_coverage(c), ceiling=ceiling)
 
 
-_COLUMNS = (("final_coverage", "final cov"), ("mean_coverage", "mean cov"),
+_COLUMNS = (("final_coverage", "final cov"), ("of_ceiling", "of ceiling"), ("mean_coverage", "mean cov"),
             ("time_to_find", "steps to find"), ("found_rate", "found"), ("return", "return"))
 
 
@@ -164,11 +178,13 @@ def compare(table: dict[str, EpisodeMetrics]) -> str:
     demo    0.750 ± 3.176  0.375 ± 3.176  3.000 ± 12.706  1.000 ± 0.000  0.000 ± 0.000  2
     """
     assert table, "compare needs at least one entry"
-    header = ["policy"] + [label for _, label in _COLUMNS] + ["episodes"]
+    sums = {name: m.summary() for name, m in table.items()}
+    cols = [(key, label) for key, label in _COLUMNS if any(key in s for s in sums.values())]
+    header = ["policy"] + [label for _, label in cols] + ["episodes"]
     rows = []
     for name, m in table.items():
-        s = m.summary()
-        rows.append([str(name)] + [str(s[key]) for key, _ in _COLUMNS] + [str(m.episodes)])
+        s = sums[name]
+        rows.append([str(name)] + [str(s[key]) if key in s else "-" for key, _ in cols] + [str(m.episodes)])
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     fmt = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
     return "\n".join([fmt(header)] + [fmt(r) for r in rows])

@@ -95,6 +95,7 @@ class RolloutResult:
     coverage: np.ndarray  # (E, T) float64 fraction of robots in range after each step
     trajectories: Trajectories | None = None
     extra: dict = field(default_factory=dict)
+    beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode
 
     @property
     def episodes(self) -> int:
@@ -104,11 +105,18 @@ class RolloutResult:
     def steps(self) -> int:
         return int(self.rewards.shape[1])
 
-    def metrics(self):
-        """Task metrics (see :mod:`sim.metrics`) of these episodes."""
+    def metrics(self, ceiling: bool = False):
+        """Task metrics (see :mod:`sim.metrics`) of these episodes; ``ceiling``: also final coverage
+        as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`, at the final beacon position)."""
         from .metrics import episode_metrics
 
-        return episode_metrics(self.rewards, self.coverage)
+        ceil = None
+        if ceiling:
+            from .ceiling import episode_ceiling
+
+            assert self.beacon is not None, "no beacon positions recorded"
+            ceil = episode_ceiling(self.cfg, self.n_robots, self.beacon)
+        return episode_metrics(self.rewards, self.coverage, ceil)
 
 
 def _in_range_now(env) -> np.ndarray:
@@ -139,6 +147,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
     rewards = np.zeros((n_batches * B, T))
     coverage = np.zeros((n_batches * B, T))
+    beacon = np.zeros((n_batches * B, 2))
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)
         head = np.zeros((rec_batches * B, T + 1, M), np.float32)
@@ -179,6 +188,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                 if bar is not None:
                     bar.update(1)
             assert np.all(truncated), "env did not truncate after cfg.episode_steps steps"
+            beacon[rows] = env.target
     finally:
         if bar is not None:
             bar.close()
@@ -187,4 +197,5 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     if n_rec:
         traj = Trajectories(pos[:n_rec], head[:n_rec], tgt[:n_rec], inr[:n_rec], acts[:n_rec])
     return RolloutResult(cfg=cfg, n_robots=M, seed=seed, rewards=rewards[:episodes],
-                         coverage=coverage[:episodes], trajectories=traj)
+                         coverage=coverage[:episodes], trajectories=traj,
+                         beacon=beacon[:episodes])

@@ -22,6 +22,10 @@ EXPORT_ARGS = ["--robots-calib", "2", "--calib-steps", "4", "--no-avr", "--quiet
 CPYTHON_START_UP = ("Could not import runpy module", "'import warnings' failed", "'import site' failed")
 
 
+class NotLanded(RuntimeError):
+    """Every one of MAX_DRAWS moments came after the program had finished: that kill is not counted."""
+
+
 def in_interpreter(rc: int, message: str) -> bool:
     """The SIGINT came while CPython itself started or exited, outside any of the project's code: CPython's own
     start-up messages, or death by SIGINT without a traceback through the repository."""
@@ -111,7 +115,8 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
             t_end = time.perf_counter() + 10 * duration + 30
             while proc.poll() is None and time.perf_counter() < t_end and not _reached(d, moment):
                 time.sleep(0.0002)
-            at = time.perf_counter() + rng.uniform(0, 0.06 if moment == "publish" else 0.005)
+            # each draw again halves the window: a SIGINT that came after the program's last line is ignored
+            at = time.perf_counter() + rng.uniform(0, (0.06 if moment == "publish" else 0.005) / 2 ** redraws)
         else:
             at = t0 + rng.uniform(0, end)
         while proc.poll() is None and time.perf_counter() < at:
@@ -125,7 +130,7 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
             _, err = proc.communicate(timeout=300)
         end = 0.95 * (time.perf_counter() - t0)
     else:
-        raise RuntimeError(f"no signal landed inside the export in {MAX_DRAWS} draws")
+        raise NotLanded(f"no signal landed inside the export in {MAX_DRAWS} draws")
     rc = proc.returncode
     message = err.decode("utf-8", "replace").strip()
     problems = []
@@ -310,7 +315,7 @@ def _signal_inside(d: Path, sig: int, moment: str, rng: np.random.Generator, dur
         else:
             proc.communicate(timeout=600)
         end = 0.95 * (time.perf_counter() - t_from)  # from here on, draw inside what this run took
-    raise RuntimeError(f"no kill landed inside the run in {MAX_DRAWS} draws")
+    raise NotLanded(f"no kill landed inside the run in {MAX_DRAWS} draws")
 
 
 def kill_training(d: Path, sig: int, moment: str, rng: np.random.Generator, duration: float,
@@ -376,11 +381,19 @@ def kill_trainings(root: Path, n: int, rng: np.random.Generator, algorithm: str 
     duration, episodes, ref = uninterrupted_training(root, algorithm)
     print(f"\none short {algorithm} training takes {duration:.1f} s ({episodes} episodes); killing {n}")
     table: collections.Counter = collections.Counter()
-    bad = redraws = 0
+    bad = redraws = missed = 0
     t0 = time.perf_counter()
     for i in range(n):
         sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "training")[(i // 2) % 2]
-        r = kill_training(root / f"{algorithm}{i}", sig, moment, rng, duration, episodes, ref, algorithm)
+        for attempt in range(MAX_DRAWS):  # a kill that never landed is not counted: the same kind again
+            try:
+                r = kill_training(root / f"{algorithm}{i}_{attempt}", sig, moment, rng, duration, episodes, ref,
+                                  algorithm)
+                break
+            except NotLanded:
+                missed += 1
+        else:
+            raise NotLanded(f"{algorithm} training {i}: no {signal.Signals(sig).name} landed in {MAX_DRAWS ** 2} draws")
         table[(r.signal, r.moment, r.phase, r.rc, r.state, r.how, r.rc_after,
                "identical" if r.identical else "DIFFERENT")] += 1
         redraws += r.redraws
@@ -388,7 +401,7 @@ def kill_trainings(root: Path, n: int, rng: np.random.Generator, algorithm: str 
             bad += 1
             print(f"training {i}: {r}")
     print(f"\n{n} killed {algorithm} trainings in {time.perf_counter() - t0:.0f} s; {redraws} kill moments drawn "
-          f"again (the run had ended first)\n")
+          f"again (the run had ended first); {missed} kills not counted (no moment of {MAX_DRAWS} landed)\n")
     print_table(("signal", "moment", "phase hit", "exit status", "left", "continued by", "its exit status",
                  "outputs vs uninterrupted"), table)
     print(f"\n{algorithm} trainings that broke a rule: {bad}")
@@ -421,18 +434,25 @@ def kill_exports(root: Path, n: int, rng: np.random.Generator) -> int:
     old, new, duration = reference_sets(root)
     print(f"one export takes {duration:.2f} s; killing {n}")
     table: collections.Counter = collections.Counter()
-    bad = redraws = 0
+    bad = redraws = missed = 0
     t0 = time.perf_counter()
     for i in range(n):
         sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "publish", "commit")[(i // 2) % 3]
-        r = kill_export(root / f"e{i}", old, new, sig, moment, rng, duration)
+        for attempt in range(MAX_DRAWS):  # a kill that never landed is not counted: the same kind again
+            try:
+                r = kill_export(root / f"e{i}_{attempt}", old, new, sig, moment, rng, duration)
+                break
+            except NotLanded:
+                missed += 1
+        else:
+            raise NotLanded(f"export {i}: no {signal.Signals(sig).name} at {moment} landed in {MAX_DRAWS ** 2} draws")
         table[(r.signal, r.moment, r.before, r.after, r.rc, said(r))] += 1
         redraws += r.redraws
         if not r.ok:
             bad += 1
             print(f"export {i}: {r}")
     print(f"\n{n} killed exports in {time.perf_counter() - t0:.0f} s; {redraws} signal moments drawn again "
-          "(the export had ended first)\n")
+          f"(the export had ended first); {missed} kills not counted (no moment of {MAX_DRAWS} landed)\n")
     print_table(("signal", "moment", "set right after the kill", "after recovery", "exit status", "message"), table)
     print(f"\nexports that broke a rule: {bad}")
     return bad

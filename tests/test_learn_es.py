@@ -139,7 +139,6 @@ def test_es_cli_refuses_bad_flags(tmp_path, capsys):
 def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeypatch):
     """SIGINT inside a generation abandons it, checkpoints the last finished one (exit 130); resuming ends where an
     uninterrupted run does."""
-    import os
     import signal
 
     import learn.es_train as et
@@ -151,7 +150,7 @@ def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeyp
     def interrupting(*a, **k):
         calls.append(1)
         if len(calls) == 5:  # generation 3, first swarm size
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)
         return real(*a, **k)
 
     monkeypatch.setattr(et, "rollout_population", interrupting)
