@@ -1,4 +1,5 @@
-"""Sweeps on a local Ray (one session for the module): a tiny end-to-end sweep, and resume skipping finished trials."""
+"""Sweeps on a local Ray (one session for the module): a tiny end-to-end sweep, resume skipping finished trials,
+TensorBoard scalars in every trial."""
 import json
 import logging
 
@@ -89,6 +90,25 @@ def test_resume_skips_finished_and_resumes_unfinished(ray_session, tmp_path):
     before = mtimes()
     assert main_sweep([*ARGS, "--out", str(out)]) == 0  # nothing left: no trial runs again
     assert mtimes() == before
+
+
+def test_tensorboard_in_every_trial(ray_session, tmp_path):
+    """--grid tensorboard=true: every trial's run directory gets event files with one eval_return per metrics row."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    out = tmp_path / "sweep"
+    grid = [*TINY, "tensorboard=true"]
+    assert main_sweep(["--preset", "quick", "--seeds", "1", "2", "--grid", *grid, "--quiet", "--out", str(out)]) == 0
+    trials = expand(build_grid(presets=["quick"], seeds=[1, 2], grid=grid))
+    assert len(trials) == 2
+    for t in trials:
+        run = out / t.name
+        assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+        acc = EventAccumulator(str(run / "tensorboard"))
+        acc.Reload()
+        rows = read_metrics(run)
+        ev = acc.Scalars("eval_return")
+        assert [e.step for e in ev] == [int(r["env_steps"]) for r in rows]
+        np.testing.assert_allclose([e.value for e in ev], [r["eval_return"] for r in rows], rtol=1e-4, atol=1e-6)
 
 
 def test_progress_lines(capsys):

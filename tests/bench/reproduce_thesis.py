@@ -12,6 +12,9 @@ Stages (default: all, in this order):
               ``export/data/default_policy.npz`` with its provenance.
 ``robots``    thesis Experiment 1 (thesis world): learning with 1, 2, 4, 8 robots.
 ``history``   thesis Experiment 2: T_prev in {1, 2, 5, 10} with 2 robots, 4 minutes each.
+``seeds``     Experiments 1 and 2 again as 3-seed sweeps (``python -m learn sweep``), budgeted in
+              episodes (10⁵ environment steps per trial), not minutes; their aggregates (tables,
+              learning curves as mean ± 2 std over seeds) are copied into docs/report.
 ``eval``      thesis §5.1.2: the Experiment 1 policies on 16 and 32 robots (500 steps) with the
               random and hand-written baselines; the shipped policy on 4, 16, 32 robots (kilobot).
 ``closed``    float actor vs int8 firmware emulator in the closed loop (``python -m export verify``),
@@ -61,7 +64,15 @@ HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--seed", "1", "--eval-episodes", "20"
 #: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
 KILOBOT_RESUME = {"kb4_s1": 14}
 SHIPPED = ROOT / "export" / "data" / "default_policy.npz"
-STAGES = ("kilobot", "ship", "robots", "history", "eval", "closed", "plots")
+#: Experiments 1 and 2 as sweeps: 3 seeds, 32 warm-up + 468 learning episodes = 10⁵ environment steps per
+#: trial; two sweeps side by side with one CPU each, trials at the command's niceness (RAY_worker_niceness)
+SWEEP = ["--preset", "fast", "--world", "thesis", "--seeds", "1", "2", "3", "--grid", "episodes=468",
+         "eval_every=12800", "eval_episodes=20", "tensorboard=true", "--cpus-per-trial", "1", "--num-cpus", "1", "--quiet"]
+#: (sweep directory, figure in docs/report, grid). Experiment 2's T_prev 10 is Experiment 1's 2-robot
+#: configuration: its trials are linked into the Experiment 2 sweep, not trained twice
+SWEEPS = (("thesis_exp1", "learning_curves_robots_seeds.png", ["--robots", "1", "2", "4", "--history", "10"]),
+          ("thesis_exp2", "learning_curves_history_seeds.png", ["--robots", "2", "--history", "1", "2", "5"]))
+STAGES = ("kilobot", "ship", "robots", "history", "seeds", "eval", "closed", "plots")
 
 
 def sh(cmd: list[str], dry: bool, log: Path | None = None, background: bool = False):
@@ -102,6 +113,30 @@ def train(runs: list[tuple], args, resume: dict[str, float] | None = None) -> No
             running.append(p)
     for p in running:
         p.wait()
+
+
+def seed_sweeps(args) -> None:
+    """Both sweeps at once; then Experiment 2 aggregated over T_prev 1, 2, 5, 10 and the aggregates copied."""
+    import os
+    import shutil
+
+    os.environ.setdefault("RAY_worker_niceness", "0")
+    print(f"# RAY_worker_niceness={os.environ['RAY_worker_niceness']}")
+    sweep = lambda name, grid: [PY, "-m", "learn", "sweep", *SWEEP, *grid, "--out", str(RUNS / name)]  # noqa: E731
+    procs = [sh(sweep(name, grid), args.dry_run, RUNS / f"{name}.log", background=True) for name, _, grid in SWEEPS]
+    if any(p is not None and p.wait() != 0 for p in procs):
+        sys.exit("a sweep did not finish (see its log in runs/); rerun this stage to resume it")
+    exp1, exp2 = RUNS / SWEEPS[0][0], RUNS / SWEEPS[1][0]
+    for run in ([] if args.dry_run else sorted(exp1.glob("thesis-m2-t10_s*"))):
+        link = exp2 / run.name
+        if not link.exists():
+            link.symlink_to(Path("..") / exp1.name / run.name)
+    print(f"# ln -s ../{exp1.name}/thesis-m2-t10_s* {exp2.relative_to(ROOT)}/")
+    sh(sweep(exp2.name, [*SWEEPS[1][2], "10"]), args.dry_run)  # every trial finished: only aggregates
+    for name, png, _ in ([] if args.dry_run else SWEEPS):
+        shutil.copyfile(RUNS / name / "learning_curves.png", OUT / png)
+        shutil.copyfile(RUNS / name / "table.txt", OUT / f"{name}_table.txt")
+        print(f"wrote {OUT / png}, {OUT / f'{name}_table.txt'}")
 
 
 def ship(args) -> None:
@@ -268,6 +303,38 @@ def eval_table(path: Path | dict) -> list[str]:
     return rows
 
 
+def sweep_table(path: Path) -> list[str]:
+    """Markdown rows of a sweep's summary.json: per configuration, each seed's value and mean ± std over seeds."""
+    if not path.exists():
+        return [f"(missing: {path.relative_to(ROOT)})"]
+    d = json.loads(path.read_text())
+
+    def cells(m: dict, digits: int) -> list[str]:
+        seeds = " / ".join(f"{v:.{digits}f}" for _, v in sorted(m["per_seed"].items(), key=lambda kv: int(kv[0])))
+        if m["mean"] is None:
+            return [seeds or "-", "-"]
+        if m["std"] is None:
+            return [seeds, f"{m['mean']:.{digits}f}"]
+        lo, hi = m["ci95"]
+        return [seeds, f"{m['mean']:.{digits}f} ± {m['std']:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"]
+
+    rows = ["| robots | T_prev | seeds | best eval return, per seed | mean ± std [95 % CI] | its final cov, per seed | "
+            "mean ± std [95 % CI] | last final cov, per seed | mean ± std [95 % CI] |",
+            "|---:|---:|---|---|---|---|---|---|---|"]
+    for c in sorted(d["configurations"], key=lambda c: (c["fields"]["n_robots"], c["fields"]["t_prev"])):
+        m = c["metrics"]
+        rows.append(f"| {c['fields']['n_robots']} | {c['fields']['t_prev']} | {', '.join(map(str, c['seeds'])) or '-'} | "
+                    + " | ".join([*cells(m["best_return"], 1), *cells(m["best_final_coverage"], 3),
+                                  *cells(m["last_final_coverage"], 3)]) + " |")
+    left = [t for t in d["trials"] if t["status"] != "finished"]
+    rows.append("\nBest = the evaluation (20 episodes, 200 steps, training size) with the highest return; its final "
+                "coverage beside it; last = the final evaluation. Per-seed values in seed order; ± is the sample "
+                "standard deviation over seeds, [ ] the 95 % CI of the mean (Student t)."
+                + (" Not finished, not in the statistics: " + ", ".join(
+                    f"{t['name']} ({t['status']}, {t['env_steps']:,.0f} env steps)" for t in left) + "." if left else ""))
+    return rows
+
+
 def closed_table(path: Path) -> list[str]:
     """Markdown rows of a closed_loop.json: float vs int8 final coverage and return, ratio, verdict."""
     if not path.exists():
@@ -300,6 +367,8 @@ def plots(args) -> None:
                   f"{s['best_return']:.1f} | {s['best_cov']:.3f} | {s['last_return']:.1f} | {s['last_cov']:.3f} |"
                   for s in summary] or ["(no runs)"]
         lines.append("")
+    for name, png, _ in SWEEPS:
+        lines += [f"## Training, 3 seeds: {name} ({png})", "", *sweep_table(RUNS / name / "summary.json"), ""]
     thesis = merged_eval([OUT / "eval_thesis" / "evaluation.json"])
     if thesis is not None:
         plot_eval(thesis, [], OUT / "eval_thesis")
@@ -343,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
         train(ROBOT_RUNS, args)
     if "history" in stages:
         train(HISTORY_RUNS, args)
+    if "seeds" in stages:
+        seed_sweeps(args)
     if "eval" in stages:
         evaluate(args)
     if "closed" in stages:
