@@ -379,13 +379,17 @@ def world_json_text(draw) -> str:
     return draw(json_document(draw(st.sampled_from(_world_bases()))))
 
 
-def world_exactly_as_given(world: WorldConfig, t_prev: int, doc: Any) -> str:
-    """'' if the world holds exactly the values the document gave (no coercion), else why not."""
+def world_exactly_as_given(world: WorldConfig, t_prev: int, doc: Any, in_dim: int) -> str:
+    """'' if the world holds exactly the values the document gave (no coercion), else why not; a document
+    without ``t_prev`` must get the one the model's input width ``in_dim`` implies."""
     if isinstance(doc, dict) and "world" in doc:
         given, t_given = doc["world"], doc.get("t_prev")
     else:
         given, t_given = {k: v for k, v in doc.items() if k != "t_prev"}, doc.get("t_prev")
-    if type(t_given) is not int or t_given != t_prev:
+    if "t_prev" not in doc:
+        if world.history_dim(t_prev) != in_dim:
+            return f"no t_prev given, and {t_prev} does not match the model's input width {in_dim}"
+    elif type(t_given) is not int or t_given != t_prev:
         return f"t_prev {t_given!r} became {t_prev}"
     if isinstance(given, str):
         given = {"preset": given}
@@ -415,7 +419,7 @@ def check_world_json(text: str, workdir: Path, model: Path) -> tuple[str, str]:
     except BaseException:
         return "traceback", traceback.format_exc()
     try:
-        why = world_exactly_as_given(pol.world, pol.t_prev, json.loads(text))
+        why = world_exactly_as_given(pol.world, pol.t_prev, json.loads(text), pol.layer_sizes[0])
     except BaseException:
         return "traceback", traceback.format_exc()
     return ("accepted_corrupt", why) if why else ("accepted", "")

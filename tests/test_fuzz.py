@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 
 import fuzz_targets as ft
 
@@ -52,6 +52,7 @@ def test_fuzz_policy_arrays(work, case):
 
 @ft.fuzz_settings(60)
 @given(text=ft.world_json_text())
+@example(text='{"world": "kilobot"}')  # no t_prev: the model's input width gives it
 def test_fuzz_world_json(work, text):
     """--world-json documents and random text: refused in one line, or a world holding exactly what was given."""
     _ok(ft.check_world_json(text, work[0], work[1].onnx_bare))
