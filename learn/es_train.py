@@ -137,7 +137,8 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         t0 = time.perf_counter()
         c.wall_s = wall_at_start + (time.perf_counter() - session_start)
         ckpt.save({"version": CHECKPOINT_VERSION, "algorithm": cfg.algorithm, "config": cfg.to_dict(),
-                   "es_generation": gen, "init_policy_hash": init_hash, "theta": theta, "adam": adam.state_dict(), "counters": vars(c)}, [])
+                   "es_generation": gen, "init_policy_hash": init_hash, "theta": theta, "adam": adam.state_dict(),
+                   "counters": vars(c)}, [])
         c.checkpoint_s += time.perf_counter() - t0
 
     stop = StopRequest()
