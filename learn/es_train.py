@@ -69,12 +69,6 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     """Run ``cfg`` into ``run_dir`` (``resume`` continues its checkpoint); returns counters and why it stopped."""
     cfg.validate()
     world, eval_world = cfg.world_config(), cfg.eval_world()
-    init = None if resume else init_policy_of(cfg, world)  # refused before anything is written
-    run_dir = Path(run_dir)
-    resume = prepare_run_dir(run_dir, resume, log)
-    if not resume and init is None:  # --resume of a run that had no checkpoint yet: a fresh start
-        init = init_policy_of(cfg, world)
-    ckpt = Checkpointer(run_dir)
     set_threads(cfg.threads)
     tune_allocator()
     randomise = None
@@ -89,6 +83,12 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     eval_seed = int(ss_eval.generate_state(1, np.uint32)[0])
 
     algo = actor_algo(cfg, world)
+    init = None if resume else init_policy_of(cfg, algo, world)  # refused before anything is written
+    run_dir = Path(run_dir)
+    resume = prepare_run_dir(run_dir, resume, log)
+    if not resume and init is None:  # --resume of a run that had no checkpoint yet: a fresh start
+        init = init_policy_of(cfg, algo, world)
+    ckpt = Checkpointer(run_dir)
     pop = PopulationMLP.of(algo.actor.net)
     evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed) for M in cfg.n_robots]
     weights = cfg.weights()
@@ -230,9 +230,9 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     return result
 
 
-def init_policy_of(cfg: ESConfig, world):
+def init_policy_of(cfg: ESConfig, algo: MAGDDPG, world):
     """The MLP artifact ``cfg.init_policy`` (None when empty); a one-line ConfigError unless it loads and is
-    an MLP of the same world, history length, widths and activations as this run's actor."""
+    an MLP of the same world, history length, widths and activations as this run's actor ``algo``."""
     if not cfg.init_policy:
         return None
     from kiloforge.errors import PolicyError
@@ -242,7 +242,7 @@ def init_policy_of(cfg: ESConfig, world):
         p = load_policy(cfg.init_policy)
     except (PolicyError, OSError) as e:
         raise ConfigError(f"init_policy: {e}") from None
-    ours = actor_algo(cfg, world).artifact(world, {})
+    ours = algo.artifact(world, {})
     same_kind = p.kind == ours.kind
     what = {"kind": (p.kind, ours.kind), "world": (p.world.to_json(), world.to_json()), "t_prev": (p.t_prev, ours.t_prev),
             "layers": (p.layer_sizes, ours.layer_sizes) if same_kind else (0, 0),

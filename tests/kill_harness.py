@@ -26,6 +26,17 @@ class NotLanded(RuntimeError):
     """Every one of MAX_DRAWS moments came after the program had finished: that kill is not counted."""
 
 
+def until_landed(kill, what: str):
+    """``kill(k)`` for k = 0, 1, ... (a fresh directory each) until one lands: (its result, how many did not,
+    which are not counted); NotLanded after MAX_DRAWS of them."""
+    for k in range(MAX_DRAWS):
+        try:
+            return kill(k), k
+        except NotLanded:
+            pass
+    raise NotLanded(f"{what}: no kill landed in {MAX_DRAWS} tries of {MAX_DRAWS} draws")
+
+
 def in_interpreter(rc: int, message: str) -> bool:
     """The SIGINT came while CPython itself started or exited, outside any of the project's code: CPython's own
     start-up messages, or death by SIGINT without a traceback through the repository."""
@@ -385,15 +396,9 @@ def kill_trainings(root: Path, n: int, rng: np.random.Generator, algorithm: str 
     t0 = time.perf_counter()
     for i in range(n):
         sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "training")[(i // 2) % 2]
-        for attempt in range(MAX_DRAWS):  # a kill that never landed is not counted: the same kind again
-            try:
-                r = kill_training(root / f"{algorithm}{i}_{attempt}", sig, moment, rng, duration, episodes, ref,
-                                  algorithm)
-                break
-            except NotLanded:
-                missed += 1
-        else:
-            raise NotLanded(f"{algorithm} training {i}: no {signal.Signals(sig).name} landed in {MAX_DRAWS ** 2} draws")
+        r, lost = until_landed(lambda k: kill_training(root / f"{algorithm}{i}_{k}", sig, moment, rng, duration,
+                                                      episodes, ref, algorithm), f"{algorithm} training {i}")
+        missed += lost
         table[(r.signal, r.moment, r.phase, r.rc, r.state, r.how, r.rc_after,
                "identical" if r.identical else "DIFFERENT")] += 1
         redraws += r.redraws
@@ -438,14 +443,9 @@ def kill_exports(root: Path, n: int, rng: np.random.Generator) -> int:
     t0 = time.perf_counter()
     for i in range(n):
         sig, moment = (signal.SIGKILL, signal.SIGINT)[i % 2], ("uniform", "publish", "commit")[(i // 2) % 3]
-        for attempt in range(MAX_DRAWS):  # a kill that never landed is not counted: the same kind again
-            try:
-                r = kill_export(root / f"e{i}_{attempt}", old, new, sig, moment, rng, duration)
-                break
-            except NotLanded:
-                missed += 1
-        else:
-            raise NotLanded(f"export {i}: no {signal.Signals(sig).name} at {moment} landed in {MAX_DRAWS ** 2} draws")
+        r, lost = until_landed(lambda k: kill_export(root / f"e{i}_{k}", old, new, sig, moment, rng, duration),
+                               f"export {i}")
+        missed += lost
         table[(r.signal, r.moment, r.before, r.after, r.rc, said(r))] += 1
         redraws += r.redraws
         if not r.ok:

@@ -185,7 +185,7 @@ def test_init_policy_starts_from_the_artifact(tmp_path):
     want = load_policy(start)
     cfg = ESConfig(**{**TINY, "generations": 1}, seed=4, init_policy=str(start))
     algo = actor_algo(cfg, cfg.world_config())
-    load_weights(algo, init_policy_of(cfg, cfg.world_config()))
+    load_weights(algo, init_policy_of(cfg, algo, cfg.world_config()))
     got = algo.artifact(cfg.world_config(), {})
     for a, b in zip(got.weights + got.biases, want.weights + want.biases):
         np.testing.assert_array_equal(a, b)
