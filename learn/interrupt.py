@@ -1,8 +1,9 @@
-"""SIGINT / SIGTERM during training: finish the step, write a checkpoint, exit 128 + signal (130 / 143).
+"""SIGINT / SIGTERM during training: stop at the next clean boundary, write a checkpoint, exit 128 + signal.
 
-:class:`StopRequest` installs handlers that only set a flag, which the training loop polls between
-environment steps and update blocks (and the guided preparation phases between their steps). A second
-signal of either kind stops at once (``KeyboardInterrupt``). Handlers can only be installed from the
+:class:`StopRequest` installs handlers that only set a flag, which the trainers poll: the MAGDDPG /
+MAGRDPG loop at episode-batch boundaries (so the checkpoint resumes exactly), ES between and inside
+generations, the guided preparation phases between their steps. A second signal of either kind stops
+at once (``KeyboardInterrupt``), keeping the last checkpoint. Handlers can only be installed from the
 main thread; elsewhere (e.g. a Ray worker thread) nothing is installed and Ctrl-C arrives as
 ``KeyboardInterrupt``, which the loop handles the same way.
 """

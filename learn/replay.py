@@ -186,11 +186,6 @@ class EpisodeReplay:
         self.step = k
         self.filled[self.active] = k
 
-    def drop_active(self) -> None:
-        """Forget the episodes being collected (an interrupted batch): their slots become empty."""
-        self.filled[self.active] = 0
-        self.step = 0
-
     # --- sampling ------------------------------------------------------------------------------
     def _buffer(self, key: tuple, shape: tuple[int, ...]) -> torch.Tensor:
         buf = self._buffers.get(key)

@@ -77,6 +77,8 @@ class Counters:
     eval_s: float = 0.0  # of which: evaluations (and their logging and exports)
     checkpoint_s: float = 0.0  # of which: writing checkpoints
     rows: list = field(default_factory=list)  # metrics.csv rows
+    pending_returns: list = field(default_factory=list)  # training episode returns since the last evaluation
+    pending_losses: list = field(default_factory=list)  # [critic loss, Q mean, BC pass] per update since then
 
 
 @dataclass

@@ -17,8 +17,10 @@ TensorBoard), exports the policies and checkpoints (incrementally, :mod:`learn.c
 
 Resume is exact: a run resumed from a checkpoint continues as if it had never stopped (networks,
 optimisers, replay, every RNG stream, counters). SIGKILL loses only what came after the last
-checkpoint. SIGINT / SIGTERM (:mod:`learn.interrupt`) stop at the next step: the unfinished episodes
-are dropped, everything learned so far is checkpointed, and the CLI exits 130 / 143.
+checkpoint. SIGINT / SIGTERM (:mod:`learn.interrupt`) finish the episode batch under way (with its
+updates, evaluation and logging, as an uninterrupted run would), checkpoint at that boundary and exit
+130 / 143, so a resumed run is exactly the uninterrupted one; a second signal stops at once and keeps the
+last checkpoint (as SIGKILL would).
 The run directory's files are listed in :mod:`learn.rundir`.
 """
 from __future__ import annotations
@@ -166,11 +168,12 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
                                       lambda: wall_at_start + (time.perf_counter() - session_start))
         except (Interrupted, KeyboardInterrupt) as e:
             result.stopped = "interrupted"
-            result.signal = e.signum if isinstance(e, Interrupted) else 2
-            if prepared and (guided or ckpt.exists() or c.updates or c.env_steps):
-                save()
+            result.signal = e.signum if isinstance(e, Interrupted) else stop.requested or 2
+            if prepared and isinstance(e, Interrupted):  # run_loop checkpointed at an episode boundary
                 export("policy_last.npz", c.rows[-1] if c.rows else {})
-                log("interrupted: checkpoint written; --resume continues from it")
+                log("interrupted: checkpoint written; --resume continues from it exactly")
+            elif prepared and ckpt.exists():  # a second signal: stopped at once, the last checkpoint stays
+                log("stopped at once: the last checkpoint stays; --resume continues from it exactly")
             else:
                 log("interrupted before training started: no checkpoint; --resume restarts the run")
         finally:
@@ -190,8 +193,14 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
     per_step = sum(g.n_envs for g in groups)  # transitions per control step, all sizes
     session_start = time.perf_counter()
     last_plot = -math.inf
-    train_returns: list[float] = []
-    losses: list[tuple[float, float, float]] = []
+    train_returns, losses = c.pending_returns, c.pending_losses  # since the last evaluation (checkpointed)
+    noticed = False
+
+    def stop_at_boundary() -> None:
+        """At an episode boundary, after a stop request: checkpoint and stop (resume is then exact)."""
+        if stop.requested:
+            save()
+            raise Interrupted(stop.requested)
 
     def one_update() -> None:
         parts = []
@@ -200,42 +209,36 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
             if nd and g.demos is not None:
                 parts.append((algo.sample(g.demos, nd, sample_rng), True))
         st = algo.update_parts(parts, cfg.bc_weight, train_actor=c.updates >= cfg.actor_delay)
-        losses.append((st.critic_loss, st.q_mean, st.bc_pass))
+        losses.append([st.critic_loss, st.q_mean, st.bc_pass])
         c.updates += 1
 
     while c.episodes < cfg.total_episodes:
-        stop.check()
+        stop_at_boundary()
         t0 = time.perf_counter()
         upd_time = 0.0
         for g in groups:
             g.begin(env_rng)
         learning = c.episodes >= cfg.warmup_episodes
-        done = 0
-        try:
-            for t in range(T):
-                for g in groups:
-                    truncated = g.step()
-                done += 1
-                c.env_steps += per_step
-                if learning:
-                    c.update_debt += per_step * cfg.updates_per_step
-                    if (t + 1) % cfg.update_every == 0 or t == T - 1:
-                        u0 = time.perf_counter()
-                        n = int(c.update_debt)
-                        for _ in range(n):
-                            one_update()
-                        c.update_debt -= n
-                        upd_time += time.perf_counter() - u0
-                if bar is not None:
-                    bar.update(per_step)
-                stop.check()
-        except (Interrupted, KeyboardInterrupt):
-            for g in groups:  # the unfinished episodes are dropped: the checkpoint ends at an episode boundary
-                g.replay.drop_active()
-            c.env_steps -= done * per_step
-            c.update_s += upd_time
-            c.env_s += time.perf_counter() - t0 - upd_time
-            raise
+        for t in range(T):
+            for g in groups:
+                truncated = g.step()
+            c.env_steps += per_step
+            if learning:
+                c.update_debt += per_step * cfg.updates_per_step
+                if (t + 1) % cfg.update_every == 0 or t == T - 1:
+                    u0 = time.perf_counter()
+                    n = int(c.update_debt)
+                    for _ in range(n):
+                        one_update()
+                    c.update_debt -= n
+                    upd_time += time.perf_counter() - u0
+            if bar is not None:
+                bar.update(per_step)
+            if stop.requested and not noticed:
+                noticed = True
+                msg = (f"stopping: finishing this episode batch ({T - 1 - t} steps left) and checkpointing, so "
+                       f"--resume is exact; a second Ctrl-C stops at once (the last checkpoint stays)")
+                bar.write(msg) if bar is not None else log(msg)
         assert np.all(truncated), "the env did not truncate after episode_steps steps"
         c.episodes += per_step
         for g in groups:
@@ -253,7 +256,8 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
             evaluate_and_log(cfg, algo, evaluators, c, train_returns, losses, run_dir, export, log, bar, tb, plot,
                              demos=any(g.demos is not None for g in groups))
             last_plot = time.perf_counter() if plot else last_plot
-            train_returns, losses = [], []
+            train_returns.clear()
+            losses.clear()
             while c.next_eval <= c.env_steps:
                 c.next_eval += cfg.eval_every
             c.eval_s += time.perf_counter() - e0
@@ -261,7 +265,7 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
                 save()
         if over_time:
             return "time"
-    return "done"
+    return "done"  # a signal during the last episode batch: the run completed all the same
 
 
 def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, run_dir: Path, export, log, bar, tb,

@@ -28,26 +28,33 @@ def test_killed_export_leaves_old_or_new_set(tmp_path, sets, sig, moment):
     assert r.after in ("old", "new")
 
 
+#: episodes after warm-up / ES generations of each case: SIGKILL after the first checkpoint (4: two checkpoints,
+#: then the end); SIGINT, which finishes the episode batch it lands in, needs batches left after the first one
+CASES = {("magddpg", signal.SIGKILL): 4, ("es", signal.SIGKILL): 4, ("magddpg", signal.SIGINT): 100}
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
-    """The short MAGDDPG and ES trainings, uninterrupted: {algorithm: (duration, episodes, run directory)}."""
-    root = tmp_path_factory.mktemp("uninterrupted")
-    return {a: kh.uninterrupted_training(root, a, CI_LENGTH[a]) for a in CI_LENGTH}
+    """The short trainings, uninterrupted, run on first use: {(algorithm, length): (duration, episodes, run dir)}."""
+    root, runs = tmp_path_factory.mktemp("uninterrupted"), {}
+
+    def get(algorithm: str, length: int):
+        if (algorithm, length) not in runs:
+            runs[algorithm, length] = kh.uninterrupted_training(root / f"{algorithm}{length}", algorithm, length)
+        return runs[algorithm, length]
+    return get
 
 
-CI_LENGTH = {"magddpg": 4, "es": 4}  #: episodes after warm-up / generations: two checkpoints, then the end
-
-
-@pytest.mark.parametrize("algorithm", ["magddpg", "es"])
-def test_killed_training_resumes_to_the_uninterrupted_outputs(tmp_path, uninterrupted, algorithm):
-    """A training SIGKILLed at a random moment after its first checkpoint and resumed ends with the uninterrupted
-    run's outputs: policy arrays bit-identical, the same meta and metrics but for time taken."""
-    duration, episodes, ref = uninterrupted[algorithm]
-    rng = np.random.default_rng(np.random.SeedSequence([7, len(algorithm)]))
-    r = kh.kill_training(tmp_path / "run", signal.SIGKILL, "training", rng, duration, episodes, ref, algorithm,
-                         CI_LENGTH[algorithm])
+@pytest.mark.parametrize("algorithm, sig", list(CASES))
+def test_killed_training_resumes_to_the_uninterrupted_outputs(tmp_path, uninterrupted, algorithm, sig):
+    """A training SIGKILLed (or SIGINTed) at a random moment after its first checkpoint and resumed ends with the
+    uninterrupted run's outputs: policy arrays bit-identical, the same meta and metrics but for time taken."""
+    length = CASES[algorithm, sig]
+    duration, episodes, ref = uninterrupted(algorithm, length)
+    rng = np.random.default_rng(np.random.SeedSequence([7, len(algorithm), sig]))
+    r = kh.kill_training(tmp_path / "run", sig, "training", rng, duration, episodes, ref, algorithm, length)
     assert r.ok, r
-    assert r.rc == -signal.SIGKILL and r.how == "resumed" and r.identical
+    assert r.rc == (-signal.SIGKILL if sig == signal.SIGKILL else 130) and r.how == "resumed" and r.identical
     assert r.phase in ("checkpoint write", "between checkpoints")
 
 
@@ -55,7 +62,7 @@ def test_output_comparison_sees_a_changed_weight(tmp_path, uninterrupted):
     """The identical-output check fails on a policy whose one weight differs by one ulp (it can fail)."""
     import shutil
 
-    _, _, ref = uninterrupted["magddpg"]
+    _, _, ref = uninterrupted("magddpg", CASES["magddpg", signal.SIGKILL])
     d = tmp_path / "copy"
     shutil.copytree(ref, d)
     assert kh.output_differences(ref, d) == []

@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -111,3 +112,59 @@ def test_evaluate_error_leaves_no_output_directory(tmp_path, capsys):
                  "--steps", "5", "--n-envs", "1", "--no-gif", "--out", str(ev), "--quiet"]) == 2
     assert "spawn area" in capsys.readouterr().err
     assert not ev.exists() and not ev.parent.exists() and not list(tmp_path.glob(".*tmp"))
+
+
+TIME_FIELDS = ("wall_s", "env_steps_per_s", "updates_per_s")
+
+
+@pytest.mark.parametrize("algorithm", ["magddpg", "magrdpg"])
+def test_sigint_mid_episode_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch, algorithm):
+    """SIGINT in the middle of a learning episode batch that no evaluation ends: the batch is finished and
+    checkpointed (exit 130); resuming gives the uninterrupted run's networks, optimisers, replay, RNG streams
+    and metrics rows bit for bit (MLP and GRU)."""
+    import learn.groups as groups
+    from learn.config import RecurrentConfig, TrainConfig
+    from learn.train import train
+
+    tiny = dict(n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=10, eval_every=120,
+                eval_episodes=2, replay_size=400, seed=6, threads=1)
+    cfg = (TrainConfig(**tiny, t_prev=3, actor_hidden=(8,), critic_hidden=(16,), batch_size=8, updates_per_step=0.5)
+           if algorithm == "magddpg" else
+           RecurrentConfig(**tiny, batch_windows=4, unroll=4, burn_in=3, hidden=6, critic_hidden=(16,)))
+    quiet = lambda m: None  # noqa: E731
+    full = train(cfg, tmp_path / "full", progress=False, log=quiet)
+    real, calls = groups.EnvGroup.step, []
+
+    def interrupting(self):
+        calls.append(1)
+        if len(calls) == 3 * 20 + 7:  # step 7 of batch 4 (of 5): evaluations end batches 1, 3 and 5
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # what delivery runs, here and now
+        return real(self)
+
+    monkeypatch.setattr(groups.EnvGroup, "step", interrupting)
+    cut = train(cfg, tmp_path / "cut", progress=False, log=quiet)
+    monkeypatch.setattr(groups.EnvGroup, "step", real)
+    assert cut.stopped == "interrupted" and cut.exit_status == 130 and len(calls) == 4 * 20
+    ck = load_checkpoint(tmp_path / "cut")
+    assert ck["counters"]["episodes"] == 8 and ck["counters"]["evals"] == 2 and ck["counters"]["pending_losses"]
+    train(cfg, tmp_path / "cut", resume=True, progress=False, log=quiet)
+    a, b = load_checkpoint(tmp_path / "full"), load_checkpoint(tmp_path / "cut")
+    for part in ("actor", "critic", "actor_target", "critic_target"):
+        for k in a["agent"][part]:
+            torch.testing.assert_close(a["agent"][part][k], b["agent"][part][k], rtol=0, atol=0)
+    for k in a["agent"]["critic_opt"]["state"]:
+        torch.testing.assert_close(a["agent"]["critic_opt"]["state"][k]["exp_avg_sq"],
+                                   b["agent"]["critic_opt"]["state"][k]["exp_avg_sq"], rtol=0, atol=0)
+    torch.testing.assert_close(a["replay"][0]["tuples"], b["replay"][0]["tuples"], rtol=0, atol=0)
+    assert all(a["rng"][k] == b["rng"][k] for k in ("env", "noise", "replay", "augment", "demo"))
+    assert torch.equal(a["rng"]["torch"], b["rng"]["torch"])
+    rows_a = [{k: v for k, v in r.items() if k not in TIME_FIELDS} for r in a["counters"]["rows"]]
+    rows_b = [{k: v for k, v in r.items() if k not in TIME_FIELDS} for r in b["counters"]["rows"]]
+    assert len(rows_a) == 3 and np.array_equal(rows_array(rows_a), rows_array(rows_b), equal_nan=True)
+    assert full.counters.updates == load_checkpoint(tmp_path / "cut")["counters"]["updates"]
+
+
+def rows_array(rows: list[dict]) -> np.ndarray:
+    """Metrics rows as one float array (columns in a fixed order), NaN kept."""
+    keys = sorted(rows[0])
+    return np.array([[float(r[k]) for k in keys] for r in rows])
