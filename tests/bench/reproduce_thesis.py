@@ -80,6 +80,8 @@ def sh(cmd: list[str], dry: bool, log: Path | None = None, background: bool = Fa
     print("$ " + " ".join(shlex.quote(c) for c in cmd), flush=True)
     if dry:
         return None
+    if log is not None:
+        log.parent.mkdir(parents=True, exist_ok=True)  # runs/ does not exist in a fresh clone
     out = open(log, "w") if log is not None else None
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT if out else None)
     return p if background else p.wait()
