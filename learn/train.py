@@ -237,7 +237,7 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
             if stop.requested and not noticed:
                 noticed = True
                 msg = (f"stopping: finishing this episode batch ({T - 1 - t} steps left) and checkpointing, so "
-                       f"--resume is exact; a second Ctrl-C stops at once (the last checkpoint stays)")
+                       f"--resume is exact; a second signal stops at once (the last checkpoint stays)")
                 bar.write(msg) if bar is not None else log(msg)
         assert np.all(truncated), "the env did not truncate after episode_steps steps"
         c.episodes += per_step
