@@ -265,7 +265,7 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
                 save()
         if over_time:
             return "time"
-    return "done"  # a signal during the last episode batch: the run completed all the same
+    return "done"  # also after a signal during the last episode batch: the run is complete
 
 
 def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, run_dir: Path, export, log, bar, tb,
