@@ -19,6 +19,7 @@ from export.codegen.manifest import verify_manifest
 from kiloforge import io as kio
 from kiloforge.errors import InputError, PolicyError
 from kiloforge.policies import load_policy, save_policy
+from signal_delivery import deliver
 from sim.__main__ import main as sim_main
 from sim.config import WorldConfig, preset
 
@@ -255,15 +256,6 @@ def _two_exports(tmp_path, capsys):
     assert rc == 0, err
     old = {n: (tmp_path / n).read_bytes() for n in EXPORT_FILES}
     return old, ["--out", str(out), "--seed", "2", "--calib-steps", "6", "--target-uids", "0,7"] + FAST[2:]
-
-
-def deliver(signum: int) -> None:
-    """Run the handler installed for ``signum`` here and now, as the interpreter would on delivery. A raised
-    signal is handled at the interpreter's next check, which can fall inside a finalizer run by the garbage
-    collector, where CPython prints and drops the exception: the test would then be about that timing."""
-    handler = signal.getsignal(signum)
-    assert callable(handler), f"no Python handler for {signal.Signals(signum).name}: {handler!r}"
-    handler(signum, None)
 
 
 def test_sigint_inside_the_final_renames_finishes_the_set(tmp_path, capsys, monkeypatch):

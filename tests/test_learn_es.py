@@ -11,6 +11,7 @@ from learn.config import ConfigError, ESConfig, from_preset  # noqa: E402
 from learn.es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population  # noqa: E402
 from learn.es_train import train_es  # noqa: E402
 from learn.networks import Actor  # noqa: E402
+from signal_delivery import deliver  # noqa: E402
 from sim.config import preset  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.history import History  # noqa: E402
@@ -150,7 +151,7 @@ def test_sigint_mid_generation_checkpoints_and_resumes_exactly(tmp_path, monkeyp
     def interrupting(*a, **k):
         calls.append(1)
         if len(calls) == 5:  # generation 3, first swarm size
-            signal.raise_signal(signal.SIGINT)
+            deliver(signal.SIGINT)
         return real(*a, **k)
 
     monkeypatch.setattr(et, "rollout_population", interrupting)

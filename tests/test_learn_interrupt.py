@@ -15,6 +15,9 @@ torch = pytest.importorskip("torch")
 from learn.__main__ import main  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 
+import kill_harness as kh  # noqa: E402
+from signal_delivery import deliver  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden", "16",
         "--n-envs", "2", "--warmup-episodes", "2", "--batch-size", "8", "--replay-size", "400",
@@ -114,9 +117,6 @@ def test_evaluate_error_leaves_no_output_directory(tmp_path, capsys):
     assert not ev.exists() and not ev.parent.exists() and not list(tmp_path.glob(".*tmp"))
 
 
-TIME_FIELDS = ("wall_s", "env_steps_per_s", "updates_per_s")
-
-
 @pytest.mark.parametrize("algorithm", ["magddpg", "magrdpg"])
 def test_sigint_mid_episode_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch, algorithm):
     """SIGINT in the middle of a learning episode batch that no evaluation ends: the batch is finished and
@@ -138,7 +138,7 @@ def test_sigint_mid_episode_resumes_to_the_uninterrupted_run(tmp_path, monkeypat
     def interrupting(self):
         calls.append(1)
         if len(calls) == 3 * 20 + 7:  # step 7 of batch 4 (of 5): evaluations end batches 1, 3 and 5
-            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # what delivery runs, here and now
+            deliver(signal.SIGINT)
         return real(self)
 
     monkeypatch.setattr(groups.EnvGroup, "step", interrupting)
@@ -158,8 +158,8 @@ def test_sigint_mid_episode_resumes_to_the_uninterrupted_run(tmp_path, monkeypat
     torch.testing.assert_close(a["replay"][0]["tuples"], b["replay"][0]["tuples"], rtol=0, atol=0)
     assert all(a["rng"][k] == b["rng"][k] for k in ("env", "noise", "replay", "augment", "demo"))
     assert torch.equal(a["rng"]["torch"], b["rng"]["torch"])
-    rows_a = [{k: v for k, v in r.items() if k not in TIME_FIELDS} for r in a["counters"]["rows"]]
-    rows_b = [{k: v for k, v in r.items() if k not in TIME_FIELDS} for r in b["counters"]["rows"]]
+    rows_a = [{k: v for k, v in r.items() if k not in kh.TIMING} for r in a["counters"]["rows"]]
+    rows_b = [{k: v for k, v in r.items() if k not in kh.TIMING} for r in b["counters"]["rows"]]
     assert len(rows_a) == 3 and np.array_equal(rows_array(rows_a), rows_array(rows_b), equal_nan=True)
     assert full.counters.updates == load_checkpoint(tmp_path / "cut")["counters"]["updates"]
 
