@@ -244,7 +244,11 @@ def init_policy_of(cfg: ESConfig, algo: MAGDDPG, world):
         raise ConfigError(f"init_policy: {e}") from None
     ours = algo.artifact(world, {})
     same_kind = p.kind == ours.kind
-    what = {"kind": (p.kind, ours.kind), "world": (p.world.to_json(), world.to_json()), "t_prev": (p.t_prev, ours.t_prev),
+    # the episode length is how long training plays, not part of the world a policy acts in
+    def same_length(w):
+        return w.to_dict() | {"episode_steps": world.episode_steps}
+
+    what = {"kind": (p.kind, ours.kind), "world": (same_length(p.world), world.to_dict()), "t_prev": (p.t_prev, ours.t_prev),
             "layers": (p.layer_sizes, ours.layer_sizes) if same_kind else (0, 0),
             "activations": (list(p.activations), list(ours.activations)) if same_kind else (0, 0)}
     diff = [k for k, (x, y) in what.items() if x != y]

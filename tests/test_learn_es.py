@@ -201,3 +201,18 @@ def test_init_policy_starts_from_the_artifact(tmp_path):
     assert not (tmp_path / "bad").exists()
     with pytest.raises(ConfigError, match="init_policy must be"):
         ESConfig(init_policy="x.pt").validate()
+
+
+def test_init_policy_may_train_with_another_episode_length(tmp_path):
+    """--init-policy accepts an artifact trained with other training-episode steps (same world otherwise)
+    and refuses one of another world with one line."""
+    from learn.es_train import actor_algo, init_policy_of
+
+    train_es(ESConfig(**TINY, seed=4), tmp_path / "src", progress=False, log=_quiet)
+    start = str(tmp_path / "src" / "policy_last.npz")
+    longer = ESConfig(**{**TINY, "episode_steps": 2 * TINY["episode_steps"]}, init_policy=start)
+    algo = actor_algo(longer, longer.world_config())
+    assert init_policy_of(longer, algo, longer.world_config()).hash == load_policy(start).hash
+    other = ESConfig(**{**TINY, "world": "thesis"}, init_policy=start)
+    with pytest.raises(ConfigError, match="differs from this run in world"):
+        init_policy_of(other, actor_algo(other, other.world_config()), other.world_config())
