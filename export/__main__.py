@@ -12,8 +12,9 @@ try:
     from kiloforge.cli import run_guarded
     from kiloforge.interrupts import run_entry_point
 finally:
-    for _s, _h in _previous.items():
-        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
+    if __name__ != "__main__":  # run as the program: held until kiloforge.interrupts.run_entry_point takes over
+        for _s, _h in _previous.items():
+            _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def _load():

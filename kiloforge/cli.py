@@ -107,10 +107,26 @@ def missing_dependency(prog: str, err: ModuleNotFoundError) -> str | None:
     return f"{prog} needs {top} (a dependency of kiloforge): pip install {CORE[top]}" if top in CORE else None
 
 
-def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
+def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None,
+                program: bool = True, held: Sequence[int] = ()) -> int:
     """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
     own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
-    dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`missing_dependency`)."""
+    dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`missing_dependency`).
+    ``program``: this is the process's own command line (signals are ignored once the command has returned;
+    ``held``: what its ``__main__`` module held back, :func:`kiloforge.interrupts.as_program`); a Ctrl-C before
+    the command's entry point took over ends in one line (130)."""
+    from .interrupts import as_program, exit_status
+
+    if program:
+        as_program(held)
+    try:
+        return _run_guarded(prog, load, argv)
+    except KeyboardInterrupt as e:  # run_entry_point handles every one from its start to the program's end
+        print(f"{prog}: error: interrupted before it started; nothing written", file=sys.stderr)
+        return exit_status(e)
+
+
+def _run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
     from .interrupts import Interrupted, deferred
 
     try:
@@ -132,8 +148,20 @@ def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]]
         return EXIT_USAGE
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``kiloforge`` command; returns the exit status."""
+def main(argv: Sequence[str] | None = None, held: Sequence[int] = ()) -> int:
+    """Entry point of the ``kiloforge`` command; returns the exit status (``held``: the signals
+    ``python -m kiloforge`` held back while it loaded, a list its holders go on appending to)."""
+    from .interrupts import exit_status
+
+    try:
+        return _main(argv, held)
+    except KeyboardInterrupt as e:  # before a command started (its entry point reports its own)
+        print("kiloforge: error: interrupted; nothing written", file=sys.stderr)
+        return exit_status(e)
+
+
+def _main(argv: Sequence[str] | None, held: Sequence[int]) -> int:
+    program = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(usage(), file=sys.stdout if argv else sys.stderr)
@@ -149,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     prog = f"kiloforge {name}"
     with invoked_as(" ".join(["python -m", cmd.module.partition(".")[0], *cmd.prefix]), prog):
-        return run_guarded(prog, lambda: importlib.import_module(cmd.module).main, [*cmd.prefix, *rest])
+        return run_guarded(prog, lambda: importlib.import_module(cmd.module).main, [*cmd.prefix, *rest], program, held)
 
 
 def _script(package: str) -> Callable[[], int]:

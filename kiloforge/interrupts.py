@@ -6,9 +6,11 @@
   (:mod:`kiloforge.io` publishing a set of files), and raises :class:`Interrupted` after it;
 * :func:`run_entry_point` is what a ``__main__`` module runs: it loads the command's modules with
   Ctrl-C (or SIGTERM) ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
-  the command, and ignores signals once the program (``argv`` None) has returned (nothing is left to
-  interrupt). A ``__main__`` module's first lines hold a Ctrl-C or SIGTERM back (with the built-in ``_signal``,
-  before this module and its imports load) and pass what they held as ``held``.
+  the command, and ignores signals once the program (``argv`` None, or :func:`as_program`) has returned
+  (nothing is left to interrupt). A ``__main__`` module's first lines hold a Ctrl-C or SIGTERM back (with the
+  built-in ``_signal``, before this module and its imports load) and pass what they held as ``held``; run as
+  the program they keep holding until :func:`run_entry_point` takes over, so no moment is left to Python's
+  default handler (a traceback).
 
 Handlers can only be installed from the main thread; elsewhere both are no-ops (Python delivers
 ``KeyboardInterrupt`` to the main thread only).
@@ -78,36 +80,61 @@ def deferred() -> Iterator[None]:
         raise Interrupted(got[0])
 
 
+_program = False  #: set by :func:`as_program`: the command run is this process's own command line
+_held_before: Sequence[int] = ()  #: what an outer ``__main__`` module (``python -m kiloforge``) holds back
+
+
+def as_program(held: Sequence[int] = ()) -> None:
+    """Mark this process a command-line program: once :func:`run_entry_point` has run its command, only the
+    exit is left, and signals are ignored (the in-process callers, tests, keep their handlers). ``held``: the
+    list an outer ``__main__`` module's holders append to, looked at with :func:`run_entry_point`'s own."""
+    global _program, _held_before
+    _program, _held_before = True, held
+
+
 def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], argv: Sequence[str] | None,
                     message: str, held: Sequence[int] = ()) -> int:
     """``load()`` (the imports of a command, returning its ``main``), then ``main(argv)``; a SIGINT or SIGTERM
-    while loading, or one already ``held`` back by the ``__main__`` module's first lines, prints ``message``
-    and returns 128 + the signal (130 / 143)."""
+    while loading, one already ``held`` back by the ``__main__`` module's first lines, or one that leaves
+    ``main`` before its own handling began, prints ``message`` and returns 128 + the signal (130 / 143).
+
+    One handler covers the whole call, so no moment is left to Python's default: a signal inside the command
+    (or its imports) raises there (``KeyboardInterrupt`` / :class:`Interrupted`), one between the steps of this
+    function is held and looked at. Once ``main`` has returned, a program (``argv`` None or :func:`as_program`)
+    ignores signals; an in-process caller gets its handlers back."""
     import sys
 
-    if held:
-        print(message, file=sys.stderr)
-        return 128 + held[0]
+    here = sys._getframe().f_code
     got: list[int] = []
 
     def on_signal(signum: int, frame: Any) -> None:
         got.append(signum)
-        raise KeyboardInterrupt
+        if frame is None or frame.f_code is not here:
+            raise KeyboardInterrupt if signum == signal.SIGINT else Interrupted(signum)
 
-    previous = {s: signal.signal(s, on_signal) for s in SIGNALS} if _main_thread() else {}
+    main_thread = _main_thread()
+    finishing = main_thread and (argv is None or _program)
+    previous = {s: signal.signal(s, on_signal) for s in SIGNALS} if main_thread else {}
     try:
-        main = load()
-    except BaseException:
-        if not got:
-            raise
+        main = None
+        held = [*held, *_held_before]
+        if not held:
+            try:
+                main = load()
+            except BaseException:
+                if not got:
+                    raise
+        if held or got:
+            print(message, file=sys.stderr)
+            return 128 + (held or got)[0]
+        try:
+            return main(argv)
+        except KeyboardInterrupt as e:  # before the command's own handling of a Ctrl-C began: nothing done
+            print(message, file=sys.stderr)
+            return exit_status(e)
     finally:
         for s, h in previous.items():
-            _restore(s, h)
-    if got:
-        print(message, file=sys.stderr)
-        return 128 + got[0]
-    status = main(argv)
-    if argv is None and _main_thread():  # the program (argv from sys.argv) has finished: only the exit is left
-        for s in SIGNALS:
-            signal.signal(s, signal.SIG_IGN)
-    return status
+            if finishing:
+                signal.signal(s, signal.SIG_IGN)
+            else:
+                _restore(s, h)

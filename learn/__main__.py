@@ -29,8 +29,9 @@ try:
     from kiloforge.validate import int_arg, seed_arg
     from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 finally:
-    for _s, _h in _previous.items():
-        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
+    if __name__ != "__main__":  # run as the program: held until kiloforge.interrupts.run_entry_point takes over
+        for _s, _h in _previous.items():
+            _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 
 def build_parser() -> ArgumentParser:

@@ -25,7 +25,7 @@ import re
 import shlex
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Callable, Optional
 
 import tyro
 
@@ -191,6 +191,7 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
     prog = program(prog)
     argv = sys.argv[1:] if argv is None else list(argv)
     load, report = TRAINERS[cls.algorithm]
+    res = None
     try:
         train = load()
         cfg, out, resume, quiet = parse_train_args(argv, cls, prog, default_preset)
@@ -198,13 +199,22 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
         if note:
             print(f"note: {note}; it trains, but the exporter will refuse it", file=sys.stderr)
         res = train(cfg, out, resume=resume, progress=not quiet)
+        _report(res, report, prog)
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # outside the trainer's own handling (which checkpoints): loading, setting up, ending
-        print(f"{prog}: error: interrupted; the run directory keeps its last checkpoint, if any "
-              "(--resume continues it, or restarts a run without one)", file=sys.stderr)
+        if res is not None:
+            print(f"{prog}: error: interrupted while reporting; the run in {res.run_dir} is complete", file=sys.stderr)
+        else:
+            print(f"{prog}: error: interrupted; the run directory keeps its last checkpoint, if any "
+                  "(--resume continues it, or restarts a run without one)", file=sys.stderr)
         return exit_status(e)
+    return res.exit_status
+
+
+def _report(res: Any, report: Callable[[Any], None], prog: str) -> None:
+    """What a finished run prints: where it is, its numbers, its policies and the export command for them."""
     print(f"run: {res.run_dir}  ({res.stopped})")
     report(res)
     pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
@@ -214,7 +224,6 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
         exporter = "kiloforge export" if prog.startswith("kiloforge") else "python -m export"
         print(f"  next: {exporter} --policy {shlex.quote(pols[0])} --out kilobot_policy.c   (the firmware C of the "
               f"{Path(pols[0]).stem.removeprefix('policy_')} policy)")
-    return res.exit_status
 
 
 def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:

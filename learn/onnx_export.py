@@ -289,6 +289,7 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
     """``export-onnx --policy P.npz --out actor.onnx [--opset 17]``; returns the exit status."""
     from kiloforge.cli import missing_dependency
     from kiloforge.cliparse import ArgumentParser, error_line, program
+    from kiloforge.interrupts import exit_status
 
     prog = "python -m learn export-onnx"
     ap = ArgumentParser(prog=prog,
@@ -298,10 +299,17 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="ONNX file to write, e.g. actor.onnx")
     ap.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
     args = ap.parse_args(argv)
+    written = False
     try:
         pol = load_policy(args.policy)
-        export_onnx(pol, args.out, opset=args.opset)
+        export_onnx(pol, args.out, opset=args.opset)  # atomic: the old file or the new one
+        written = True
         diff, check = check_with_onnxruntime(args.out, pol)
+        return _report_onnx(prog, args, pol, diff, check)
+    except KeyboardInterrupt as e:
+        what = f"after writing {args.out} (complete)" if written else "; nothing written"
+        print(error_line(program(prog), f"interrupted {what}".replace(" ;", ";")), file=sys.stderr)
+        return exit_status(e)
     except KiloforgeError as e:
         print(error_line(program(prog), e), file=sys.stderr)
         return 2
@@ -311,6 +319,12 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
             raise
         print(line, file=sys.stderr)
         return 2
+
+
+def _report_onnx(prog: str, args: Any, pol: Any, diff: float | None, check: str) -> int:
+    """The line of a written ONNX file, and exit status 1 when onnxruntime disagrees with the policy."""
+    from kiloforge.cliparse import error_line, program
+
     sizes = " -> ".join(str(s) for s in pol.layer_sizes)
     print(f"wrote {args.out}: {sizes} ({', '.join(pol.activations)}), opset {args.opset}, world '{pol.world.name}', "
           f"t_prev {pol.t_prev}; {check}")

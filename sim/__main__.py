@@ -38,8 +38,9 @@ try:
 
     from .config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset
 finally:
-    for _s, _h in _previous.items():
-        _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
+    if __name__ != "__main__":  # run as the program: held until kiloforge.interrupts.run_entry_point takes over
+        for _s, _h in _previous.items():
+            _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000

@@ -19,7 +19,8 @@ ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONWARNINGS="ignore")
 EXPORT_FILES = ("kilobot_policy.c", "kilobot_target.c", "kilobot_policy.c.manifest.json")
 EXPORT_ARGS = ["--robots-calib", "2", "--calib-steps", "4", "--no-avr", "--quiet"]
 #: what CPython prints when a SIGINT lands in its own start-up, before the program's first line
-CPYTHON_START_UP = ("Could not import runpy module", "'import warnings' failed", "'import site' failed")
+CPYTHON_START_UP = ("Could not import runpy module", "'import warnings' failed", "'import site' failed",
+                    "init_import_site: Failed to import the site module")  # CPython >= 3.9, exit status 1
 
 
 class NotLanded(RuntimeError):

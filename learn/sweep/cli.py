@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from kiloforge.cliparse import ArgumentParser, error_line, program
+from kiloforge.interrupts import exit_status
 
 from ..config import ConfigError
 from . import trial as tr
@@ -99,6 +100,10 @@ def main_sweep(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(error_line(program(PROG), e), file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # trials checkpoint as they train; the summary is written atomically
+        print(error_line(program(PROG), "interrupted; finished trials and the others' checkpoints are kept "
+                                        "(the same command resumes the sweep)"), file=sys.stderr)
+        return exit_status(e)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -1,0 +1,64 @@
+"""A Ctrl-C or SIGTERM at any line of the entry-point plumbing (the ``__main__`` modules, kiloforge.cli,
+kiloforge.interrupts, the start of each command's ``main``) ends in one line and 130 / 143, or, once the
+command is done, in its own exit status: never a traceback (tests/signal_at_line.py raises the signal)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = Path(__file__).with_name("signal_at_line.py")
+ENV = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONWARNINGS="ignore")
+PLUMBING = "kiloforge/cli.py,kiloforge/interrupts.py"
+
+#: name: (package, its traced functions, arguments, exit status uninterrupted, every how many lines)
+CASES = {
+    "export": ("export", "export/__main__.py,export/cli/main.py:main",
+               ["--out", "kilobot_policy.c", "--seed", "2", "--robots-calib", "2", "--calib-steps", "4",
+                "--no-avr", "--quiet"], 0, 1),
+    "kiloforge export": ("kiloforge", "kiloforge/__main__.py,export/__main__.py,export/cli/main.py:main",
+                         ["export", "--out", "kilobot_policy.c", "--seed", "2", "--robots-calib", "2",
+                          "--calib-steps", "4", "--no-avr", "--quiet"], 0, 3),
+    "sim": ("sim", "sim/__main__.py:<module>,sim/__main__.py:main,sim/__main__.py:_main", ["--help"], 0, 4),
+    # learn imports torch for every command (seconds a run): a sample of its lines
+    "learn": ("learn", "learn/__main__.py:<module>,learn/__main__.py:main,learn/__main__.py:_main",
+              ["plot", "no-such-run"], 2, 25),
+}
+
+
+def run(tmp: Path, sig: str, n: int, case: str) -> subprocess.CompletedProcess:
+    package, traced, args, _, _ = CASES[case]
+    d = tmp / f"{sig}-{n}"
+    d.mkdir()
+    return subprocess.run([sys.executable, str(SCRIPT), sig, str(n), f"{traced},{PLUMBING}", package, *args],
+                          cwd=d, env=ENV, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_a_signal_at_any_plumbing_line_ends_in_one_line(tmp_path, case):
+    """Every traced line (or every k-th, alternating SIGINT and SIGTERM): exit 130 / 143 with a last line saying
+    'interrupted', or the uninterrupted status; no traceback in any."""
+    clean = run(tmp_path, "SIGINT", 0, case)
+    status, stride = CASES[case][3], CASES[case][4]
+    assert clean.returncode == status, clean.stderr
+    lines = int(clean.stderr.rsplit("lines: ", 1)[1])
+    assert lines > 100, clean.stderr  # the tracing saw the plumbing run
+    moments = [(("SIGINT", "SIGTERM")[i % 2], n) for i, n in enumerate(range(1, lines + 1, stride))]
+    with ThreadPoolExecutor(max(1, min(4, os.cpu_count() or 1))) as pool:
+        results = list(pool.map(lambda m: (m, run(tmp_path, *m, case)), moments))
+    problems = []
+    for (sig, n), r in results:
+        err = r.stderr.strip()
+        stopped = r.returncode == 128 + signal.Signals[sig]
+        if "Traceback" in err or not (stopped or r.returncode == status):
+            problems.append(f"{sig} at line {n}: exit {r.returncode}: {err[-600:]}")
+        elif stopped and "interrupted" not in err.splitlines()[-1]:
+            problems.append(f"{sig} at line {n}: exit {r.returncode} without saying so: {err[-300:]}")
+    assert not problems, f"{len(problems)} of {len(moments)}:\n" + "\n".join(problems[:5])
+    assert any(r.returncode != status for _, r in results)  # some signals did stop the command
