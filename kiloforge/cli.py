@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -117,10 +118,9 @@ def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]]
     the command's entry point took over ends in one line (130)."""
     from .interrupts import as_program, exit_status
 
-    if program:
-        as_program(held)
     try:
-        return _run_guarded(prog, load, argv)
+        with as_program(held) if program else nullcontext():
+            return _run_guarded(prog, load, argv)
     except KeyboardInterrupt as e:  # run_entry_point handles every one from its start to the program's end
         print(f"{prog}: error: interrupted before it started; nothing written", file=sys.stderr)
         return exit_status(e)

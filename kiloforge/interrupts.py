@@ -84,12 +84,18 @@ _program = False  #: set by :func:`as_program`: the command run is this process'
 _held_before: Sequence[int] = ()  #: what an outer ``__main__`` module (``python -m kiloforge``) holds back
 
 
-def as_program(held: Sequence[int] = ()) -> None:
-    """Mark this process a command-line program: once :func:`run_entry_point` has run its command, only the
-    exit is left, and signals are ignored (the in-process callers, tests, keep their handlers). ``held``: the
-    list an outer ``__main__`` module's holders append to, looked at with :func:`run_entry_point`'s own."""
+@contextmanager
+def as_program(held: Sequence[int] = ()) -> Iterator[None]:
+    """Within the block the command run is this process's own command line: once :func:`run_entry_point` has
+    run it, only the exit is left, and signals are ignored (in-process callers, tests, keep their handlers).
+    ``held``: the list an outer ``__main__`` module's holders append to, looked at with its own."""
     global _program, _held_before
+    before = _program, _held_before
     _program, _held_before = True, held
+    try:
+        yield
+    finally:
+        _program, _held_before = before
 
 
 def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], argv: Sequence[str] | None,
@@ -132,6 +138,9 @@ def run_entry_point(load: Callable[[], Callable[[Sequence[str] | None], int]], a
         except KeyboardInterrupt as e:  # before the command's own handling of a Ctrl-C began: nothing done
             print(message, file=sys.stderr)
             return exit_status(e)
+    except BaseException:  # an error on its way to the caller, who reports it: the handlers go back
+        finishing = False
+        raise
     finally:
         for s, h in previous.items():
             if finishing:

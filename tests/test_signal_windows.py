@@ -62,3 +62,31 @@ def test_a_signal_at_any_plumbing_line_ends_in_one_line(tmp_path, case):
             problems.append(f"{sig} at line {n}: exit {r.returncode} without saying so: {err[-300:]}")
     assert not problems, f"{len(problems)} of {len(moments)}:\n" + "\n".join(problems[:5])
     assert any(r.returncode != status for _, r in results)  # some signals did stop the command
+
+
+@pytest.mark.parametrize("outcome", ["return", "error"])
+def test_in_process_callers_get_their_handlers_back(outcome):
+    """run_entry_point called in-process (argv given) leaves the caller's SIGINT / SIGTERM handlers as they were,
+    whether the command returns or raises; inside the command a signal raises."""
+    from kiloforge.interrupts import Interrupted, run_entry_point
+
+    seen = []
+
+    def command(argv):
+        for s in (signal.SIGINT, signal.SIGTERM):
+            try:
+                signal.getsignal(s)(s, None)
+            except KeyboardInterrupt as e:
+                seen.append(type(e))
+        if outcome == "error":
+            raise ValueError("bad input")
+        return 7
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    if outcome == "return":
+        assert run_entry_point(lambda: command, [], "interrupted") == 7
+    else:
+        with pytest.raises(ValueError):
+            run_entry_point(lambda: command, [], "interrupted")
+    assert seen == [KeyboardInterrupt, Interrupted]
+    assert {s: signal.getsignal(s) for s in before} == before
