@@ -180,10 +180,13 @@ def _main(argv: Sequence[str] | None, held: Sequence[int]) -> int:
         return run_guarded(prog, lambda: importlib.import_module(cmd.module).main, [*cmd.prefix, *rest], program, held)
 
 
-def _script(package: str) -> Callable[[], int]:
-    """The console script ``kiloforge-<package>``: ``python -m <package>`` with the checks of :func:`run_guarded`."""
-    def script() -> int:
-        return run_guarded(f"kiloforge-{package}", lambda: importlib.import_module(f"{package}.__main__").main, None)
+def _script(package: str) -> Callable[..., int]:
+    """The console script ``kiloforge-<package>``: ``python -m <package>`` with the checks of :func:`run_guarded`,
+    its messages naming ``kiloforge-<package>`` (``held``: :mod:`kiloforge.scripts`)."""
+    def script(held: Sequence[int] = ()) -> int:
+        name = f"kiloforge-{package}"
+        with invoked_as(f"python -m {package}", name):
+            return run_guarded(name, lambda: importlib.import_module(f"{package}.__main__").main, None, held=held)
 
     script.__doc__ = f"Entry point of the ``kiloforge-{package}`` command."
     return script

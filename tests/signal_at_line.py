@@ -2,6 +2,7 @@
 
     python signal_at_line.py SIGNAL N TRACED PACKAGE [ARGS...]
 
+PACKAGE ``module:function`` runs ``sys.exit(function())`` instead, as a console-script wrapper does.
 TRACED is a comma-separated list of ``path`` (every function of a file) or ``path:function``, paths relative
 to the repository. Lines are counted from the moment both SIGINT and SIGTERM have Python handlers (the
 ``__main__`` module's first lines installed its holders; before that, CPython's default is all there is).
@@ -10,6 +11,7 @@ N = 0 raises nothing and prints the number of lines counted to stderr as ``lines
 from __future__ import annotations
 
 import atexit
+import importlib
 import os
 import runpy
 import signal
@@ -46,6 +48,9 @@ def main() -> None:
         atexit.register(lambda: print(f"lines: {count}", file=sys.stderr))
     sys.argv = [package, *args]
     sys.settrace(tracer)
+    if ":" in package:
+        module, _, function = package.partition(":")
+        sys.exit(getattr(importlib.import_module(module), function)())
     runpy.run_module(package, run_name="__main__", alter_sys=True)
 
 

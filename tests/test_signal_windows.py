@@ -1,5 +1,5 @@
-"""A Ctrl-C or SIGTERM at any line of the entry-point plumbing (the ``__main__`` modules, kiloforge.cli,
-kiloforge.interrupts, the start of each command's ``main``) ends in one line and 130 / 143, or, once the
+"""A Ctrl-C or SIGTERM at any line of the entry-point plumbing (the ``__main__`` modules, the console scripts,
+kiloforge.cli, kiloforge.interrupts, the start of each command's ``main``) ends in one line and 130 / 143, or, once the
 command is done, in its own exit status: never a traceback (tests/signal_at_line.py raises the signal)."""
 from __future__ import annotations
 
@@ -25,6 +25,9 @@ CASES = {
     "kiloforge export": ("kiloforge", "kiloforge/__main__.py,export/__main__.py,export/cli/main.py:main",
                          ["export", "--out", "kilobot_policy.c", "--seed", "2", "--robots-calib", "2",
                           "--calib-steps", "4", "--no-avr", "--quiet"], 0, 3),
+    "kiloforge-export": ("kiloforge.scripts:export", "kiloforge/scripts.py,export/__main__.py,export/cli/main.py:main",
+                         ["--out", "kilobot_policy.c", "--seed", "2", "--robots-calib", "2", "--calib-steps", "4",
+                          "--no-avr", "--quiet"], 0, 3),
     "sim": ("sim", "sim/__main__.py:<module>,sim/__main__.py:main,sim/__main__.py:_main", ["--help"], 0, 4),
     # learn imports torch for every command (seconds a run): a sample of its lines
     "learn": ("learn", "learn/__main__.py:<module>,learn/__main__.py:main,learn/__main__.py:_main",
