@@ -46,7 +46,7 @@ def main() -> None:
 
     if n == 0:
         atexit.register(lambda: print(f"lines: {count}", file=sys.stderr))
-    sys.argv = [package, *args]
+    sys.argv = ["kiloforge-script" if ":" in package else package, *args]  # a script wrapper's argv[0]
     sys.settrace(tracer)
     if ":" in package:
         module, _, function = package.partition(":")

@@ -93,3 +93,15 @@ def test_in_process_callers_get_their_handlers_back(outcome):
             run_entry_point(lambda: command, [], "interrupted")
     assert seen == [KeyboardInterrupt, Interrupted]
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_importing_the_console_scripts_module_leaves_handlers_alone():
+    """kiloforge.scripts holds signals only under a script wrapper: imported by a test, the handlers stay."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    r = subprocess.run([sys.executable, "-c", "import signal, kiloforge.scripts; "
+                        "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"],
+                       env=ENV, capture_output=True, text=True, timeout=60)
+    import kiloforge.scripts  # noqa: F401
+
+    assert {s: signal.getsignal(s) for s in before} == before
+    assert r.stdout.strip() == "True", r.stderr
