@@ -7,10 +7,10 @@
 * :func:`run_entry_point` is what a ``__main__`` module runs: it loads the command's modules with
   Ctrl-C (or SIGTERM) ending in one line (NumPy and torch turn an interrupted import into an ImportError), runs
   the command, and ignores signals once the program (``argv`` None, or :func:`as_program`) has returned
-  (nothing is left to interrupt). A ``__main__`` module's first lines hold a Ctrl-C or SIGTERM back (with the
-  built-in ``_signal``, before this module and its imports load) and pass what they held as ``held``; run as
-  the program they keep holding until :func:`run_entry_point` takes over, so no moment is left to Python's
-  default handler (a traceback).
+  (nothing is left to interrupt). A ``__main__`` module's first lines hold a Ctrl-C or SIGTERM back
+  (:mod:`kiloforge.sighold`, before this module and its imports load) and pass what they held as ``held``;
+  run as the program they keep holding until :func:`run_entry_point` takes over, so no moment is left to
+  Python's default handler (a traceback).
 
 Handlers can only be installed from the main thread; elsewhere both are no-ops (Python delivers
 ``KeyboardInterrupt`` to the main thread only).
@@ -22,7 +22,7 @@ import threading
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Sequence
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+from .sighold import SIGNALS
 
 
 class Interrupted(KeyboardInterrupt):

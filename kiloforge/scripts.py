@@ -8,13 +8,12 @@ Ctrl-C while :mod:`kiloforge.cli` loads (tens of milliseconds) would end in a tr
 else (a test), it leaves the handlers alone.
 """
 
-import _signal  # built in: loads before anything that could be interrupted
 import sys  # built in, loaded at start-up
 
-_held: list[int] = []
-if sys.argv and sys.argv[0].replace("\\", "/").rpartition("/")[2].startswith("kiloforge"):
-    for _s in (_signal.SIGINT, _signal.SIGTERM):
-        _signal.signal(_s, lambda signum, frame: _held.append(signum))
+from .sighold import hold
+
+_WRAPPER = bool(sys.argv) and sys.argv[0].replace("\\", "/").rpartition("/")[2].startswith("kiloforge")
+_held: list[int] = hold()[0] if _WRAPPER else []
 
 from . import cli  # noqa: E402  (after the holders)
 

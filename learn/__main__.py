@@ -13,11 +13,9 @@
 User errors print one line and exit with status 2.
 """
 
-import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
+from kiloforge.sighold import hold, release  # first: a Ctrl-C or SIGTERM while the imports below load is held
 
-_held: list[int] = []
-_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
-             for _s in (_signal.SIGINT, _signal.SIGTERM)}
+_held, _previous = hold()
 try:
     import argparse
     import sys
@@ -29,9 +27,7 @@ try:
     from kiloforge.validate import int_arg, seed_arg
     from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 finally:
-    if __name__ != "__main__":  # run as the program: held until kiloforge.interrupts.run_entry_point takes over
-        for _s, _h in _previous.items():
-            _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
+    release(_previous, program=__name__ == "__main__")
 
 
 def build_parser() -> ArgumentParser:

@@ -14,11 +14,9 @@ preset, or the artifact's) at each ``--robots`` count and writes ``robustness.js
 one line and exit with 2.
 """
 
-import _signal  # built in: a Ctrl-C or SIGTERM while the imports below load is held back (kiloforge.interrupts)
+from kiloforge.sighold import hold, release  # first: a Ctrl-C or SIGTERM while the imports below load is held
 
-_held: list[int] = []
-_previous = {_s: _signal.signal(_s, lambda signum, frame: _held.append(signum))
-             for _s in (_signal.SIGINT, _signal.SIGTERM)}
+_held, _previous = hold()
 try:
     import argparse
     import dataclasses
@@ -38,9 +36,7 @@ try:
 
     from .config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset
 finally:
-    if __name__ != "__main__":  # run as the program: held until kiloforge.interrupts.run_entry_point takes over
-        for _s, _h in _previous.items():
-            _signal.signal(_s, _signal.default_int_handler if _h is None else _h)
+    release(_previous, program=__name__ == "__main__")
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000
