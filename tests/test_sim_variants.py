@@ -1,6 +1,7 @@
 """World variants and domain randomisation (sim.variants), and the robustness runner (sim.robustness)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -162,6 +163,20 @@ def test_beacon_mobility_per_env():
     env.step_u8(np.full((2, 1, 2), 255, np.uint8))
     np.testing.assert_array_equal(env.target, 0.0)
     np.testing.assert_array_equal(env.world_draw.beacon_mobility, [0.0, 0.0])
+
+
+def test_free_beacon_randomisation_pushes_every_beacon():
+    """"table-free-beacon" is "table" except that every env's beacon is pushed like a robot (mobility 1)."""
+    free, table = RANDOMISATIONS["table-free-beacon"], RANDOMISATIONS["table"]
+    assert dataclasses.replace(free, beacon_mobility=table.beacon_mobility) == table
+    env = SwarmEnv(preset("kilobot"), 2, 1, seed=0, randomise=free)
+    env.reset()
+    np.testing.assert_array_equal(env.world_draw.beacon_mobility, [1.0, 1.0])
+    env.pos[...] = [[[-34.0, 0.0]], [[-34.0, 0.0]]]
+    env.heading[...] = 0.0
+    env.target[...] = 0.0
+    env.step_u8(np.full((2, 1, 2), 255, np.uint8))
+    assert np.all(env.target[:, 0] > 0.5)  # pushed along +x by the robot driving into it
 
 
 def test_pivot_offset_per_robot():
