@@ -159,6 +159,9 @@ class ExperimentConfig(ConfigBase):
     episodes: int = 10_000  #: learning episodes (summed over envs and sizes) after the warm-up
     updates_per_step: float = 1.0  #: gradient updates per collected transition (thesis: 1)
     update_every: int = 1  #: owed updates run in blocks every this many env steps (and at episode ends)
+    #: the actor and its target step on every this many-th update, the critic on every one (TD3's delayed
+    #: policy updates, Fujimoto et al. 2018; 1 = every update): fewer actor and actor-objective passes
+    policy_every: int = 1
     size_mix: str = "equal"  #: share of a minibatch per swarm size: equal, or robots (proportional to robot count)
     reward_scale: float = 1.0  #: multiplies the learning reward (metrics stay raw)
     extra_action_penalty: float = 0.0  #: learning only: added to the world's action penalty (thesis 0.01)
@@ -225,6 +228,7 @@ class ExperimentConfig(ConfigBase):
         need(self.warmup_episodes >= 0, f"warmup_episodes must be >= 0, got {self.warmup_episodes}")
         need(self.episodes >= 0, f"episodes must be >= 0, got {self.episodes}")
         need(self.update_every >= 1, f"update_every must be >= 1, got {self.update_every}")
+        need(1 <= self.policy_every <= 1000, f"policy_every must be in 1..1000, got {self.policy_every}")
         need(self.size_mix in SIZE_MIXES, f"size_mix must be one of {', '.join(SIZE_MIXES)}, got '{self.size_mix}'")
         need(0 <= self.phantom_neighbours <= 1000, f"phantom_neighbours must be in [0, 1000], got {self.phantom_neighbours}")
         need(self.demo_policy in DEMO_POLICIES,

@@ -208,7 +208,8 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
             parts.append((algo.sample(g.replay, n, sample_rng), False))
             if nd and g.demos is not None:
                 parts.append((algo.sample(g.demos, nd, sample_rng), True))
-        st = algo.update_parts(parts, cfg.bc_weight, train_actor=c.updates >= cfg.actor_delay)
+        actor_turn = c.updates >= cfg.actor_delay and (c.updates - cfg.actor_delay) % cfg.policy_every == 0
+        st = algo.update_parts(parts, cfg.bc_weight, train_actor=actor_turn)
         losses.append([st.critic_loss, st.q_mean, st.bc_pass])
         c.updates += 1
 

@@ -76,6 +76,25 @@ def test_resume_continues_exactly(tmp_path):
     assert a["rng"]["replay"] == b["rng"]["replay"]
 
 
+def test_policy_every_delays_actor_steps(tmp_path, monkeypatch):
+    """policy_every = 3 trains the actor on every third update after actor_delay, the critic on every one."""
+    from learn.ddpg import CentralisedDDPG
+
+    flags: list[bool] = []
+    real = CentralisedDDPG.update_parts
+
+    def spy(self, parts, bc_weight=0.0, train_actor=True):
+        flags.append(train_actor)
+        return real(self, parts, bc_weight, train_actor)
+
+    monkeypatch.setattr(CentralisedDDPG, "update_parts", spy)
+    res = train(TrainConfig(**TINY, seed=2, policy_every=3, actor_delay=2), tmp_path / "d", progress=False, log=_quiet)
+    assert len(flags) == res.counters.updates > 6
+    assert flags == [i >= 2 and (i - 2) % 3 == 0 for i in range(len(flags))]
+    with pytest.raises(ConfigError, match="policy_every must be in 1..1000"):
+        TrainConfig(policy_every=0).validate()
+
+
 def test_resume_refuses_changed_config(tmp_path):
     """Resuming with a different learning rate is refused with a message naming the field."""
     train(TrainConfig(**TINY, seed=1), tmp_path / "r", progress=False, log=_quiet)
