@@ -24,6 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from kiloforge.io import write_atomic  # noqa: E402
 from kiloforge.policies import load_policy  # noqa: E402
+from policy_labels import policy_paths  # noqa: E402
 from learn.evaluate import evaluate_policies  # noqa: E402
 
 
@@ -38,11 +39,7 @@ def main() -> int:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    policies = {}
-    for r in args.runs:
-        p = Path(r)
-        path = p if p.suffix == ".npz" else p / "policy_best.npz"
-        policies[p.stem if p.suffix == ".npz" else p.name] = load_policy(path)
+    policies = {name: load_policy(path) for name, path in policy_paths(args.runs).items()}
     res = evaluate_policies(policies, args.robots, args.episodes, args.steps, out, seed=args.seed, gif=False,
                             progress=False, log=lambda _m: None)
     summary = {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "robots": {}}

@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from kiloforge.io import write_atomic  # noqa: E402
+from policy_labels import policy_paths  # noqa: E402
 from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
 from sim.baselines import make_policy  # noqa: E402
 from sim.config import preset  # noqa: E402
@@ -29,14 +30,12 @@ from sim.robustness import SuiteTable, run_suite  # noqa: E402
 def factories(entries: list[str]):
     """(name → policy factory of a world, the world of the first artifact or the kilobot world)."""
     out, world = {}, None
-    for e in entries:
-        if e == "baseline":
-            out["hand-written"] = lambda w: make_policy("baseline", w)
-            continue
-        p = Path(e)
-        pol = load_policy(p if p.suffix == ".npz" else p / "policy_best.npz")
+    for name, path in policy_paths([e for e in entries if e != "baseline"]).items():
+        pol = load_policy(path)
         world = world or pol.world
-        out[p.stem if p.suffix == ".npz" else p.name] = lambda w, pol=pol: swarm_policy(pol, w)
+        out[name] = lambda w, pol=pol: swarm_policy(pol, w)
+    if "baseline" in entries:
+        out["hand-written"] = lambda w: make_policy("baseline", w)
     return out, world or preset("kilobot")
 
 

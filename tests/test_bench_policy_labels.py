@@ -1,0 +1,28 @@
+"""tests/bench/policy_labels.py: every compared policy gets its own column label."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parent / "bench" / "policy_labels.py"
+
+
+def _policy_paths():
+    spec = importlib.util.spec_from_file_location("policy_labels", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.policy_paths
+
+
+def test_labels_are_short_and_unique():
+    """Run dirs by name, files by stem; three runs' policy_best.npz become run/policy_best; a repeat exits."""
+    policy_paths = _policy_paths()
+    assert policy_paths(["runs/a", "x/default_policy.npz"]) == {
+        "a": Path("runs/a/policy_best.npz"), "default_policy": Path("x/default_policy.npz")}
+    got = policy_paths(["r/s1/policy_best.npz", "r/s2/policy_best.npz", "runs/s3"])
+    assert list(got) == ["s1/policy_best", "s2/policy_best", "s3"]
+    assert got["s3"] == Path("runs/s3/policy_best.npz")
+    with pytest.raises(SystemExit, match="both 's1/policy_best'"):
+        policy_paths(["r/s1/policy_best.npz", "q/s1/policy_best.npz"])
