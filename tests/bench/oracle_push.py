@@ -36,8 +36,9 @@ TURN_CCW, TURN_CW = (1.0, 0.0), (0.0, 1.0)
 class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
-    def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float) -> None:
+    def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False) -> None:
         self.env, self.aim, self.inside, self.agitate = env, np.deg2rad(aim_deg), inside, agitate
+        self.queue = queue
         self.rng = np.random.default_rng(0)
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
@@ -52,6 +53,13 @@ class OraclePush:
         a[(off < -self.aim)] = TURN_CW
         if self.inside == "stop":
             a[np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm] = 0.0
+        if self.queue:  # out of range, touching a robot in range in front (within 60°): wait, don't push the cluster
+            inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
+            rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
+            dist = np.linalg.norm(rel, axis=-1)
+            ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
+            touching = (dist < 2 * env.cfg.robot_radius_mm + 3.0) & ahead & (dist > 0) & inside[:, None, :]
+            a[touching.any(axis=2) & ~inside] = 0.0
         if self.agitate > 0:
             shake = self.rng.random(obs.shape[:2]) < self.agitate
             a[shake] = self.rng.integers(0, 2, (int(shake.sum()), 2))

@@ -25,6 +25,7 @@ from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
 from sim.baselines import make_policy  # noqa: E402
 from sim.config import preset  # noqa: E402
 from sim.robustness import SuiteTable, run_suite  # noqa: E402
+from sim.variants import robustness_suite  # noqa: E402
 
 
 def factories(entries: list[str]):
@@ -61,13 +62,22 @@ def main() -> int:
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--variants", nargs="+", default=None, metavar="NAME",
+                    help="only these variants of the suite (nominal is always run; default: all)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     makers, world = factories(args.policies)
+    suite = robustness_suite(world)
+    if args.variants:
+        unknown = [v for v in args.variants if v not in suite]
+        if unknown:
+            raise SystemExit(f"error: unknown variant '{unknown[0]}'; the suite has: {', '.join(suite)}")
+        suite = {k: v for k, v in suite.items() if k == "nominal" or k in args.variants}
     tables = {}
     for name, make in makers.items():
         print(f"running {name} ...", flush=True)
-        tables[name] = run_suite(make, world, args.robots, args.episodes, args.steps, args.seed, progress=True)
+        tables[name] = run_suite(make, world, args.robots, args.episodes, args.steps, args.seed, suite=suite,
+                                 progress=True)
     md = [f"# Robustness suite: {', '.join(tables)} ({world.name} world, {args.episodes} episodes x "
           f"{args.steps} steps, seed {args.seed})"]
     for M in args.robots:

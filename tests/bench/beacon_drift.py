@@ -1,0 +1,79 @@
+"""Where does a pushed beacon go? Final coverage, beacon drift and the packing ceiling, taped vs pushed.
+
+    python tests/bench/beacon_drift.py export/data/default_policy.npz baseline oracle oracle-queue \\
+        --robots 32 --episodes 30 --steps 300 --seed 20261202
+
+For each controller, the same episodes with the beacon taped down (mobility 0) and pushed like a robot
+(mobility 1): final coverage, the packing ceiling at the beacon's *final* position (sim.ceiling: fewer
+robots fit in range of a beacon at a wall), final coverage as a fraction of it, how far the beacon moved
+and the share of episodes whose beacon ends within 5 mm of a wall. Controllers: policy artifacts (.npz),
+``baseline`` (the hand-written searcher), ``oracle`` (tests/bench/oracle_push.py: every robot driven at
+the beacon from the true state, stopping in range) and ``oracle-queue`` (the same, but a robot out of
+range also waits while a robot in range touches it in front: it queues instead of pushing the cluster).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
+from oracle_push import OraclePush  # noqa: E402
+from policy_labels import policy_paths  # noqa: E402
+from sim.baselines import make_policy  # noqa: E402
+from sim.ceiling import episode_ceiling  # noqa: E402
+from sim.config import preset  # noqa: E402
+from sim.env import SwarmEnv  # noqa: E402
+from sim.rollout import rollout  # noqa: E402
+
+SPECIAL = ("baseline", "oracle", "oracle-queue")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
+    ap.add_argument("controllers", nargs="+", help=f"policy .npz files or run directories, or one of {', '.join(SPECIAL)}")
+    ap.add_argument("--robots", nargs="+", type=int, default=[32])
+    ap.add_argument("--episodes", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    args = ap.parse_args()
+    files = policy_paths([c for c in args.controllers if c not in SPECIAL])
+    policies = {name: load_policy(path) for name, path in files.items()}
+    base = next(iter(policies.values())).world if policies else preset("kilobot")
+    base = dataclasses.replace(base, episode_steps=args.steps)
+    names = [*policies, *(c for c in args.controllers if c in SPECIAL)]
+    lim = base.arena_half_mm - base.robot_radius_mm
+    print(f"{args.episodes} episodes x {args.steps} steps from seed {args.seed}; ceiling and 'of ceiling' at the "
+          "beacon's final position; drift = start to end")
+    print("| robots | controller | beacon | final cov | ceiling | of ceiling | drift mm | ends at a wall |")
+    print("|---:|---|---|---:|---:|---:|---:|---:|")
+    for M in args.robots:
+        for name in names:
+            for mob in (0.0, 1.0):
+                world = dataclasses.replace(base, beacon_mobility=mob)
+                env = SwarmEnv(world, min(args.episodes, 50), M, seed=args.seed)
+                if name in policies:
+                    ctl = swarm_policy(policies[name], world)
+                elif name == "baseline":
+                    ctl = make_policy("baseline", world)
+                else:
+                    ctl = OraclePush(env, 23.0, "stop", 0.0, queue=name == "oracle-queue")
+                res = rollout(env, ctl, args.episodes, seed=args.seed, record=True)
+                tg = res.trajectories.target.astype(np.float64)
+                cov = res.metrics().final_coverage
+                ceil = episode_ceiling(world, M, tg[:, -1])
+                wall = (lim - np.abs(tg[:, -1])).min(axis=1)
+                drift = np.linalg.norm(tg[:, -1] - tg[:, 0], axis=1)
+                print(f"| {M} | {name} | {'pushed' if mob else 'taped'} | {cov.mean():.3f} | {ceil.mean():.3f} | "
+                      f"{np.mean(cov / ceil):.3f} | {drift.mean():.0f} | {np.mean(wall < 5.0):.0%} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
