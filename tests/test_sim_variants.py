@@ -166,7 +166,7 @@ def test_beacon_mobility_per_env():
 
 
 def test_free_beacon_randomisation_pushes_every_beacon():
-    """"table-free-beacon" is "table" except that every env's beacon is pushed like a robot (mobility 1)."""
+    """The 'table-free-beacon' randomisation is 'table' except that every env's beacon is pushed like a robot."""
     free, table = RANDOMISATIONS["table-free-beacon"], RANDOMISATIONS["table"]
     assert dataclasses.replace(free, beacon_mobility=table.beacon_mobility) == table
     env = SwarmEnv(preset("kilobot"), 2, 1, seed=0, randomise=free)
