@@ -27,7 +27,6 @@ from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
 from oracle_push import OraclePush  # noqa: E402
 from policy_labels import policy_paths  # noqa: E402
 from sim.baselines import make_policy  # noqa: E402
-from sim.ceiling import episode_ceiling  # noqa: E402
 from sim.config import preset  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.rollout import rollout  # noqa: E402
@@ -64,12 +63,11 @@ def main() -> int:
                     ctl = make_policy("baseline", world)
                 else:
                     ctl = OraclePush(env, 23.0, "stop", 0.0, queue=name == "oracle-queue")
-                res = rollout(env, ctl, args.episodes, seed=args.seed, record=True)
-                tg = res.trajectories.target.astype(np.float64)
-                cov = res.metrics().final_coverage
-                ceil = episode_ceiling(world, M, tg[:, -1])
-                wall = (lim - np.abs(tg[:, -1])).min(axis=1)
-                drift = np.linalg.norm(tg[:, -1] - tg[:, 0], axis=1)
+                res = rollout(env, ctl, args.episodes, seed=args.seed, record=True)  # record: the start position
+                m = res.metrics(ceiling=True)  # ceiling at the final beacon position
+                cov, ceil = m.final_coverage, m.ceiling
+                wall = (lim - np.abs(res.beacon)).min(axis=1)
+                drift = np.linalg.norm(res.beacon - res.trajectories.target[:, 0], axis=1)
                 print(f"| {M} | {name} | {'pushed' if mob else 'taped'} | {cov.mean():.3f} | {ceil.mean():.3f} | "
                       f"{np.mean(cov / ceil):.3f} | {drift.mean():.0f} | {np.mean(wall < 5.0):.0%} |", flush=True)
     return 0
