@@ -395,6 +395,9 @@ class ESConfig(ConfigBase):
     eval_every: int = 5  #: evaluate every this many generations (and after the last)
     eval_episodes: int = 16  #: deterministic evaluation episodes per swarm size (fixed seeds)
     eval_steps: int = BENCHMARK_STEPS  #: control steps of an evaluation episode (the thesis benchmark's 500)
+    #: also keep every evaluated generation's weights as generations/gen_NNN.npz, to choose among them afterwards
+    #: on other criteria (robustness variants, fresh episodes); changes nothing that is learned
+    keep_evaluated: bool = False
     max_minutes: float = 0.0  #: stop after the first generation past this wall-clock time (0 = no limit)
     threads: int = 0  #: torch CPU threads; 0 = auto (1)
     seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)

@@ -9,7 +9,8 @@ the searcher on every swarm size (:mod:`learn.demos`), then the generations (:mo
 steps at every swarm size; the best mean final coverage over the sizes is ``policy_best.npz``.
 
 The run directory is the one of :mod:`learn.rundir` (config.json, world.json, metrics.csv,
-learning_curve.png, checkpoint.pt, policy_bc/best/last.npz, summary.json). SIGINT / SIGTERM stop
+learning_curve.png, checkpoint.pt, policy_bc/best/last.npz, summary.json; with ``keep_evaluated`` also
+generations/gen_NNN.npz for every evaluation). SIGINT / SIGTERM stop
 after the current generation with a checkpoint; the CLI exits 130 / 143.
 """
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .speed import set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 1
 DEMO_ENVS = 24  #: demonstrator envs stepped together per swarm size
+KEPT_DIR = "generations"  #: where ``keep_evaluated`` puts every evaluated generation's policy
 
 
 def _child(ss: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:
@@ -123,6 +125,9 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         c.rows.append(row)
         c.evals += 1
         export("policy_last.npz", row)
+        if cfg.keep_evaluated:
+            (run_dir / KEPT_DIR).mkdir(exist_ok=True)
+            export(f"{KEPT_DIR}/gen_{gen:03d}.npz", row)
         if row["eval_final_coverage"] > c.best_return:  # ES selects on final coverage, not return
             c.best_return = row["eval_final_coverage"]
             export("policy_best.npz", row)

@@ -41,7 +41,8 @@ RUN_FILES = ("config.json", "world.json", "metrics.csv", "learning_curve.png", "
              "policy_last.npz", "policy_bc.npz", "demos.json", "summary.json")
 RUN_DIRS = ("replay", "tensorboard")
 #: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
-RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard")
+RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
+                     "keep_evaluated")
 
 
 def run_name(cfg: ExperimentConfig) -> str:

@@ -115,6 +115,20 @@ def test_es_run_resumes_exactly_and_exports(tmp_path):
     assert "loop" in out.read_text()
 
 
+def test_keep_evaluated_keeps_every_evaluated_generation(tmp_path):
+    """keep_evaluated writes one policy per evaluation (the last equals policy_last.npz) and learns the same weights."""
+    kept = train_es(ESConfig(**TINY, seed=2, keep_evaluated=True), tmp_path / "kept", progress=False, log=_quiet)
+    plain = train_es(ESConfig(**TINY, seed=2), tmp_path / "plain", progress=False, log=_quiet)
+    names = sorted(p.name for p in (kept.run_dir / "generations").iterdir())
+    assert names == ["gen_000.npz", "gen_002.npz", "gen_004.npz"]
+    assert not (plain.run_dir / "generations").exists()
+    last, gen4 = load_policy(kept.run_dir / "policy_last.npz"), load_policy(kept.run_dir / "generations" / "gen_004.npz")
+    assert all(np.array_equal(a, b) for a, b in zip(last.weights, gen4.weights))
+    assert gen4.provenance["generations"] == 4
+    assert torch.equal(load_checkpoint(kept.run_dir / "checkpoint.pt")["theta"],
+                       load_checkpoint(plain.run_dir / "checkpoint.pt")["theta"])
+
+
 def test_es_config_errors():
     """Bad ES fields are one-line ConfigErrors; the presets validate."""
     for preset_name in ("default", "quick"):
