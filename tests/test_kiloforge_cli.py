@@ -184,3 +184,20 @@ def test_export_onnx_without_learn_extra(tmp_path):
     r = kiloforge_run(["export-onnx", "--policy", TINY_EVAL[1], "--out", "a.onnx"], tmp_path, code=NO_LEARN_EXTRA)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "a.onnx").stat().st_size > 1000 and r.stdout.startswith("wrote a.onnx: ")
+
+
+def test_learn_evaluate_labels_same_named_policies_apart(tmp_path):
+    """Two policy files with the same name in different runs get two labels; the same file twice is one error line."""
+    src = ROOT / "export" / "data" / "default_policy.npz"
+    for run in ("r1", "r2"):
+        (tmp_path / run / "generations").mkdir(parents=True)
+        (tmp_path / run / "generations" / "gen_020.npz").write_bytes(src.read_bytes())
+    a, b = (str(tmp_path / r / "generations" / "gen_020.npz") for r in ("r1", "r2"))
+    rest = TINY_EVAL[2:]
+    r = kiloforge_run(["evaluate", "--policy", a, b, *rest], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 0, r.stderr
+    names = set(json.loads((tmp_path / "ev" / "evaluation.json").read_text())["robots"]["4"]["metrics"])
+    assert {"r1/generations/gen_020", "r2/generations/gen_020"} <= names
+    r = kiloforge_run(["evaluate", "--policy", a, a, *rest[:-1], "ev2"], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "twice" in r.stderr
+    assert not (tmp_path / "ev2").exists()
