@@ -36,13 +36,12 @@ from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_popula
 from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
-from .rundir import Counters, RunResult, check_resumable, finite_or_none, git_hash, prepare_run_dir, rows_to_csv, \
-    write_summary
+from .rundir import KEPT_DIR, Counters, RunResult, check_resumable, finite_or_none, git_hash, prepare_run_dir, \
+    rows_to_csv, write_summary
 from .speed import set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 1
 DEMO_ENVS = 24  #: demonstrator envs stepped together per swarm size
-KEPT_DIR = "generations"  #: where ``keep_evaluated`` puts every evaluated generation's policy
 
 
 def _child(ss: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:

@@ -39,7 +39,8 @@ METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "
 #: files a run writes (removed when a run without a checkpoint restarts from scratch)
 RUN_FILES = ("config.json", "world.json", "metrics.csv", "learning_curve.png", "checkpoint.pt", "policy_best.npz",
              "policy_last.npz", "policy_bc.npz", "demos.json", "summary.json")
-RUN_DIRS = ("replay", "tensorboard")
+KEPT_DIR = "generations"  #: train-es --keep-evaluated: every evaluated generation's policy
+RUN_DIRS = ("replay", "tensorboard", KEPT_DIR)
 #: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
 RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
                      "keep_evaluated")
