@@ -51,10 +51,10 @@ class OraclePush:
         a = np.ones(obs.shape[:2] + (2,))
         a[(off > self.aim)] = TURN_CCW
         a[(off < -self.aim)] = TURN_CW
+        inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
         if self.inside == "stop":
-            a[np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm] = 0.0
+            a[inside] = 0.0
         if self.queue:  # out of range, touching a robot in range in front (within 60°): wait, don't push the cluster
-            inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
             rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
             dist = np.linalg.norm(rel, axis=-1)
             ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
