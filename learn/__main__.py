@@ -31,7 +31,8 @@ finally:
 
 
 def build_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m learn", description="MAGDDPG trainer for Kilobot swarm policies.")
+    p = ArgumentParser(prog="python -m learn",
+                       description="Train (MAGDDPG, MAGRDPG, ES), evaluate and plot Kilobot swarm policies.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
 
     sub.add_parser("train", add_help=False,

@@ -5,7 +5,9 @@
 The *oracle* knows every robot's true position, heading and the beacon's (no Kilobot does): a robot out
 of range pivots towards the beacon until it faces it within ``--aim-deg``, then drives straight at it.
 Inside the range it stops (``--inside stop``) or keeps pushing at the beacon too (``--inside push``),
-and ``--agitate p`` replaces a fraction p of all commands by random ones (shaking a jam loose). On the
+``--agitate p`` replaces a fraction p of all commands by random ones (shaking a jam loose), and ``--slide n``
+makes a robot out of range that touches a body in front of it (within 60°) drive along the cluster instead, at
+90° to the beacon's bearing on a side drawn per blocking, for n periods before it aims again. On the
 same episodes as the shipped default and the hand-written searcher it prints final coverage and its
 fraction of each episode's packing ceiling: where the oracle jams, the contact model (frictionless
 discs pushed apart, a taped-down beacon) jams, and no policy that only gets there by pushing does better.
@@ -36,29 +38,43 @@ TURN_CCW, TURN_CW = (1.0, 0.0), (0.0, 1.0)
 class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
-    def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False) -> None:
+    def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False,
+                 slide: int = 0) -> None:
         self.env, self.aim, self.inside, self.agitate = env, np.deg2rad(aim_deg), inside, agitate
-        self.queue = queue
+        self.queue, self.slide = queue, slide
         self.rng = np.random.default_rng(0)
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
         self.rng = rng
+        self.sliding = np.zeros((n_envs, n_robots), np.int64)  # periods of sliding left
+        self.side = np.ones((n_envs, n_robots))  # +1: slide counter-clockwise about the beacon, -1 clockwise
+
+    def _touching_ahead(self, gap_mm: float) -> np.ndarray:
+        """(B, i, j): robot j's body is within ``gap_mm`` of robot i's, in front of i (within 60°)."""
+        env = self.env
+        rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
+        dist = np.linalg.norm(rel, axis=-1)
+        ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
+        return (dist < 2 * env.cfg.robot_radius_mm + gap_mm) & ahead & (dist > 0)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         env = self.env
         d = env.target[:, None, :] - env.pos
-        off = wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - env.heading)
+        inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
+        goal = np.arctan2(d[..., 1], d[..., 0])
+        if self.slide:  # blocked out of range: drive along the cluster, tangent to the beacon's bearing
+            start = self._touching_ahead(2.0).any(axis=2) & ~inside & (self.sliding <= 0)
+            self.side = np.where(start, np.where(self.rng.random(start.shape) < 0.5, 1.0, -1.0), self.side)
+            self.sliding = np.where(start, self.slide, self.sliding - 1)
+            goal = np.where(self.sliding > 0, goal + self.side * (np.pi / 2), goal)
+        off = wrap_angle(goal - env.heading)
         a = np.ones(obs.shape[:2] + (2,))
         a[(off > self.aim)] = TURN_CCW
         a[(off < -self.aim)] = TURN_CW
-        inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
         if self.inside == "stop":
             a[inside] = 0.0
         if self.queue:  # out of range, touching a robot in range in front (within 60°): wait, don't push the cluster
-            rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
-            dist = np.linalg.norm(rel, axis=-1)
-            ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
-            touching = (dist < 2 * env.cfg.robot_radius_mm + 3.0) & ahead & (dist > 0) & inside[:, None, :]
+            touching = self._touching_ahead(3.0) & inside[:, None, :]
             a[touching.any(axis=2) & ~inside] = 0.0
         if self.agitate > 0:
             shake = self.rng.random(obs.shape[:2]) < self.agitate
@@ -76,6 +92,9 @@ def main() -> None:
     ap.add_argument("--aim-deg", type=float, default=23.0, help="drive straight once facing the beacon within this")
     ap.add_argument("--inside", nargs="+", choices=("stop", "push"), default=["stop", "push"])
     ap.add_argument("--agitate", nargs="+", type=float, default=[0.0, 0.3])
+    ap.add_argument("--slide", nargs="+", type=int, default=[0],
+                    help="periods a blocked robot out of range drives along the cluster (0: it pushes on); "
+                         "each value adds a row per --inside and --agitate")
     args = ap.parse_args()
     pol = load_policy(args.policy)
     world = WorldConfig.from_dict({**pol.world.to_dict(), "episode_steps": args.steps})
@@ -84,7 +103,9 @@ def main() -> None:
         contenders = {"shipped default": swarm_policy(pol, world), "hand-written": make_policy("baseline", world)}
         for inside in args.inside:
             for p in args.agitate:
-                contenders[f"oracle, inside {inside}, agitate {p:g}"] = OraclePush(env, args.aim_deg, inside, p)
+                for n in args.slide:
+                    name = f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
+                    contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n)
         table = {name: rollout(env, c, args.episodes, seed=args.seed).metrics(ceiling=True)
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
