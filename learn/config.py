@@ -374,6 +374,9 @@ class ESConfig(ConfigBase):
     size_weights: tuple[int, ...] = ()  #: relative weight of each swarm size in the fitness (empty = equal)
     episode_steps: int = 0  #: control steps of a training episode; 0 = the world's (kilobot: 300)
     randomise: str = "none"  #: domain randomisation of the training episodes (a name in sim.variants.RANDOMISATIONS)
+    #: per swarm size, the randomisation of its training episodes (one name per --robots entry, e.g. table table
+    #: table-free-beacon); empty = --randomise for every size
+    size_randomise: tuple[str, ...] = ()
     # --- actor (an MLP over the T_prev history, as MAGDDPG's) ---------------------------------
     t_prev: HistoryLength = 20  #: history length T_prev in (previous action, observation) tuples
     actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
@@ -433,8 +436,13 @@ class ESConfig(ConfigBase):
         need(0 <= self.seed < 2 ** 63, f"seed must be a non-negative integer, got {self.seed}")
         need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
              f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")
-        if self.randomise != "none":
-            randomisation(self.randomise)  # ConfigError for an unknown name
+        need(not self.size_randomise or len(self.size_randomise) == len(self.n_robots),
+             f"size_randomise must be empty or one name per swarm size ({len(self.n_robots)}), "
+             f"got {list(self.size_randomise)}")
+        need(not self.size_randomise or self.randomise == "none",
+             "give --randomise (every size) or --size-randomise (one per size), not both")
+        for name in self.size_randomises():
+            randomisation(name)  # ConfigError for an unknown name
         need(self.eval_steps <= MAX_EPISODE_STEPS, f"eval_steps must be <= {MAX_EPISODE_STEPS}, got {self.eval_steps}")
         return self
 
@@ -446,6 +454,10 @@ class ESConfig(ConfigBase):
     def eval_world(self) -> WorldConfig:
         """The world of the evaluation episodes (the training world with ``eval_steps`` steps)."""
         return world_preset(self.world, episode_steps=self.eval_steps)
+
+    def size_randomises(self) -> list[str]:
+        """The randomisation name of each swarm size's training episodes."""
+        return list(self.size_randomise) if self.size_randomise else [self.randomise] * len(self.n_robots)
 
     def weights(self) -> list[float]:
         """The swarm sizes' fitness weights, summing to 1."""

@@ -30,7 +30,7 @@ from kiloforge.io import write_atomic
 from kiloforge.progress import progress_bar
 
 from .checkpoint import Checkpointer
-from .config import ConfigError, ESConfig, TrainConfig
+from .config import ConfigError, ESConfig, TrainConfig, randomisation
 from .demos import bc_pretrain, collect_demos, demonstrator
 from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
 from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
@@ -72,11 +72,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     world, eval_world = cfg.world_config(), cfg.eval_world()
     set_threads(cfg.threads)
     tune_allocator()
-    randomise = None
-    if cfg.randomise != "none":
-        from .config import randomisation
-
-        randomise = randomisation(cfg.randomise)
+    randomise = [randomisation(name) for name in cfg.size_randomises()]  # per swarm size (None: nominal)
 
     # --- seeding -------------------------------------------------------------------------------
     ss_init, ss_demo, ss_gen, ss_eval = np.random.SeedSequence(cfg.seed).spawn(4)
@@ -303,8 +299,9 @@ def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, 
 
 
 def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
-               weights: list[float], randomise, c: Counters, stop: StopRequest) -> tuple[dict, np.ndarray]:
-    """One generation's antithetic population on every swarm size: fitness summary and utilities (2 · pairs,).
+               weights: list[float], randomise: list, c: Counters, stop: StopRequest) -> tuple[dict, np.ndarray]:
+    """One generation's antithetic population on every swarm size (``randomise``: each size's domain
+    randomisation or None): fitness summary and utilities (2 · pairs,).
 
     A stop request between swarm sizes abandons the generation (the weights stay those of the last one)."""
     rng = np.random.default_rng(_child(ss, 0))
@@ -313,9 +310,9 @@ def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss
     utility = np.zeros(2 * cfg.pairs)
     fit = np.zeros(2 * cfg.pairs)
     episodes = 0
-    for i, (M, w) in enumerate(zip(cfg.n_robots, weights)):
+    for i, (M, w, rand) in enumerate(zip(cfg.n_robots, weights, randomise)):
         seeds = [_child(ss, 1 + i, e) for e in range(cfg.episodes_per_member)]
-        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, randomise)
+        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, rand)
         stop.check()
         f = res.final_coverage.mean(axis=1)
         utility += w * centred_ranks(f)

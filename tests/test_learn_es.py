@@ -129,6 +129,27 @@ def test_keep_evaluated_keeps_every_evaluated_generation(tmp_path):
                        load_checkpoint(plain.run_dir / "checkpoint.pt")["theta"])
 
 
+def test_size_randomise_draws_each_sizes_own_randomisation(tmp_path, monkeypatch):
+    """--size-randomise gives each swarm size its own randomisation; the same name everywhere is --randomise."""
+    import learn.es_train as es_train
+    from sim.variants import RANDOMISATIONS
+
+    seen = []
+
+    def spy(pop, members, world, M, seeds, t_prev, randomise=None):
+        seen.append((M, randomise))
+        return rollout_population(pop, members, world, M, seeds, t_prev, randomise)
+
+    monkeypatch.setattr(es_train, "rollout_population", spy)
+    mixed = train_es(ESConfig(**TINY, size_randomise=("none", "table-free-beacon")), tmp_path / "mixed",
+                     progress=False, log=_quiet)
+    assert set(seen) == {(2, None), (3, RANDOMISATIONS["table-free-beacon"])}
+    same = train_es(ESConfig(**TINY, size_randomise=("table", "table")), tmp_path / "same", progress=False, log=_quiet)
+    plain = train_es(ESConfig(**TINY, randomise="table"), tmp_path / "plain", progress=False, log=_quiet)
+    theta = {r.run_dir.name: load_checkpoint(r.run_dir / "checkpoint.pt")["theta"] for r in (same, plain)}
+    assert torch.equal(theta["same"], theta["plain"])
+
+
 def test_es_config_errors():
     """Bad ES fields are one-line ConfigErrors; the presets validate."""
     for preset_name in ("default", "quick"):
@@ -137,6 +158,12 @@ def test_es_config_errors():
         ESConfig(n_robots=(4, 16), size_weights=(1,)).validate()
     with pytest.raises(ConfigError, match="sigma"):
         ESConfig(sigma=0).validate()
+    with pytest.raises(ConfigError, match="size_randomise"):
+        ESConfig(n_robots=(4, 16), size_randomise=("table",)).validate()
+    with pytest.raises(ConfigError, match="not both"):
+        ESConfig(n_robots=(4, 16), randomise="table", size_randomise=("table", "none")).validate()
+    with pytest.raises(ConfigError, match="unknown randomise 'tabel'"):
+        ESConfig(n_robots=(4, 16), size_randomise=("table", "tabel")).validate()
     with pytest.raises(ConfigError, match="es config, not magddpg|this is a"):
         from learn.config import TrainConfig
 
