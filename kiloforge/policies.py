@@ -90,3 +90,32 @@ def swarm_policy(policy: FloatPolicy, world: WorldConfig | None = None) -> Any:
     """The float actor of any policy as a :class:`sim.rollout.SwarmPolicy` (``world``: an override,
     e.g. another episode length)."""
     return kind_of(policy).swarm_policy(policy, world)
+
+
+def policy_labels(entries: list[str], short: bool = False) -> list[str]:
+    """A label per policy file (its name without ``.npz``) or run directory (its name), never two alike.
+
+    A file not in the current directory starts as ``parent/stem`` (``short``: as ``stem``); labels that
+    collide grow by one leading path component at a time until they differ. The same entry twice:
+    ValueError.
+
+    >>> policy_labels(["runs/a/policy_best.npz", "runs/b/policy_best.npz", "p.npz"])
+    ['a/policy_best', 'b/policy_best', 'p']
+    >>> policy_labels(["r1/generations/gen_020.npz", "r2/generations/gen_020.npz"])
+    ['r1/generations/gen_020', 'r2/generations/gen_020']
+    >>> policy_labels(["runs/s1", "x/default_policy.npz", "y/default_policy.npz"], short=True)
+    ['s1', 'x/default_policy', 'y/default_policy']
+    """
+    paths = [Path(e) for e in entries]
+    parts = [(p.with_suffix("") if p.suffix == ".npz" else p).parts for p in paths]
+    depth = [1 if short or len(q) < 2 or p.suffix != ".npz" else 2 for p, q in zip(paths, parts)]
+    while True:
+        labels = ["/".join(q[-d:]) for q, d in zip(parts, depth)]
+        dup = {lab for lab in labels if labels.count(lab) > 1}
+        if not dup:
+            return labels
+        grow = [i for i, lab in enumerate(labels) if lab in dup and depth[i] < len(parts[i])]
+        if not grow:
+            raise ValueError(f"'{sorted(dup)[0]}' is given twice; give each policy once")
+        for i in grow:
+            depth[i] += 1

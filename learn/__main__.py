@@ -73,32 +73,9 @@ def build_parser() -> ArgumentParser:
     return p
 
 
-def policy_labels(paths: list[str]) -> list[str]:
-    """A label per policy file: its stem, or ``parent/stem`` where that is not in the current directory,
-    lengthened to more trailing path components until no two labels are alike.
-
-    >>> policy_labels(["runs/a/policy_best.npz", "runs/b/policy_best.npz", "p.npz"])
-    ['a/policy_best', 'b/policy_best', 'p']
-    >>> policy_labels(["r1/generations/gen_020.npz", "r2/generations/gen_020.npz"])
-    ['r1/generations/gen_020', 'r2/generations/gen_020']
-    """
-    parts = [Path(p).with_suffix("").parts for p in paths]
-    depth = [1 if len(q) < 2 or q[-2] == "." else 2 for q in parts]
-    while True:
-        labels = ["/".join(q[-d:]) for q, d in zip(parts, depth)]
-        dup = {lab for lab in labels if labels.count(lab) > 1}
-        if not dup:
-            return labels
-        grow = [i for i, lab in enumerate(labels) if lab in dup and depth[i] < len(parts[i])]
-        if not grow:
-            raise ValueError(f"--policy names '{sorted(dup)[0]}' twice; give each policy file once")
-        for i in grow:
-            depth[i] += 1
-
-
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from kiloforge.io import staged_files
-    from kiloforge.policies import load_policy
+    from kiloforge.policies import load_policy, policy_labels
 
     from .evaluate import evaluate_policies
 

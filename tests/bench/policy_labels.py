@@ -1,21 +1,23 @@
 """Column labels of the policies a benchmark compares: one per entry, never two alike."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from kiloforge.policies import policy_labels  # noqa: E402
 
 
 def policy_paths(entries: list[str]) -> dict[str, Path]:
     """label → artifact for run directories (their ``policy_best.npz``) and ``.npz`` files.
 
-    A run directory is labelled by its name, a file by its stem; when two labels would collide (three
-    runs' ``policy_best.npz``), files are labelled ``run/stem`` instead. Same file twice: SystemExit.
+    Labels are :func:`kiloforge.policies.policy_labels` (short: a run directory's name, a file's stem,
+    longer only where two would collide). The same entry twice: SystemExit with one line.
     """
-    files = [Path(e).suffix == ".npz" for e in entries]
-    paths = [Path(e) if f else Path(e) / "policy_best.npz" for e, f in zip(entries, files)]
-    short = [p.stem if f else p.parent.name for p, f in zip(paths, files)]
-    if len(set(short)) < len(short):
-        short = [f"{p.parent.name}/{p.stem}" if f else s for p, f, s in zip(paths, files, short)]
-    if len(set(short)) < len(short):
-        dup = next(s for s in short if short.count(s) > 1)
-        raise SystemExit(f"error: two entries are both '{dup}'; give each policy once")
-    return dict(zip(short, paths))
+    try:
+        labels = policy_labels(entries, short=True)
+    except ValueError as e:
+        raise SystemExit(f"error: {e}") from None
+    return {lab: Path(e) if Path(e).suffix == ".npz" else Path(e) / "policy_best.npz"
+            for lab, e in zip(labels, entries)}
