@@ -141,8 +141,8 @@ def test_size_randomise_draws_each_sizes_own_randomisation(tmp_path, monkeypatch
         return rollout_population(pop, members, world, M, seeds, t_prev, randomise)
 
     monkeypatch.setattr(es_train, "rollout_population", spy)
-    mixed = train_es(ESConfig(**TINY, size_randomise=("none", "table-free-beacon")), tmp_path / "mixed",
-                     progress=False, log=_quiet)
+    train_es(ESConfig(**TINY, size_randomise=("none", "table-free-beacon")), tmp_path / "mixed", progress=False,
+             log=_quiet)
     assert set(seen) == {(2, None), (3, RANDOMISATIONS["table-free-beacon"])}
     same = train_es(ESConfig(**TINY, size_randomise=("table", "table")), tmp_path / "same", progress=False, log=_quiet)
     plain = train_es(ESConfig(**TINY, randomise="table"), tmp_path / "plain", progress=False, log=_quiet)
