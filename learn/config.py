@@ -394,6 +394,9 @@ class ESConfig(ConfigBase):
     sigma: float = 0.02  #: standard deviation of the weight perturbations
     lr: float = 0.01  #: Adam learning rate of the ES ascent
     episodes_per_member: int = 1  #: episodes per member and swarm size per generation (common to all members)
+    #: per swarm size, episodes per member and generation (one count per --robots entry, e.g. 4 1 1: small swarms'
+    #: fitness is the noisiest and the cheapest to average); empty = --episodes-per-member for every size
+    size_episodes: tuple[int, ...] = ()
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 5  #: evaluate every this many generations (and after the last)
     eval_episodes: int = 16  #: deterministic evaluation episodes per swarm size (fixed seeds)
@@ -443,13 +446,16 @@ class ESConfig(ConfigBase):
              "give --randomise (every size) or --size-randomise (one per size), not both")
         for name in self.size_randomises():
             randomisation(name)  # ConfigError for an unknown name
+        need(not self.size_episodes or (len(self.size_episodes) == len(self.n_robots) and min(self.size_episodes) >= 1),
+             f"size_episodes must be empty or one count >= 1 per swarm size ({len(self.n_robots)}), "
+             f"got {list(self.size_episodes)}")
         need(self.eval_steps <= MAX_EPISODE_STEPS, f"eval_steps must be <= {MAX_EPISODE_STEPS}, got {self.eval_steps}")
         return self
 
     @property
     def total_episodes(self) -> int:
         """Training episodes of the whole run (every member, swarm size and generation)."""
-        return self.generations * 2 * self.pairs * self.episodes_per_member * len(self.n_robots)
+        return self.generations * 2 * self.pairs * sum(self.size_episode_counts())
 
     def eval_world(self) -> WorldConfig:
         """The world of the evaluation episodes (the training world with ``eval_steps`` steps)."""
@@ -458,6 +464,10 @@ class ESConfig(ConfigBase):
     def size_randomises(self) -> list[str]:
         """The randomisation name of each swarm size's training episodes."""
         return list(self.size_randomise) if self.size_randomise else [self.randomise] * len(self.n_robots)
+
+    def size_episode_counts(self) -> list[int]:
+        """Episodes per member and generation at each swarm size."""
+        return list(self.size_episodes) if self.size_episodes else [self.episodes_per_member] * len(self.n_robots)
 
     def weights(self) -> list[float]:
         """The swarm sizes' fitness weights, summing to 1."""

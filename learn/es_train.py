@@ -310,8 +310,8 @@ def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss
     utility = np.zeros(2 * cfg.pairs)
     fit = np.zeros(2 * cfg.pairs)
     episodes = 0
-    for i, (M, w, rand) in enumerate(zip(cfg.n_robots, weights, randomise)):
-        seeds = [_child(ss, 1 + i, e) for e in range(cfg.episodes_per_member)]
+    for i, (M, w, rand, n_ep) in enumerate(zip(cfg.n_robots, weights, randomise, cfg.size_episode_counts())):
+        seeds = [_child(ss, 1 + i, e) for e in range(n_ep)]
         res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, rand)
         stop.check()
         f = res.final_coverage.mean(axis=1)

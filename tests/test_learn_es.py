@@ -150,6 +150,27 @@ def test_size_randomise_draws_each_sizes_own_randomisation(tmp_path, monkeypatch
     assert torch.equal(theta["same"], theta["plain"])
 
 
+def test_size_episodes_give_each_size_its_own_episode_count(tmp_path, monkeypatch):
+    """--size-episodes plays each swarm size its own number of episodes; the same count everywhere is
+    --episodes-per-member."""
+    import learn.es_train as es_train
+
+    seen = []
+
+    def spy(pop, members, world, M, seeds, t_prev, randomise=None):
+        seen.append((M, len(seeds)))
+        return rollout_population(pop, members, world, M, seeds, t_prev, randomise)
+
+    monkeypatch.setattr(es_train, "rollout_population", spy)
+    mixed = train_es(ESConfig(**TINY, size_episodes=(3, 1)), tmp_path / "mixed", progress=False, log=_quiet)
+    assert set(seen) == {(2, 3), (3, 1)}
+    assert mixed.counters.episodes == TINY["generations"] * 2 * TINY["pairs"] * (3 + 1)
+    same = train_es(ESConfig(**TINY, size_episodes=(2, 2)), tmp_path / "same", progress=False, log=_quiet)
+    plain = train_es(ESConfig(**TINY, episodes_per_member=2), tmp_path / "plain", progress=False, log=_quiet)
+    theta = {r.run_dir.name: load_checkpoint(r.run_dir / "checkpoint.pt")["theta"] for r in (same, plain)}
+    assert torch.equal(theta["same"], theta["plain"])
+
+
 def test_es_config_errors():
     """Bad ES fields are one-line ConfigErrors; the presets validate."""
     for preset_name in ("default", "quick"):
@@ -162,6 +183,8 @@ def test_es_config_errors():
         ESConfig(n_robots=(4, 16), size_randomise=("table",)).validate()
     with pytest.raises(ConfigError, match="not both"):
         ESConfig(n_robots=(4, 16), randomise="table", size_randomise=("table", "none")).validate()
+    with pytest.raises(ConfigError, match="size_episodes"):
+        ESConfig(n_robots=(4, 16), size_episodes=(2, 0)).validate()
     with pytest.raises(ConfigError, match="unknown randomise 'tabel'"):
         ESConfig(n_robots=(4, 16), size_randomise=("table", "tabel")).validate()
     with pytest.raises(ConfigError, match="es config, not magddpg|this is a"):
