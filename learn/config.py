@@ -449,6 +449,8 @@ class ESConfig(ConfigBase):
         need(not self.size_episodes or (len(self.size_episodes) == len(self.n_robots) and min(self.size_episodes) >= 1),
              f"size_episodes must be empty or one count >= 1 per swarm size ({len(self.n_robots)}), "
              f"got {list(self.size_episodes)}")
+        need(not self.size_episodes or self.episodes_per_member == 1,
+             "give --episodes-per-member (every size) or --size-episodes (one per size), not both")
         need(self.eval_steps <= MAX_EPISODE_STEPS, f"eval_steps must be <= {MAX_EPISODE_STEPS}, got {self.eval_steps}")
         return self
 

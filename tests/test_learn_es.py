@@ -185,6 +185,8 @@ def test_es_config_errors():
         ESConfig(n_robots=(4, 16), randomise="table", size_randomise=("table", "none")).validate()
     with pytest.raises(ConfigError, match="size_episodes"):
         ESConfig(n_robots=(4, 16), size_episodes=(2, 0)).validate()
+    with pytest.raises(ConfigError, match="not both"):
+        ESConfig(n_robots=(4, 16), episodes_per_member=2, size_episodes=(2, 1)).validate()
     with pytest.raises(ConfigError, match="unknown randomise 'tabel'"):
         ESConfig(n_robots=(4, 16), size_randomise=("table", "tabel")).validate()
     with pytest.raises(ConfigError, match="es config, not magddpg|this is a"):
