@@ -90,18 +90,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from .cli import read_json
     from .plots import plot_learning_curves
-    from .rundir import read_metrics
+    from .runfiles import ALGORITHM_NAMES, read_json, read_metrics
 
     groups: dict[str, list] = {}
+    algorithms: list[str] = []
     for run in args.runs:
         cfg = read_json(Path(run) / "config.json")
         rows = read_metrics(run)
         label = f"{cfg.get('exp_name', '?')}: {cfg.get('n_robots', '?')} robots, T_prev {cfg.get('t_prev', '?')}"
         groups.setdefault(label, []).append(rows)
+        name = ALGORITHM_NAMES.get(cfg.get("algorithm", "magddpg"), str(cfg.get("algorithm")))
+        algorithms += [name] if name not in algorithms else []
     out = Path(args.out or "learning_curves.png")
-    plot_learning_curves(groups, out, title=args.title or "MAGDDPG learning curves (mean ± 2 std over seeds)")
+    title = args.title or f"{' / '.join(algorithms)} learning curves (mean ± 2 std over seeds)"
+    plot_learning_curves(groups, out, title=title)
     print(f"wrote {out}")
     return 0
 

@@ -34,6 +34,7 @@ from kiloforge.cliparse import version_line
 from sim.config import PRESETS as WORLD_PRESETS
 
 from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig
+from .runfiles import read_json
 
 _BOX = re.compile(r"[╭╮╰╯│]")
 
@@ -54,15 +55,6 @@ def _args_class(cls: type[ConfigBase]) -> type:
     Args = dataclasses.make_dataclass("Args", fields)
     Args.__doc__ = cls.__doc__
     return Args
-
-
-def read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"'{path}' does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ConfigError(f"cannot read '{path}': {e}") from None
 
 
 def base_config(cls: type[ConfigBase], preset: str | None, config: str | None, resume: bool,
@@ -126,6 +118,9 @@ def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_
         if e.code:
             raise ConfigError(_tyro_error(err.getvalue())) from None
         raise
+    except BrokenPipeError:  # --help piped into a reader that stopped early (| head): done, as argparse's help is
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush must not fail again
+        raise SystemExit(0) from None
     finally:
         if columns is None:
             os.environ.pop("COLUMNS", None)
@@ -201,7 +196,7 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
         res = train(cfg, out, resume=resume, progress=not quiet)
         _report(res, report, prog)
     except (ConfigError, KiloforgeError, ValueError) as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {as_flags(str(e), cls)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # outside the trainer's own handling (which checkpoints): loading, setting up, ending
         if res is not None:
@@ -211,6 +206,22 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
                   "(--resume continues it, or restarts a run without one)", file=sys.stderr)
         return exit_status(e)
     return res.exit_status
+
+
+#: config fields whose flag is not ``--field-name`` (their tyro alias, as --help shows it)
+FLAG_OF = {"n_robots": "--robots", "t_prev": "--history"}
+
+
+def as_flags(msg: str, cls: type[ConfigBase]) -> str:
+    """A validation message that starts with a config field's name (``n_robots must be …``), starting with the
+    flag a user typed instead (``--robots must be …``)."""
+    head, sep, rest = msg.partition(" ")
+    if head not in {f.name for f in dataclasses.fields(cls)}:
+        return msg
+    flag = FLAG_OF.get(head, "--" + head.replace("_", "-"))
+    if rest.startswith("(--") and ")" in rest:  # tyro's own messages name the flag already: "field (--flag): …"
+        return flag + rest.partition(")")[2]
+    return flag + sep + rest
 
 
 def _report(res: Any, report: Callable[[Any], None], prog: str) -> None:

@@ -281,7 +281,7 @@ class TrainConfig(ExperimentConfig):
 
     def validate(self) -> "TrainConfig":
         super().validate()
-        need(1 <= self.t_prev <= 200, f"t_prev (history) must be in 1..200, got {self.t_prev}")
+        need(1 <= self.t_prev <= 200, f"t_prev must be in 1..200, got {self.t_prev}")
         need(self.batch_size >= 1, f"batch_size must be >= 1, got {self.batch_size}")
         need(self.batch_size <= self.replay_size,
              f"batch_size ({self.batch_size}) must be <= replay_size ({self.replay_size})")
@@ -420,7 +420,7 @@ class ESConfig(ConfigBase):
              f"size_weights must be empty or one non-negative weight per swarm size ({len(self.n_robots)}), "
              f"got {list(self.size_weights)}")
         need(self.episode_steps >= 0, f"episode_steps must be >= 0 (0 = the world's), got {self.episode_steps}")
-        need(1 <= self.t_prev <= 200, f"t_prev (history) must be in 1..200, got {self.t_prev}")
+        need(1 <= self.t_prev <= 200, f"t_prev must be in 1..200, got {self.t_prev}")
         need(len(self.actor_hidden) >= 1 and all(1 <= w <= 4096 for w in self.actor_hidden),
              f"actor_hidden must be one or more widths in 1..4096, got {list(self.actor_hidden)}")
         need(self.demo_policy in DEMO_POLICIES,

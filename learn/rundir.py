@@ -31,6 +31,7 @@ from kiloforge.io import write_atomic
 
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig
+from .runfiles import read_metrics  # noqa: F401  (re-exported: learn.train.read_metrics)
 
 TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
 METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
@@ -139,8 +140,10 @@ def check_resumable(saved: dict, cfg: ExperimentConfig) -> None:
         raise ConfigError(f"cannot resume a {saved.get('algorithm')} checkpoint as {now['algorithm']}")
     diff = sorted(k for k in now if k not in RESUME_MAY_CHANGE and saved.get(k, defaults[k]) != now[k])
     if diff:
-        raise ConfigError(f"cannot resume with a different {', '.join(diff)}; only "
-                          f"{', '.join(RESUME_MAY_CHANGE)} may change")
+        def flag(k: str) -> str:
+            return "--" + k.replace("_", "-")
+        raise ConfigError(f"cannot resume with a different {', '.join(map(flag, diff))}; only "
+                          f"{', '.join(flag(k) for k in RESUME_MAY_CHANGE if k in now)} may change")
 
 
 def rows_to_csv(rows: list[dict]) -> str:
@@ -152,16 +155,6 @@ def rows_to_csv(rows: list[dict]) -> str:
     for r in rows:
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     return buf.getvalue()
-
-
-def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """metrics.csv of a run directory as a list of float dicts."""
-    path = Path(run_dir) / "metrics.csv"
-    if not path.is_file():
-        raise ConfigError(f"'{run_dir}' has no metrics.csv; is it a training run directory?")
-    with open(path, newline="") as f:
-        return [{k: float(v) if v not in ("", None) else float("nan") for k, v in r.items()}
-                for r in csv.DictReader(f)]
 
 
 def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: str) -> None:

@@ -163,3 +163,19 @@ def test_mixed_worlds_are_named(tmp_path):
         evaluate_policies(pols, [2], 1, 3, tmp_path / "out", gif=False, progress=False)
     assert "a ('thesis')" in str(e.value) and "b ('kilobot')" in str(e.value)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["train-es", "--robots", "0"], "python -m learn train-es: error: --robots must be in 1..1024, got 0"),
+    (["train", "--history", "0"], "python -m learn train: error: --history must be in 1..200, got 0"),
+    (["train-es", "--max-minutes", "-1"], "python -m learn train-es: error: --max-minutes must be >= 0, got -1.0"),
+])
+def test_training_errors_name_the_flag(argv, line, tmp_path, monkeypatch, capsys):
+    """A bad value given to a trainer's flag is refused in one line that names the flag, not the config field."""
+    pytest.importorskip("torch")
+    from learn.__main__ import main as learn_main
+
+    monkeypatch.chdir(tmp_path)
+    assert learn_main([*argv, "--out", "run"]) == 2
+    assert capsys.readouterr().err == line + "\n"
+    assert list(tmp_path.iterdir()) == []

@@ -51,6 +51,19 @@ def test_help_lists_every_subcommand(capsys):
         assert f"\n  {name} " in out
 
 
+@pytest.mark.parametrize("command", ["train", "train-es"])
+def test_training_help_into_a_closed_pipe_exits_quietly(tmp_path, command):
+    """`python -m learn train --help | head -1`: a reader that has gone away ends the help with exit 0, no traceback."""
+    r, w = os.pipe()
+    os.close(r)  # every write of the help meets a closed pipe, as after `head -1` exits
+    try:
+        p = subprocess.run([sys.executable, "-m", "learn", command, "--help"], stdout=w, stderr=subprocess.PIPE,
+                           cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, text=True, timeout=120)
+    finally:
+        os.close(w)
+    assert p.returncode == 0 and p.stderr == ""
+
+
 def test_unknown_subcommand_is_one_line(tmp_path):
     """An unknown sub-command is one error line naming it, exit 2."""
     r = kiloforge_run(["frobnicate", "--x"], tmp_path)
@@ -142,10 +155,9 @@ def test_kiloforge_evaluate_never_imports_torch(tmp_path):
 
 
 @pytest.mark.parametrize("args, prog", [(["train", "--out", "run"], "python -m learn"),
-                                        (["train-es", "--out", "run"], "python -m learn"),
-                                        (["plot", "run"], "python -m learn")])
+                                        (["train-es", "--out", "run"], "python -m learn")])
 def test_python_m_learn_train_without_learn_extra_is_one_line(tmp_path, args, prog):
-    """`python -m learn train` (and train-es, plot) without the learn extra is one install-hint line, exit 2."""
+    """`python -m learn train` (and train-es) without the learn extra is one install-hint line, exit 2."""
     r = kiloforge_run(args, tmp_path, code=NO_LEARN_EXTRA)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and r.stderr.startswith(f"{prog} needs ")
@@ -176,6 +188,30 @@ def test_console_script_without_torch_is_one_line(tmp_path, monkeypatch, capsys)
     assert learn_script() == 2
     assert capsys.readouterr().err == "kiloforge-learn needs torch: pip install 'kiloforge[learn]'\n"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_learn_plot_without_learn_extra(tmp_path, monkeypatch):
+    """`python -m learn plot` draws the curves of run directories with torch, tyro and tensorboard unimportable,
+    titled by the runs' trainer."""
+    for seed in (1, 2):
+        run = tmp_path / f"es_s{seed}"
+        run.mkdir()
+        (run / "config.json").write_text(json.dumps({"algorithm": "es", "exp_name": "es", "n_robots": 4, "t_prev": 10}))
+        (run / "metrics.csv").write_text("env_steps,eval_return,eval_final_coverage\n"
+                                         f"100,{seed}.0,0.5\n200,{seed + 1}.0,0.{5 + seed}\n")
+    r = kiloforge_run(["plot", "es_s1", "es_s2", "--out", "curves.png"], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "wrote curves.png\n" and (tmp_path / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    import learn.plots
+    from learn.__main__ import build_parser, cmd_plot
+
+    seen = {}  # the title names the runs' trainer
+    monkeypatch.setattr(learn.plots, "plot_learning_curves", lambda groups, out, title: seen.setdefault("title", title))
+    monkeypatch.chdir(tmp_path)
+    cmd_plot(build_parser().parse_args(["plot", "es_s1", "--out", "t.png"]))
+    assert seen["title"].startswith("ES learning curves")
+    r = kiloforge_run(["plot", "missing_run"], tmp_path, code=NO_LEARN_EXTRA)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "missing_run" in r.stderr
 
 
 def test_export_onnx_without_learn_extra(tmp_path):

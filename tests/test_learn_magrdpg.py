@@ -168,7 +168,9 @@ def test_cli_trains_writes_a_run_and_a_loadable_gru_policy(tmp_path, capsys):
     # resume continues, a changed field is refused
     assert main_train_recurrent(["--out", str(out), "--resume", "--quiet", "--episodes", "6"]) == 0
     assert main_train_recurrent(["--out", str(out), "--resume", "--quiet", "--hidden", "7"]) == 2
-    assert "cannot resume with a different hidden" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "cannot resume with a different --hidden; only --episodes" in err
+    assert "--generations" not in err  # only this trainer's knobs are offered
 
 
 def test_cli_user_errors_are_one_line(tmp_path, capsys):
