@@ -75,7 +75,7 @@ EVENT_DTYPE = np.dtype([("robot", "<u4"), ("tick", "<u4"), ("uid", "<u2"), ("rol
                         ("flag", "u1"), ("type", "u1"), ("version", "u1"), ("dist", "u1")])
 
 #: Calibration values (kilo_straight_left, kilo_straight_right, kilo_turn_left, kilo_turn_right)
-#: used when a caller gives none: typical of calibrated robots (Kilombo moves for duties 68..90).
+#: used when a caller gives none: in the range of duties a calibrated Kilobot ends up with.
 DEFAULT_CALIB = (70, 70, 72, 72)
 
 
