@@ -98,7 +98,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
     for run in args.runs:
         cfg = read_json(Path(run) / "config.json")
         rows = read_metrics(run)
-        label = f"{cfg.get('exp_name', '?')}: {cfg.get('n_robots', '?')} robots, T_prev {cfg.get('t_prev', '?')}"
+        sizes = cfg.get("n_robots", "?")
+        sizes = "/".join(map(str, sizes)) if isinstance(sizes, list) else sizes
+        label = f"{cfg.get('exp_name', '?')}: {sizes} robots, T_prev {cfg.get('t_prev', '?')}"
         groups.setdefault(label, []).append(rows)
         name = ALGORITHM_NAMES.get(cfg.get("algorithm", "magddpg"), str(cfg.get("algorithm")))
         algorithms += [name] if name not in algorithms else []
