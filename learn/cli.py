@@ -19,7 +19,6 @@ import argparse
 import contextlib
 import dataclasses
 import io
-import json
 import os
 import re
 import shlex
@@ -33,7 +32,7 @@ from kiloforge.cliparse import version_line
 
 from sim.config import PRESETS as WORLD_PRESETS
 
-from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig
+from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig, flag_name
 from .runfiles import read_json
 
 _BOX = re.compile(r"[╭╮╰╯│]")
@@ -208,17 +207,13 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
     return res.exit_status
 
 
-#: config fields whose flag is not ``--field-name`` (their tyro alias, as --help shows it)
-FLAG_OF = {"n_robots": "--robots", "t_prev": "--history"}
-
-
 def as_flags(msg: str, cls: type[ConfigBase]) -> str:
     """A validation message that starts with a config field's name (``n_robots must be …``), starting with the
     flag a user typed instead (``--robots must be …``)."""
     head, sep, rest = msg.partition(" ")
     if head not in {f.name for f in dataclasses.fields(cls)}:
         return msg
-    flag = FLAG_OF.get(head, "--" + head.replace("_", "-"))
+    flag = flag_name(head)
     if rest.startswith("(--") and ")" in rest:  # tyro's own messages name the flag already: "field (--flag): …"
         return flag + rest.partition(")")[2]
     return flag + sep + rest

@@ -64,8 +64,16 @@ DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher")  #: values of ``demo_policy`` (learn.demos)
 CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
 
-Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=("--robots",))]
-HistoryLength = Annotated[int, tyro.conf.arg(aliases=("--history",))]
+#: config fields whose flag is not ``--field-name`` but a shorter alias (both work)
+FLAG_ALIASES = {"n_robots": "--robots", "t_prev": "--history"}
+Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=(FLAG_ALIASES["n_robots"],))]
+HistoryLength = Annotated[int, tyro.conf.arg(aliases=(FLAG_ALIASES["t_prev"],))]
+
+
+def flag_name(field: str) -> str:
+    """The flag a user types for a config field: ``lr_actor`` → ``--lr-actor``, ``n_robots`` → ``--robots``."""
+    return FLAG_ALIASES.get(field, "--" + field.replace("_", "-"))
+
 
 
 class ConfigBase:

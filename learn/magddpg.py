@@ -17,7 +17,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from sim.config import ACTION_DIM, WorldConfig
+from sim.config import WorldConfig
 from sim.history import History
 
 from .ddpg import A_MAX, A_MIN, CentralisedDDPG, Rows, UpdateStats, invert_gradients, np_float64, soft_update  # noqa: F401

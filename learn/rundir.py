@@ -19,7 +19,6 @@ import functools
 import io
 import json
 import math
-import os
 import shutil
 import subprocess
 import time
@@ -30,8 +29,7 @@ from typing import Callable
 from kiloforge.io import write_atomic
 
 from .checkpoint import Checkpointer
-from .config import ConfigError, ExperimentConfig
-from .runfiles import read_metrics  # noqa: F401  (re-exported: learn.train.read_metrics)
+from .config import ConfigError, ExperimentConfig, flag_name
 
 TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
 METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
@@ -140,10 +138,8 @@ def check_resumable(saved: dict, cfg: ExperimentConfig) -> None:
         raise ConfigError(f"cannot resume a {saved.get('algorithm')} checkpoint as {now['algorithm']}")
     diff = sorted(k for k in now if k not in RESUME_MAY_CHANGE and saved.get(k, defaults[k]) != now[k])
     if diff:
-        def flag(k: str) -> str:
-            return "--" + k.replace("_", "-")
-        raise ConfigError(f"cannot resume with a different {', '.join(map(flag, diff))}; only "
-                          f"{', '.join(flag(k) for k in RESUME_MAY_CHANGE if k in now)} may change")
+        raise ConfigError(f"cannot resume with a different {', '.join(map(flag_name, diff))}; only "
+                          f"{', '.join(flag_name(k) for k in RESUME_MAY_CHANGE if k in now)} may change")
 
 
 def rows_to_csv(rows: list[dict]) -> str:

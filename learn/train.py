@@ -47,7 +47,8 @@ from .magddpg import MAGDDPG
 from .magrdpg import MAGRDPG
 from .replay import EpisodeReplay
 from .rundir import (METRIC_COLUMNS, RESUME_MAY_CHANGE, Counters, RunResult, check_resumable,  # noqa: F401
-                     finite_or_none, git_hash, prepare_run_dir, read_metrics, rows_to_csv, run_name, write_summary)
+                     finite_or_none, git_hash, prepare_run_dir, rows_to_csv, run_name, write_summary)
+from .runfiles import read_metrics
 from .speed import resolve_device, set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 2

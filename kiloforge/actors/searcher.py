@@ -517,7 +517,7 @@ class SearcherKind(ActorKind):
                 CDefine("KF_SEED_ADD", SEED_ADD, "uint32_t"),
             ),
             tables=(CTable("KF_RUN", "uint16_t", qp.run_table,
-                           f"RUN[b]: exploration run length (periods) for draw byte b, u = (b + 0.5) / 256",
+                           "RUN[b]: exploration run length (periods) for draw byte b, u = (b + 0.5) / 256",
                            per_line=12),))
 
 
