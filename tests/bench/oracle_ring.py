@@ -17,7 +17,9 @@ front. Each ``--configs`` entry is ``r_in,r_out,gain,wait,margin``.
 ``--rim`` keeps the shipped default and overrides only the robots in the sparse outer band of its
 cluster (in range, farther than ``r_lo``): they orbit on a rim ring of radius ``r_ring`` and wait while
 touched from the front (``r_lo,r_ring,gain``). The table prints final coverage and its fraction of
-the packing ceiling next to the shipped default on the same episodes.
+the packing ceiling next to the shipped default on the same episodes; then, per controller, where its robots
+sit at the end (by distance from a beacon in the open) and its fraction of the ceiling by where the beacon is
+(corner, wall, open).
 """
 from __future__ import annotations
 
@@ -31,10 +33,11 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
+from sim.ceiling import capacity  # noqa: E402
 from sim.config import WorldConfig  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.kinematics import wrap_angle  # noqa: E402
-from sim.metrics import compare  # noqa: E402
+from sim.metrics import compare, final_coverage  # noqa: E402
 from sim.rollout import rollout  # noqa: E402
 
 FULL_TURN_RAD = np.deg2rad(45.0)  #: a period of full pivoting turns the kilobot world's robot by about this
@@ -128,6 +131,21 @@ def band_counts(env: SwarmEnv) -> np.ndarray:
     return np.stack([np.histogram(row, bins=BANDS_MM)[0] for row in d[open_]]).mean(axis=0)
 
 
+#: beacon places by the capacity C of its range (sim.ceiling): (name, lowest C, highest C + 1)
+PLACES = {"corner (C < 12)": (0, 12), "wall (12 <= C < 20)": (12, 20), "open (C >= 20)": (20, 10**6)}
+
+
+def ceiling_by_place(res, world: WorldConfig, n_robots: int) -> list[tuple[float, int]]:
+    """(mean fraction of the ceiling, episodes) per place of :data:`PLACES`, at the final beacon positions."""
+    cap = capacity(world, res.beacon)
+    frac = final_coverage(res.coverage) * n_robots / np.minimum(cap, n_robots)
+    rows = []
+    for lo, hi in PLACES.values():
+        sel = (cap >= lo) & (cap < hi)
+        rows.append((float(frac[sel].mean()) if sel.any() else float("nan"), int(sel.sum())))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--policy", default=str(ROOT / "export" / "data" / "default_policy.npz"))
@@ -153,10 +171,12 @@ def main() -> None:
             r_lo, r_ring, gain = (float(x) for x in c.split(","))
             contenders[f"default + rim ring {c}"] = RimOverride(env, swarm_policy(pol, world), r_lo, r_ring, gain,
                                                                  args.touch_gap)
-        table, bands = {}, {}
+        table, bands, by_place = {}, {}, {}
         for name, p in contenders.items():
-            table[name] = rollout(env, p, args.episodes, seed=args.seed).metrics(ceiling=True)
+            res = rollout(env, p, args.episodes, seed=args.seed)
+            table[name] = res.metrics(ceiling=True)
             bands[name] = band_counts(env)
+            by_place[name] = ceiling_by_place(res, world, M)
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
         print(compare(table), flush=True)
         print(f"\nrobots per episode by distance from the beacon (mm) at the end, beacon in the open "
@@ -164,6 +184,10 @@ def main() -> None:
               + "  ".join(f"[{lo:g}, {hi:g})" for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:])))
         for name, b in bands.items():
             print(f"{name:<32} " + "  ".join(f"{x:9.1f}" for x in b))
+        print("\nfinal coverage as a fraction of the packing ceiling, by where the beacon is (capacity C; episodes): "
+              + "  ".join(PLACES))
+        for name, rows in by_place.items():
+            print(f"{name:<32} " + "  ".join(f"{f:.3f} ({n})" if n else "-" for f, n in rows))
 
 
 if __name__ == "__main__":
