@@ -1,6 +1,6 @@
 """``python -m export budget``: will an actor of this size fit on a Kilobot, before training?
 
-    python -m export budget --history 20 --hidden 64 32 [--world kilobot]     (an MLP actor)
+    python -m export budget --history 20 --hidden 32 32 [--world kilobot]     (an MLP actor)
     python -m export budget --gru 32 [--world kilobot]                        (a GRU actor)
 
 Every actor kind brings its own size flags (:attr:`kiloforge.actors.base.ActorKind.budget_options`);

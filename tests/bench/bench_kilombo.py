@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kilombo-dir", default=None, help="Kilombo install prefix (default: $KILOMBO_DIR)")
     ap.add_argument("--policy", type=Path, default=None, help="policy .npz (default: the shipped default)")
     ap.add_argument("--robots", type=int, default=16, help="searchers (the beacon is one more robot; default 16)")
-    ap.add_argument("--episodes", type=int, default=100, help="episodes (default 100, as verify --closed-loop)")
+    ap.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     ap.add_argument("--steps", type=int, default=300, help="control periods per episode (default 300)")
     ap.add_argument("--seed", type=int, default=0, help="episode seed, as verify --closed-loop (default 0)")
     ap.add_argument("--rows", choices=("all", "core", "kilombo", "ours"), default="all")

@@ -9,7 +9,8 @@ Stages (default: all, in this order):
               seed 1 plain, seed 2 with 16 phantom neighbours), 14 min each.
 ``ship``      evaluate the kilobot candidates (best and last checkpoint of each run) on 16 robots,
               episode seed 1 (not the report's seed 0), and save the best as
-              ``export/data/default_policy.npz`` with its provenance.
+              ``runs/reference/default_policy.npz`` with its provenance (the report's reference
+              policy; it was the shipped default once, and the script leaves today's alone).
 ``robots``    thesis Experiment 1 (thesis world): learning with 1, 2, 4, 8 robots.
 ``history``   thesis Experiment 2: T_prev in {1, 2, 5, 10} with 2 robots, 4 minutes each.
 ``seeds``     Experiments 1 and 2 again as 3-seed sweeps (``python -m learn sweep``), budgeted in
@@ -49,7 +50,8 @@ FAST = ["--preset", "fast", "--quiet"]
 #: (run name, robots, t_prev, minutes, extra args) of each experiment. The names of runs made before
 #: this script existed (goal2_s1, goal4_s1) are kept so the report's numbers stay traceable.
 KILOBOT_RUNS = [
-    ("kb4_s1", 4, 20, 14, ["--world", "kilobot", "--seed", "1", "--eval-episodes", "20", "--exp-name", "kb4"]),
+    ("kb4_s1", 4, 20, 14, ["--world", "kilobot", "--seed", "1", "--phantom-neighbours", "0",  # `fast` has 16 now
+                           "--eval-episodes", "20", "--exp-name", "kb4"]),
     ("kb4_s2", 4, 20, 14, ["--world", "kilobot", "--seed", "2", "--phantom-neighbours", "16",
                            "--eval-episodes", "20", "--exp-name", "kb4"]),
 ]
@@ -63,7 +65,8 @@ HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--seed", "1", "--eval-episodes", "20"
                 for t in (1, 2, 5, 10)]
 #: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
 KILOBOT_RESUME = {"kb4_s1": 14}
-SHIPPED = ROOT / "export" / "data" / "default_policy.npz"
+#: the report's reference policy (``ship`` writes it, ``eval`` and ``closed`` read it); not export/data's default
+SHIPPED = RUNS / "reference" / "default_policy.npz"
 #: Experiments 1 and 2 as sweeps: 3 seeds, 32 warm-up + 468 learning episodes = 10⁵ environment steps per
 #: trial; two sweeps side by side with one CPU each, trials at the command's niceness (RAY_worker_niceness)
 SWEEP = ["--preset", "fast", "--world", "thesis", "--seeds", "1", "2", "3", "--grid", "episodes=468",
@@ -174,6 +177,7 @@ def ship(args) -> None:
     })
     shipped = type(p)(weights=list(p.weights), biases=list(p.biases), activations=list(p.activations),
                       t_prev=p.t_prev, world=p.world, provenance=prov)
+    SHIPPED.parent.mkdir(parents=True, exist_ok=True)
     save_policy(shipped, SHIPPED)
     print(f"shipped {path} -> {SHIPPED} ({SHIPPED.stat().st_size} B), hash {shipped.hash[:16]}")
 
