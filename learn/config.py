@@ -5,7 +5,7 @@
   bookkeeping. Not used on its own.
 * :class:`TrainConfig` — **MAGDDPG** (thesis Algorithm 4): a feed-forward (MLP) actor over the
   ``t_prev`` history of (previous action, observation) tuples, minibatches of transitions.
-* :class:`RecurrentConfig` — **MAGRDPG** (thesis Algorithm 5): a recurrent actor (GRU) over one tuple
+* :class:`RecurrentConfig` — **MAGRDPG** (thesis Algorithm 5): a recurrent actor (GRU or LSTM) over one tuple
   per step, minibatches of burn-in + unroll windows.
 
 Every field is a command-line option (:mod:`learn.cli`, tyro); its ``#:`` comment is the help text.
@@ -27,7 +27,8 @@ Training presets (``--preset``; distinct from the *world*, ``--world``), in ``TR
 ``fast``     tuned for wall clock on a small CPU: 16 environments, bigger minibatches, faster target
              tracking, higher learning rates, phantom neighbours (:mod:`learn.augment`); 50
              evaluation episodes every 51 200 transitions (evaluation ≈ 5 % of the wall clock).
-``quick``    ``fast`` with a 5-minute budget and a small replay memory.
+``quick``    ``guided`` in minutes: 128 demonstration episodes, 1,000 cloning steps, a 5-minute budget and a
+             small replay memory.
 ``guided``   ``fast`` started from demonstrations of the hand-written searcher (:mod:`learn.demos`):
              behaviour cloning, a critic-only phase, small BC-anchored actor steps through ``clip``
              action gradients (README: guided training).
@@ -612,7 +613,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "thesis": {"t_prev": 20},
     "fast": _FAST,
-    #: a first policy in minutes: the searcher's clone, then RL anchored to it (kilobot world, 16 robots: 8x random)
+    #: a first policy in minutes: the searcher's clone, then RL anchored to it (kilobot world, 16 robots: 11x random, docs/training.md)
     "quick": {**_FAST, **_GUIDED, "demo_episodes": 128, "bc_updates": 1000, "replay_size": 100_000,
               "eval_every": 12_800, "max_minutes": 5.0, "exp_name": "quick"},
     "guided": {**_FAST, **_GUIDED, "exp_name": "guided"},
