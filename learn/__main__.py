@@ -19,6 +19,7 @@ _held, _previous = hold()
 try:
     import argparse
     import sys
+    import tempfile
     from pathlib import Path
 
     from kiloforge.cli import run_guarded
@@ -48,7 +49,8 @@ def build_parser() -> ArgumentParser:
     e.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=BENCHMARK_STEPS,
                    help=f"steps per episode (default {BENCHMARK_STEPS}, the thesis benchmark's, for every world; "
                         "python -m sim runs the world's own episode, thesis 200, kilobot 300)")
-    e.add_argument("--out", required=True, help="output directory")
+    e.add_argument("--out", default=None,
+                   help="output directory for evaluation.json, plots and a GIF (default: print the tables only)")
     e.add_argument("--seed", type=seed_arg, default=0, help="episode seed (same for every policy)")
     e.add_argument("--n-envs", type=int_arg(1, 100_000), default=50, help="episodes simulated together (default 50)")
     e.add_argument("--no-baselines", action="store_true", help="skip the random and hand-written baselines")
@@ -80,11 +82,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluate import evaluate_policies
 
     policies = {name: load_policy(path) for name, path in zip(policy_labels(args.policy), args.policy)}
+    run = dict(seed=args.seed, n_envs=args.n_envs, baselines=not args.no_baselines, progress=not args.quiet)
+    if args.out is None:  # the tables on stdout; the files go to a scratch directory that is removed
+        with tempfile.TemporaryDirectory(prefix="kiloforge-evaluate-") as tmp:
+            evaluate_policies(policies, args.robots, args.episodes, args.steps, Path(tmp), gif=False, **run)
+        print("nothing written (--out DIR writes evaluation.json, plots and a GIF)")
+        return 0
     out = Path(args.out)
     with staged_files(out, record="evaluation.json", create=True) as tmp:  # all files or none
-        evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, seed=args.seed,
-                          n_envs=args.n_envs, baselines=not args.no_baselines, gif=not args.no_gif,
-                          progress=not args.quiet)
+        evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, gif=not args.no_gif, **run)
     print(f"wrote {out}/evaluation.json and plots")
     return 0
 

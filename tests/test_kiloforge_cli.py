@@ -148,6 +148,20 @@ def test_learn_evaluate_without_learn_extra(tmp_path):
     _assert_tiny_evaluation(r, tmp_path / "ev")
 
 
+def test_learn_evaluate_without_out_prints_tables_and_writes_nothing(tmp_path):
+    """`python -m learn evaluate` without --out (the issue's benchmark command) prints each size's table, exit 0,
+    and leaves no file behind, here or in the temporary directory."""
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    r = subprocess.run([sys.executable, "-c", NO_LEARN_EXTRA, "evaluate", *TINY_EVAL[:-2]], cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(ROOT), "TMPDIR": str(scratch)},
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "4 robots, 20 steps, 2 episodes" in r.stdout and "hand-written" in r.stdout
+    assert r.stdout.rstrip().endswith("nothing written (--out DIR writes evaluation.json, plots and a GIF)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scratch"] and list(scratch.iterdir()) == []
+
+
 def test_kiloforge_evaluate_never_imports_torch(tmp_path):
     """`kiloforge evaluate` of the shipped .npz policy succeeds with torch unimportable and never imports it."""
     r = kiloforge_run(["evaluate", *TINY_EVAL], tmp_path, code=NO_TORCH)
