@@ -149,8 +149,7 @@ def test_learn_evaluate_without_learn_extra(tmp_path):
 
 
 def test_learn_evaluate_without_out_prints_tables_and_writes_nothing(tmp_path):
-    """`python -m learn evaluate` without --out (the issue's benchmark command) prints each size's table, exit 0,
-    and leaves no file behind, here or in the temporary directory."""
+    """`python -m learn evaluate` without --out prints each size's table, exit 0, and leaves no file anywhere."""
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     r = subprocess.run([sys.executable, "-c", NO_LEARN_EXTRA, "evaluate", *TINY_EVAL[:-2]], cwd=tmp_path,
@@ -205,8 +204,7 @@ def test_console_script_without_torch_is_one_line(tmp_path, monkeypatch, capsys)
 
 
 def test_learn_plot_without_learn_extra(tmp_path, monkeypatch):
-    """`python -m learn plot` draws the curves of run directories with torch, tyro and tensorboard unimportable,
-    titled by the runs' trainer."""
+    """`python -m learn plot` draws run curves, titled by their trainer, with torch, tyro and tensorboard unimportable."""
     for seed in (1, 2):
         run = tmp_path / f"es_s{seed}"
         run.mkdir()
