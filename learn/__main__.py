@@ -19,7 +19,6 @@ _held, _previous = hold()
 try:
     import argparse
     import sys
-    import tempfile
     from pathlib import Path
 
     from kiloforge.cli import run_guarded
@@ -83,9 +82,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     policies = {name: load_policy(path) for name, path in zip(policy_labels(args.policy), args.policy)}
     run = dict(seed=args.seed, n_envs=args.n_envs, baselines=not args.no_baselines, progress=not args.quiet)
-    if args.out is None:  # the tables on stdout; the files go to a scratch directory that is removed
-        with tempfile.TemporaryDirectory(prefix="kiloforge-evaluate-") as tmp:
-            evaluate_policies(policies, args.robots, args.episodes, args.steps, Path(tmp), gif=False, **run)
+    if args.out is None:  # the tables on stdout only
+        evaluate_policies(policies, args.robots, args.episodes, args.steps, None, gif=False, **run)
         print("nothing written (--out DIR writes evaluation.json, plots and a GIF)")
         return 0
     out = Path(args.out)

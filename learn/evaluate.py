@@ -94,18 +94,15 @@ class Contender:
 
 
 def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes: int, steps: int,
-                      out_dir: Path, seed: int = 0, n_envs: int = 50, baselines: bool = True,
+                      out_dir: Path | None, seed: int = 0, n_envs: int = 50, baselines: bool = True,
                       gif: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> dict:
     """Evaluate policy artifacts (name → a float policy of any actor kind) and the baselines.
 
     All policies must share one world (the first's). Every policy sees the same episode seeds.
     Writes to ``out_dir``: ``reward_over_time_{M}.png``, ``returns_box_{M}.png``,
-    ``coverage_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``;
-    returns the JSON-ready results.
+    ``coverage_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``; with ``out_dir``
+    None nothing (the tables are only logged). Returns the JSON-ready results.
     """
-    from .plots import plot_returns_box, plot_reward_over_time
-    from sim.render import animate_episode, plot_coverage
-
     assert policies or baselines, "nothing to evaluate"
     worlds: dict[str, list[str]] = {}
     for name, p in policies.items():
@@ -145,17 +142,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         metrics = {n: r.metrics(ceiling=with_ceiling) for n, r in runs.items()}
         table = compare(metrics)
         log(f"\n{M} robots, {steps} steps, {episodes} episodes (mean ± 95 % CI)\n{table}\n")
-        plot_reward_over_time({n: r.rewards for n, r in runs.items()}, out_dir / f"reward_over_time_{M}.png",
-                              title=f"mean reward over time, {M} robots ({world.name} world)")
-        plot_returns_box({n: r.rewards.sum(axis=1) for n, r in runs.items()}, out_dir / f"returns_box_{M}.png",
-                         title=f"returns, {M} robots, {steps} steps ({world.name} world)")
-        plot_coverage({n: r.coverage for n, r in runs.items()}, out_dir / f"coverage_{M}.png",
-                      title=f"coverage of the target, {M} robots")
-        if gif and contenders:
-            name = contenders[0].name
-            tr = runs[name].trajectories
-            animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
-                            out_dir / f"episode_{_slug(name)}_{M}.gif", title=f"{name}: {M} robots")
+        if out_dir is not None:
+            _plot_size(runs, contenders[0].name if gif and contenders else None, world, M, steps, out_dir)
         results["robots"][str(M)] = {
             "table": table,
             "metrics": {n: m.to_dict(per_episode=False) for n, m in metrics.items()},
@@ -165,8 +153,27 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         if with_ceiling:  # per episode, from each run's own final beacon positions
             results["robots"][str(M)]["ceiling"] = {n: m.ceiling.round(6).tolist() for n, m in metrics.items()}
 
-    write_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
+    if out_dir is not None:
+        write_atomic(out_dir / "evaluation.json", json.dumps(results, indent=1, sort_keys=True, allow_nan=False))
     return results
+
+
+def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldConfig, M: int, steps: int,
+               out_dir: Path) -> None:
+    """One swarm size's plots in ``out_dir`` (and the GIF of contender ``gif_of``'s first episode, if any)."""
+    from .plots import plot_returns_box, plot_reward_over_time
+    from sim.render import animate_episode, plot_coverage
+
+    plot_reward_over_time({n: r.rewards for n, r in runs.items()}, out_dir / f"reward_over_time_{M}.png",
+                          title=f"mean reward over time, {M} robots ({world.name} world)")
+    plot_returns_box({n: r.rewards.sum(axis=1) for n, r in runs.items()}, out_dir / f"returns_box_{M}.png",
+                     title=f"returns, {M} robots, {steps} steps ({world.name} world)")
+    plot_coverage({n: r.coverage for n, r in runs.items()}, out_dir / f"coverage_{M}.png",
+                  title=f"coverage of the target, {M} robots")
+    if gif_of is not None:
+        tr = runs[gif_of].trajectories
+        animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
+                        out_dir / f"episode_{_slug(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots")
 
 
 def _slug(name: str) -> str:

@@ -35,6 +35,23 @@ from sim.rollout import rollout  # noqa: E402
 TURN_CCW, TURN_CW = (1.0, 0.0), (0.0, 1.0)
 
 
+def touching_ahead(env: SwarmEnv, gap_mm: float) -> np.ndarray:
+    """(B, i, j): robot j's body is within ``gap_mm`` of robot i's, in front of i (within 60°), from the true state."""
+    rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
+    dist = np.linalg.norm(rel, axis=-1)
+    ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
+    return (dist < 2 * env.cfg.robot_radius_mm + gap_mm) & ahead & (dist > 0)
+
+
+def episode_args(ap: argparse.ArgumentParser) -> None:
+    """The flags every oracle script shares: the policy to compare with, swarm sizes and the held-out episodes."""
+    ap.add_argument("--policy", default=str(ROOT / "export" / "data" / "default_policy.npz"))
+    ap.add_argument("--robots", nargs="+", type=int, default=[32])
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--steps", type=int, default=500)
+    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+
+
 class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
@@ -49,21 +66,13 @@ class OraclePush:
         self.sliding = np.zeros((n_envs, n_robots), np.int64)  # periods of sliding left
         self.side = np.ones((n_envs, n_robots))  # +1: slide counter-clockwise about the beacon, -1 clockwise
 
-    def _touching_ahead(self, gap_mm: float) -> np.ndarray:
-        """(B, i, j): robot j's body is within ``gap_mm`` of robot i's, in front of i (within 60°)."""
-        env = self.env
-        rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
-        dist = np.linalg.norm(rel, axis=-1)
-        ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
-        return (dist < 2 * env.cfg.robot_radius_mm + gap_mm) & ahead & (dist > 0)
-
     def act(self, obs: np.ndarray) -> np.ndarray:
         env = self.env
         d = env.target[:, None, :] - env.pos
         inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
         goal = np.arctan2(d[..., 1], d[..., 0])
         if self.slide:  # blocked out of range: drive along the cluster, tangent to the beacon's bearing
-            start = self._touching_ahead(2.0).any(axis=2) & ~inside & (self.sliding <= 0)
+            start = touching_ahead(env, 2.0).any(axis=2) & ~inside & (self.sliding <= 0)
             self.side = np.where(start, np.where(self.rng.random(start.shape) < 0.5, 1.0, -1.0), self.side)
             self.sliding = np.where(start, self.slide, self.sliding - 1)
             goal = np.where(self.sliding > 0, goal + self.side * (np.pi / 2), goal)
@@ -74,7 +83,7 @@ class OraclePush:
         if self.inside == "stop":
             a[inside] = 0.0
         if self.queue:  # out of range, touching a robot in range in front (within 60°): wait, don't push the cluster
-            touching = self._touching_ahead(3.0) & inside[:, None, :]
+            touching = touching_ahead(env, 3.0) & inside[:, None, :]
             a[touching.any(axis=2) & ~inside] = 0.0
         if self.agitate > 0:
             shake = self.rng.random(obs.shape[:2]) < self.agitate
@@ -84,11 +93,7 @@ class OraclePush:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--policy", default=str(ROOT / "export" / "data" / "default_policy.npz"))
-    ap.add_argument("--robots", nargs="+", type=int, default=[32])
-    ap.add_argument("--episodes", type=int, default=100)
-    ap.add_argument("--steps", type=int, default=500)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    episode_args(ap)
     ap.add_argument("--aim-deg", type=float, default=23.0, help="drive straight once facing the beacon within this")
     ap.add_argument("--inside", nargs="+", choices=("stop", "push"), default=["stop", "push"])
     ap.add_argument("--agitate", nargs="+", type=float, default=[0.0, 0.3])

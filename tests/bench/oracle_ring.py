@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
+from oracle_push import episode_args, touching_ahead  # noqa: E402  (this folder: the shared oracle parts)
 from sim.ceiling import capacity  # noqa: E402
 from sim.config import WorldConfig  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
@@ -64,21 +65,13 @@ class RingOracle:
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
         self.blocked = np.zeros((n_envs, n_robots), np.int64)  # periods left orbiting after a blocked run in
 
-    def _touched_in_front(self) -> np.ndarray:
-        """(B, M): another robot's body is within ``touch_gap`` mm, in front (within 60°)."""
-        env = self.env
-        rel = env.pos[:, None, :, :] - env.pos[:, :, None, :]  # (B, i, j, 2) from robot i to robot j
-        dist = np.linalg.norm(rel, axis=-1)
-        ahead = np.abs(wrap_angle(np.arctan2(rel[..., 1], rel[..., 0]) - env.heading[:, :, None])) < np.pi / 3
-        return ((dist < 2 * env.cfg.robot_radius_mm + self.touch_gap) & ahead & (dist > 0)).any(axis=2)
-
     def act(self, obs: np.ndarray) -> np.ndarray:
         env = self.env
         v = env.target[:, None, :] - env.pos
         d = np.linalg.norm(v, axis=-1)
         bearing = np.arctan2(v[..., 1], v[..., 0])
         inside = d <= env.cfg.comm_radius_mm
-        touched = self._touched_in_front()
+        touched = touching_ahead(env, self.touch_gap).any(axis=2)  # (B, M)
         ring = np.where(d < (self.r_in + self.r_out) / 2, self.r_in, self.r_out)
         orbit = bearing - np.pi / 2 + np.clip(self.gain * (d - ring) / 10.0, -np.pi / 3, np.pi / 3)
         going_in = inside & (d > self.r_in + self.margin) & (self.blocked == 0)
@@ -97,8 +90,7 @@ class RimOverride:
     ring (radius ``r_ring``) and wait while touched from the front: only the sparse outer band packs in a ring."""
 
     def __init__(self, env: SwarmEnv, base, r_lo: float, r_ring: float, gain: float, touch_gap: float = 2.0) -> None:
-        self.env, self.base, self.r_lo, self.r_ring, self.gain = env, base, r_lo, r_ring, gain
-        self.ring = RingOracle(env, r_lo, r_ring, gain, False, 0.0, touch_gap)
+        self.env, self.base, self.r_lo, self.r_ring, self.gain, self.touch_gap = env, base, r_lo, r_ring, gain, touch_gap
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
         self.base.reset(n_envs, n_robots, rng)
@@ -112,7 +104,7 @@ class RimOverride:
         orbit = np.arctan2(v[..., 1], v[..., 0]) - np.pi / 2 + np.clip(self.gain * (d - self.r_ring) / 10.0,
                                                                         -np.pi / 3, np.pi / 3)
         ao = steer(wrap_angle(orbit - env.heading))
-        ao[self.ring._touched_in_front()] = 0.0
+        ao[touching_ahead(env, self.touch_gap).any(axis=2)] = 0.0
         return np.where(rim[..., None], ao, a)
 
 
@@ -148,11 +140,7 @@ def ceiling_by_place(res, world: WorldConfig, n_robots: int) -> list[tuple[float
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--policy", default=str(ROOT / "export" / "data" / "default_policy.npz"))
-    ap.add_argument("--robots", nargs="+", type=int, default=[32])
-    ap.add_argument("--episodes", type=int, default=100)
-    ap.add_argument("--steps", type=int, default=500)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    episode_args(ap)
     ap.add_argument("--touch-gap", type=float, default=2.0, help="mm between bodies that counts as touching")
     ap.add_argument("--configs", nargs="*", default=["48,82,1,0,3", "52,84,4,0,3", "52,84,2,1,15"],
                     help="r_in,r_out,gain,wait,margin per ring oracle (mm, -, 0/1, mm)")

@@ -66,7 +66,7 @@ HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--seed", "1", "--eval-episodes", "20"
 #: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
 KILOBOT_RESUME = {"kb4_s1": 14}
 #: the report's reference policy (``ship`` writes it, ``eval`` and ``closed`` read it); not export/data's default
-SHIPPED = RUNS / "reference" / "default_policy.npz"
+REFERENCE = RUNS / "reference" / "default_policy.npz"
 #: Experiments 1 and 2 as sweeps: 3 seeds, 32 warm-up + 468 learning episodes = 10⁵ environment steps per
 #: trial; two sweeps side by side with one CPU each, trials at the command's niceness (RAY_worker_niceness)
 SWEEP = ["--preset", "fast", "--world", "thesis", "--seeds", "1", "2", "3", "--grid", "episodes=468",
@@ -177,9 +177,9 @@ def ship(args) -> None:
     })
     shipped = type(p)(weights=list(p.weights), biases=list(p.biases), activations=list(p.activations),
                       t_prev=p.t_prev, world=p.world, provenance=prov)
-    SHIPPED.parent.mkdir(parents=True, exist_ok=True)
-    save_policy(shipped, SHIPPED)
-    print(f"shipped {path} -> {SHIPPED} ({SHIPPED.stat().st_size} B), hash {shipped.hash[:16]}")
+    REFERENCE.parent.mkdir(parents=True, exist_ok=True)
+    save_policy(shipped, REFERENCE)
+    print(f"shipped {path} -> {REFERENCE} ({REFERENCE.stat().st_size} B), hash {shipped.hash[:16]}")
 
 
 def evaluate(args) -> None:
@@ -193,7 +193,7 @@ def evaluate(args) -> None:
     sh([PY, "-m", "learn", "evaluate", "--policy", str(RUNS / "kb4_s2" / "policy_best.npz"), "--robots", "4", "16", "32",
         "--episodes", str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot_baselines"), "--no-gif",
         "--quiet"], args.dry_run)
-    sh([PY, "-m", "learn", "evaluate", "--policy", str(SHIPPED), "--robots", "4", "16", "32", "--episodes",
+    sh([PY, "-m", "learn", "evaluate", "--policy", str(REFERENCE), "--robots", "4", "16", "32", "--episodes",
         str(args.episodes), "--seed", "0", "--out", str(OUT / "eval_kilobot"), "--no-gif", "--quiet", "--no-baselines"],
        args.dry_run)
     if not args.dry_run:  # keep only evaluation.json: the report's figures are drawn from it by ``plots``
@@ -204,7 +204,7 @@ def evaluate(args) -> None:
 
 def closed_loop(args) -> None:
     """Float vs int8 in the closed loop: shipped kilobot policy and the 4-robot thesis policy."""
-    for policy, name in ((SHIPPED, "closed_loop_kilobot"), (RUNS / "goal4_s1" / "policy_best.npz", "closed_loop_thesis")):
+    for policy, name in ((REFERENCE, "closed_loop_kilobot"), (RUNS / "goal4_s1" / "policy_best.npz", "closed_loop_thesis")):
         sh([PY, "-m", "export", "verify", "--closed-loop", "--policy", str(policy), "--robots", "16", "32",
             "--episodes", str(args.verify_episodes), "--out", str(OUT / name), "--quiet"], args.dry_run)
 
