@@ -7,7 +7,8 @@ of range pivots towards the beacon until it faces it within ``--aim-deg``, then 
 Inside the range it stops (``--inside stop``) or keeps pushing at the beacon too (``--inside push``),
 ``--agitate p`` replaces a fraction p of all commands by random ones (shaking a jam loose), and ``--slide n``
 makes a robot out of range that touches a body in front of it (within 60°) drive along the cluster instead, at
-90° to the beacon's bearing on a side drawn per blocking, for n periods before it aims again. On the
+90° to the beacon's bearing on a side drawn per blocking, for n periods before it aims again; ``--swirl w`` makes
+every robot aim w degrees to the left of the beacon (all the same way, a vortex about it). On the
 same episodes as the shipped default and the hand-written searcher it prints final coverage and its
 fraction of each episode's packing ceiling: where the oracle jams, the contact model (frictionless
 discs pushed apart, a taped-down beacon) jams, and no policy that only gets there by pushing does better.
@@ -56,9 +57,9 @@ class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
     def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False,
-                 slide: int = 0) -> None:
+                 slide: int = 0, swirl_deg: float = 0.0) -> None:
         self.env, self.aim, self.inside, self.agitate = env, np.deg2rad(aim_deg), inside, agitate
-        self.queue, self.slide = queue, slide
+        self.queue, self.slide, self.swirl = queue, slide, np.deg2rad(swirl_deg)
         self.rng = np.random.default_rng(0)
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
@@ -70,7 +71,7 @@ class OraclePush:
         env = self.env
         d = env.target[:, None, :] - env.pos
         inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
-        goal = np.arctan2(d[..., 1], d[..., 0])
+        goal = np.arctan2(d[..., 1], d[..., 0]) + self.swirl
         if self.slide:  # blocked out of range: drive along the cluster, tangent to the beacon's bearing
             start = touching_ahead(env, 2.0).any(axis=2) & ~inside & (self.sliding <= 0)
             self.side = np.where(start, np.where(self.rng.random(start.shape) < 0.5, 1.0, -1.0), self.side)
@@ -100,6 +101,9 @@ def main() -> None:
     ap.add_argument("--slide", nargs="+", type=int, default=[0],
                     help="periods a blocked robot out of range drives along the cluster (0: it pushes on); "
                          "each value adds a row per --inside and --agitate")
+    ap.add_argument("--swirl", nargs="+", type=float, default=[0.0],
+                    help="degrees every robot aims to the left of the beacon (all the same way: a vortex); "
+                         "each value adds a row")
     args = ap.parse_args()
     pol = load_policy(args.policy)
     world = WorldConfig.from_dict({**pol.world.to_dict(), "episode_steps": args.steps})
@@ -109,8 +113,10 @@ def main() -> None:
         for inside in args.inside:
             for p in args.agitate:
                 for n in args.slide:
-                    name = f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
-                    contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n)
+                    for w in args.swirl:
+                        name = (f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
+                                + (f", swirl {w:g}" if w else ""))
+                        contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n, swirl_deg=w)
         table = {name: rollout(env, c, args.episodes, seed=args.seed).metrics(ceiling=True)
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
