@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import grid
+from . import contacts_jit, grid
 from .config import WorldConfig
 from .motion import MODE_LEFT, schedule
 
@@ -523,15 +523,25 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         loc[sel] = np.arange(Bs)
         le = loc.take(cand.env)
         near = np.flatnonzero((le >= 0) & (cand.dist <= collider.diam + collider.skin))
-        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
-                             None if zb is None else mobility[sel],
-                             (le.take(near), cand.i.take(near), cand.j.take(near)))
+        pairs = (le.take(near), cand.i.take(near), cand.j.take(near))  # sorted by (env, i, j)
         diam = collider.diam
         strict = ticks == last - 1
         active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
         limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
         resolving = active.any(axis=1).tolist()
         loose = ~strict
+        if contacts_jit.available():  # the same loop compiled (bit-identical; sim/contacts_jit.py)
+            ptr = np.searchsorted(pairs[0], np.arange(Bs + 1))
+            skin = collider.skin
+            rec, zs = contacts_jit.tick_loop(
+                zk, z0, zb, sel, inc_s, np.asarray(moving), limit, np.ascontiguousarray(loose), ks, kmin, k_end, ptr,
+                pairs[1], pairs[2], start.take(sel, axis=0), None if zb is None else mobility[sel], lim,
+                diam + RELAX_MARGIN_MM, 0.5 * RELAX_OMEGA, skin, (diam + skin) * (diam + skin), TICK_SWEEPS,
+                MAX_RELAX_ITERS)
+            _store_ticks(zk, zb, sel, rec, zs, kmin, k_end, target_record)
+            return
+        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
+                             None if zb is None else mobility[sel], pairs)
     flat = zs.reshape(-1)
     zsf = flat.view(np.float64)
     body = zs[:, :M]
@@ -547,10 +557,20 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         if collider is not None and resolving[k]:
             contacts.relax(flat, limit[k], loose[k], TICK_SWEEPS)
         rec[k - kmin] = zs
-    own = rec[..., :M]  # an env's own ticks; before an env's first tick its closed form stays
-    if later.size:
+    if later.size:  # before an env's first tick its closed form stays
         mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1)
-        own = np.where(mine, own, zk[kmin:k_end].take(sel, axis=1))
+        rec[..., :M] = np.where(mine, rec[..., :M], zk[kmin:k_end].take(sel, axis=1))
+    _store_ticks(zk, zb, sel, rec, zs, kmin, k_end, target_record)
+
+
+def _store_ticks(zk: np.ndarray, zb: np.ndarray | None, sel: np.ndarray, rec: np.ndarray, zs: np.ndarray, kmin: int,
+                 k_end: int, target_record: np.ndarray | None) -> None:
+    """Write the per-tick loop's result back: ``rec`` (k_end - kmin, Bs, N) the discs of the envs ``sel``
+    after each tick from kmin, ``zs`` (Bs, N) where they end; robots into zk (P, B, M), the beacon into
+    zb (B,) and ``target_record`` (P, B, 2)."""
+    P, B, M = zk.shape
+    Bs = sel.size
+    own, body = rec[..., :M], zs[:, :M]
     if Bs == B:
         zk[kmin:k_end] = own
         zk[k_end:] = body

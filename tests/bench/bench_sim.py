@@ -6,6 +6,7 @@
     python tests/bench/bench_sim.py --goals --repeat 10   # ... timed in 10 rounds: best and median
     python tests/bench/bench_sim.py --kilobot --repeat 3  # kilobot world, 500 mm arena (see below)
     python tests/bench/bench_sim.py --kilobot --against 81d913c --repeat 3   # A/B against a revision
+    python tests/bench/bench_sim.py --kilobot --jit-ab --repeat 3   # compiled contact loop on / off
 
 Worlds:
   thesis/fixed     thesis preset, arena ±100 mm whatever M (density grows with M)
@@ -22,7 +23,8 @@ subprocess; ``--against REV`` also runs it on the ``sim/``
 of git revision REV (``git archive``), alternating the two trees every round, and prints both and
 the speed-up (best and median over rounds). ``--old-physics`` runs every tree with a taped-down
 beacon and a centre pivot where it has ``beacon_mobility`` / ``pivot_offset_mm`` (the physics of
-81d913c and older trees), so only the code differs.
+81d913c and older trees), so only the code differs. ``--jit-ab`` also runs this tree with
+``KILOFORGE_JIT=0`` (the NumPy contact loop instead of :mod:`sim.contacts_jit`'s compiled one).
 
 Timing: random actions, after one warm-up step; each row reports the best of several timed
 blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
@@ -134,8 +136,9 @@ print(json.dumps({"wall": min(b[0] for b in blocks), "cpu": min(b[1] for b in bl
 """
 
 
-def _kilobot_row(tree: str, M: int, B: int, policy: str, warm: int, steps: int, beacon: str) -> dict:
-    env = dict(os.environ, PYTHONPATH=tree)
+def _kilobot_row(tree: str, M: int, B: int, policy: str, warm: int, steps: int, beacon: str,
+                 extra_env: dict | None = None) -> dict:
+    env = dict(os.environ, PYTHONPATH=tree, **(extra_env or {}))
     out = subprocess.run([sys.executable, "-P", "-c", _KILOBOT_ROW, str(M), str(B), policy, str(warm), str(steps),
                           beacon], env=env, cwd=tree, capture_output=True, text=True, check=True)
     res = json.loads(out.stdout.strip().splitlines()[-1])
@@ -152,12 +155,14 @@ def _archive(rev: str, dest: str) -> None:
 
 def kilobot_main(args) -> None:
     here = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
-    trees = {"this tree": here}
+    trees = {"this tree": (here, {})}
+    if args.jit_ab:  # the same tree with the compiled contact loop off (sim/contacts_jit.py)
+        trees["this tree, NumPy loop"] = (here, {"KILOFORGE_JIT": "0"})
     tmp = None
     if args.against:
         tmp = tempfile.mkdtemp(prefix="kf-bench-")
         _archive(args.against, tmp)
-        trees[args.against] = tmp
+        trees[args.against] = (tmp, {})
     rows = [(M, B, pol) for pol in ("random", "baseline") for M in (4, 16, 32) for B in (16, 50)]
     if args.quick:
         rows = [(M, 16, pol) for pol in ("random", "baseline") for M in (4, 32)]
@@ -171,9 +176,9 @@ def kilobot_main(args) -> None:
         for M, B, pol in rows:
             res: dict[str, list[dict]] = {t: [] for t in trees}
             for _ in range(args.repeat):  # alternate the trees every round
-                for t, path in trees.items():
+                for t, (path, extra_env) in trees.items():
                     res[t].append(_kilobot_row(path, M, B, pol, args.warm if pol == "baseline" else 5, args.steps,
-                                               "old" if args.old_physics else "preset"))
+                                               "old" if args.old_physics else "preset", extra_env))
             best = {t: min(r["wall"] for r in v) for t, v in res.items()}
             med = {t: float(np.median([r["wall"] for r in v])) for t, v in res.items()}
             cells = " | ".join(f"{best[t] * 1e3:.2f} ({med[t] * 1e3:.2f})" for t in trees)
@@ -198,6 +203,8 @@ def main() -> None:
                          "moments show in the best, its typical load in the median)")
     ap.add_argument("--kilobot", action="store_true", help="kilobot-world rows (500 mm arena, random and searcher)")
     ap.add_argument("--against", default=None, help="with --kilobot: also time git revision REV's sim/, alternating")
+    ap.add_argument("--jit-ab", action="store_true",
+                    help="with --kilobot: also time this tree with KILOFORGE_JIT=0 (the NumPy contact loop), alternating")
     ap.add_argument("--old-physics", action="store_true",
                     help="with --kilobot: taped beacon and centre pivot where the tree has the fields (81d913c's physics)")
     ap.add_argument("--warm", type=int, default=300, help="with --kilobot: searcher warm-up steps (crowding)")
