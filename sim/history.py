@@ -58,5 +58,5 @@ class History:
         """Actor input (B, M, t_prev * tuple_dim), oldest tuple first."""
         assert self.buf is not None, "History.flat before reset"
         B, M, T, D = self.buf.shape
-        idx = (self.head + np.arange(T)) % T
-        return self.buf[:, :, idx, :].reshape(B, M, T * D)
+        h = self.head  # two slice copies: several times faster than a fancy-index gather on axis 2
+        return np.concatenate((self.buf[:, :, h:], self.buf[:, :, :h]), axis=2).reshape(B, M, T * D)

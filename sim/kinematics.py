@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import contacts_jit, grid
+from . import compiled, grid
 from .config import WorldConfig
 from .motion import MODE_LEFT, schedule
 
@@ -530,10 +530,10 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
         resolving = active.any(axis=1).tolist()
         loose = ~strict
-        if contacts_jit.available():  # the same loop compiled (bit-identical; sim/contacts_jit.py)
+        if compiled.available():  # the same loop compiled (bit-identical; sim/compiled.py)
             ptr = np.searchsorted(pairs[0], np.arange(Bs + 1))
             skin = collider.skin
-            rec, zs = contacts_jit.tick_loop(
+            rec, zs = compiled.tick_loop(
                 zk, z0, zb, sel, inc_s, np.asarray(moving), limit, np.ascontiguousarray(loose), ks, kmin, k_end, ptr,
                 pairs[1], pairs[2], start.take(sel, axis=0), None if zb is None else mobility[sel], lim,
                 diam + RELAX_MARGIN_MM, 0.5 * RELAX_OMEGA, skin, (diam + skin) * (diam + skin), TICK_SWEEPS,

@@ -45,7 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
-from . import grid
+from . import compiled, grid
 from .config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
 
@@ -210,38 +210,11 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
     """
     P, B, M, _ = pos_ticks.shape
     R = cfg.comm_radius_mm
-    Z = np.empty((P, B, M + 1), np.complex128)  # robots and (column M) the beacon, after each tick
-    Z.real[..., :M], Z.imag[..., :M] = pos_ticks[..., 0], pos_ticks[..., 1]
-    tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
-    Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
-    final = Z[-1]
-    reach = np.abs(Z - final).max(axis=0)  # (B, M + 1) farthest each transmitter was from its end
-    # a pair within R at some tick is within R + reach_i + reach_j at the end
-    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * float(reach.max()) + 1e-3,
-                             cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)
-    ri, rj = reach[cand.env, cand.i], reach[cand.env, cand.j]
-    m = np.flatnonzero((cand.i < M) & (cand.dist <= R + ri + rj + 1e-3))  # the target only sends
-    e, rx, snd = cand.env.take(m), cand.i.take(m), cand.j.take(m)  # (K,) sorted by (env, rx, snd)
-    moved = (ri.take(m) > 0) | (rj.take(m) > 0)  # (K,) else the distance is the same at every tick
-    if msg_period is None:
-        T = cfg.msg_period_ticks
-        k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
+    periods = np.full((B, M + 1), cfg.msg_period_ticks, np.int64) if msg_period is None else msg_period
+    if compiled.available() and M + 1 <= compiled.RADIO_MAX_N:  # the same messages, compiled (bit-identical)
+        e, rx, snd, k, d, single = compiled.radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R)
     else:
-        T = msg_period[e, snd]
-        k0 = (phases[e, snd] - tick0) % T
-    nsend = np.where(k0 < P, (P - 1 - k0) // T + 1, 0)
-    tot = int(nsend.sum())
-    first = np.cumsum(nsend) - nsend
-    d = np.repeat(cand.dist.take(m), nsend)
-    moved = np.repeat(moved, nsend)
-    e, rx, snd, k0 = (np.repeat(v, nsend) for v in (e, rx, snd, k0))
-    rounds = np.arange(tot, dtype=np.int64) - np.repeat(first, nsend)
-    k = k0 + (T if msg_period is None else msg_period[e, snd]) * rounds  # (tot,) send tick
-    mv = moved.nonzero()[0]  # messages between transmitters that moved: distance at the send tick
-    base = (k.take(mv) * B + e.take(mv)) * (M + 1)
-    d[mv] = np.abs(Z.reshape(-1).take(base + rx.take(mv)) - Z.reshape(-1).take(base + snd.take(mv)))
-    h = np.flatnonzero(d <= R)  # in range at the send tick; (receiver, sender, tick) order
-    e, rx, snd, k, d = e.take(h), rx.take(h), snd.take(h), k.take(h), d.take(h)
+        e, rx, snd, k, d, single = _messages(pos_ticks, target, target_ticks, phases, tick0, periods, R, cfg, method)
     loss = cfg.msg_loss > 0 if msg_loss is None else bool(np.any(msg_loss > 0))
     noise = cfg.dist_noise_mm > 0 if dist_noise_mm is None else bool(np.any(dist_noise_mm > 0))
     u, z = _per_env_draws(rngs, np.bincount(e, minlength=B), loss, noise)
@@ -255,7 +228,43 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
     s_env, s_snd = e.take(sr), snd.take(sr)
     return RadioPeriod(B, M, P, s_env, rx.take(sr), s_snd, k.take(sr), dm.take(sr),
                        flags.reshape(-1).take(s_env * M + s_snd).astype(np.uint8, copy=False),
-                       e.take(t), rx.take(t), k.take(t), dm.take(t), single=bool(nsend.max(initial=0) <= 1))
+                       e.take(t), rx.take(t), k.take(t), dm.take(t), single=single)
+
+
+def _messages(pos_ticks: np.ndarray, target: np.ndarray, target_ticks: np.ndarray | None, phases: np.ndarray,
+              tick0: int, periods: np.ndarray, R: float, cfg: WorldConfig, method: str
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """The period's messages in range, before loss and noise: (env, rx, snd, tick, true distance) in
+    (env, receiver, sender, tick) order, and whether no candidate sender sends more than once."""
+    P, B, M, _ = pos_ticks.shape
+    Z = np.empty((P, B, M + 1), np.complex128)  # robots and (column M) the beacon, after each tick
+    Z.real[..., :M], Z.imag[..., :M] = pos_ticks[..., 0], pos_ticks[..., 1]
+    tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
+    Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
+    final = Z[-1]
+    reach = np.abs(Z - final).max(axis=0)  # (B, M + 1) farthest each transmitter was from its end
+    # a pair within R at some tick is within R + reach_i + reach_j at the end
+    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * float(reach.max()) + 1e-3,
+                             cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)
+    ri, rj = reach[cand.env, cand.i], reach[cand.env, cand.j]
+    m = np.flatnonzero((cand.i < M) & (cand.dist <= R + ri + rj + 1e-3))  # the target only sends
+    e, rx, snd = cand.env.take(m), cand.i.take(m), cand.j.take(m)  # (K,) sorted by (env, rx, snd)
+    moved = (ri.take(m) > 0) | (rj.take(m) > 0)  # (K,) else the distance is the same at every tick
+    T = periods[e, snd]
+    k0 = (phases[e, snd] - tick0) % T  # (K,) first send tick of the sender in this period
+    nsend = np.where(k0 < P, (P - 1 - k0) // T + 1, 0)
+    tot = int(nsend.sum())
+    first = np.cumsum(nsend) - nsend
+    d = np.repeat(cand.dist.take(m), nsend)
+    moved = np.repeat(moved, nsend)
+    e, rx, snd, k0 = (np.repeat(v, nsend) for v in (e, rx, snd, k0))
+    rounds = np.arange(tot, dtype=np.int64) - np.repeat(first, nsend)
+    k = k0 + periods[e, snd] * rounds  # (tot,) send tick
+    mv = moved.nonzero()[0]  # messages between transmitters that moved: distance at the send tick
+    base = (k.take(mv) * B + e.take(mv)) * (M + 1)
+    d[mv] = np.abs(Z.reshape(-1).take(base + rx.take(mv)) - Z.reshape(-1).take(base + snd.take(mv)))
+    h = np.flatnonzero(d <= R)  # in range at the send tick; (receiver, sender, tick) order
+    return e.take(h), rx.take(h), snd.take(h), k.take(h), d.take(h), bool(nsend.max(initial=0) <= 1)
 
 
 def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],

@@ -24,7 +24,7 @@ of git revision REV (``git archive``), alternating the two trees every round, an
 the speed-up (best and median over rounds). ``--old-physics`` runs every tree with a taped-down
 beacon and a centre pivot where it has ``beacon_mobility`` / ``pivot_offset_mm`` (the physics of
 81d913c and older trees), so only the code differs. ``--jit-ab`` also runs this tree with
-``KILOFORGE_JIT=0`` (the NumPy contact loop instead of :mod:`sim.contacts_jit`'s compiled one).
+``KILOFORGE_JIT=0`` (the NumPy contact loop instead of :mod:`sim.compiled`'s compiled one).
 
 Timing: random actions, after one warm-up step; each row reports the best of several timed
 blocks (wall clock) to reduce the noise of a shared machine, and the process CPU time of the same
@@ -156,7 +156,7 @@ def _archive(rev: str, dest: str) -> None:
 def kilobot_main(args) -> None:
     here = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
     trees = {"this tree": (here, {})}
-    if args.jit_ab:  # the same tree with the compiled contact loop off (sim/contacts_jit.py)
+    if args.jit_ab:  # the same tree with the compiled contact loop off (sim/compiled.py)
         trees["this tree, NumPy loop"] = (here, {"KILOFORGE_JIT": "0"})
     tmp = None
     if args.against:

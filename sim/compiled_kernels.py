@@ -1,4 +1,4 @@
-"""Numba kernels of :mod:`sim.contacts_jit` (imported only when the compiled contact loop is used).
+"""Numba kernels of :mod:`sim.compiled` (imported only when compiled code is used).
 
 Kept apart so that importing the simulator never imports Numba, and at module level so that Numba
 caches the compiled code on disk (a first use compiles for a few seconds; later processes load it).
@@ -82,7 +82,12 @@ def rebuild(x, y, N, r2, fi, fj):
 @jit
 def sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, limit, capped, cap, target, gain, lim, hit, hx, hy, hd,
            max_iters):
-    """sim.kinematics._Contacts._sweeps for one env."""
+    """sim.kinematics._Contacts._sweeps for one env.
+
+    A pair whose squared distance exceeds ``far2`` = limit² (1 + 1e-12) cannot be closer than ``limit``
+    (both |dz| and dx² + dy² are within a few ulps of the exact values), so its exact distance, a
+    division and a square root, is only computed for pairs near or below the limit."""
+    far2 = limit * limit * (1.0 + 1e-12)
     for sweep in range(max_iters):
         if sweep == cap and capped:
             return
@@ -90,6 +95,8 @@ def sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, limit, capped, cap, target, g
         for p in range(n):
             dx = x[fi[p]] - x[fj[p]]
             dy = y[fi[p]] - y[fj[p]]
+            if dx * dx + dy * dy > far2:  # surely |dz| >= limit: skip the exact distance
+                continue
             d = cabs(dx, dy)
             if d < limit:
                 hit[nh] = p
@@ -194,3 +201,83 @@ def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, 
                 rec[k - kmin, e, i] = complex(x[i], y[i])
         for i in range(N):
             zs[e, i] = complex(x[i], y[i])
+
+
+@jit
+def radio_messages(pos, tgt, tgt_ticks, tgt_moves, phases, tick0, periods, R):
+    """sim.radio._messages, compiled: the messages in range before loss and noise, in (env, receiver,
+    sender, tick) order, as (env, rx, snd, tick, true distance) arrays, and whether no candidate sender
+    sends twice (``single``). Candidates and distances use the NumPy path's formulas and filters."""
+    P, B, M, _ = pos.shape
+    N = M + 1
+    reach = np.zeros((B, N))  # farthest each transmitter was from where it ends the period
+    top = 0.0
+    for b in range(B):
+        for i in range(N):
+            r = 0.0
+            for t in range(P):
+                if i < M:
+                    dx, dy = pos[t, b, i, 0] - pos[P - 1, b, i, 0], pos[t, b, i, 1] - pos[P - 1, b, i, 1]
+                elif tgt_moves:
+                    dx, dy = tgt_ticks[t, b, 0] - tgt_ticks[P - 1, b, 0], tgt_ticks[t, b, 1] - tgt_ticks[P - 1, b, 1]
+                else:
+                    dx, dy = 0.0, 0.0
+                r = max(r, cabs(dx, dy))
+            reach[b, i] = r
+            top = max(top, r)
+    radius = R + 2.0 * top + 1e-3  # sim.grid.pairs_within's radius in the NumPy path
+    r2 = radius * radius
+    sends = P // max(1, periods.min()) + 1  # at most this many sends of one transmitter in a period
+    cap = B * M * N * sends
+    e_out, rx_out = np.empty(cap, np.int64), np.empty(cap, np.int64)
+    snd_out, k_out = np.empty(cap, np.int64), np.empty(cap, np.int64)
+    d_out = np.empty(cap)
+    n = 0
+    most = 0
+    for b in range(B):
+        for rx in range(M):
+            xr, yr = pos[P - 1, b, rx, 0], pos[P - 1, b, rx, 1]
+            for snd in range(N):
+                if snd == rx:
+                    continue
+                if snd < M:
+                    xs, ys = pos[P - 1, b, snd, 0], pos[P - 1, b, snd, 1]
+                elif tgt_moves:
+                    xs, ys = tgt_ticks[P - 1, b, 0], tgt_ticks[P - 1, b, 1]
+                else:
+                    xs, ys = tgt[b, 0], tgt[b, 1]
+                if rx < snd:  # sim.grid measures an unordered pair from its lower index
+                    dx, dy = xr - xs, yr - ys
+                else:
+                    dx, dy = xs - xr, ys - yr
+                d2 = dx * dx + dy * dy
+                if not d2 <= r2:
+                    continue
+                dist = math.sqrt(d2)
+                ri, rj = reach[b, rx], reach[b, snd]
+                if not dist <= R + ri + rj + 1e-3:
+                    continue
+                moved = ri > 0 or rj > 0
+                T = periods[b, snd]
+                k0 = (phases[b, snd] - tick0) % T
+                nsend = (P - 1 - k0) // T + 1 if k0 < P else 0
+                most = max(most, nsend)
+                for r in range(nsend):
+                    k = k0 + T * r
+                    d = dist
+                    if moved:
+                        if snd < M:
+                            xs, ys = pos[k, b, snd, 0], pos[k, b, snd, 1]
+                        elif tgt_moves:
+                            xs, ys = tgt_ticks[k, b, 0], tgt_ticks[k, b, 1]
+                        else:
+                            xs, ys = tgt[b, 0], tgt[b, 1]
+                        d = cabs(pos[k, b, rx, 0] - xs, pos[k, b, rx, 1] - ys)
+                    if d <= R:
+                        e_out[n] = b
+                        rx_out[n] = rx
+                        snd_out[n] = snd
+                        k_out[n] = k
+                        d_out[n] = d
+                        n += 1
+    return e_out[:n].copy(), rx_out[:n].copy(), snd_out[:n].copy(), k_out[:n].copy(), d_out[:n].copy(), most <= 1

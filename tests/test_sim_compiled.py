@@ -1,4 +1,4 @@
-"""The compiled per-tick contact loop (sim.contacts_jit) against the NumPy loop: bit-identical episodes."""
+"""The compiled contact loop and radio (sim.compiled) against the NumPy code: bit-identical episodes and messages."""
 from __future__ import annotations
 
 import os
@@ -7,19 +7,20 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sim import contacts_jit
+from sim import compiled
 from sim.baselines import make_policy
 from sim.config import preset
 from sim.env import SwarmEnv
+from sim.radio import draw_phases, tick_radio
 from sim.variants import RANDOMISATIONS, Randomisation
 
-needs_jit = pytest.mark.skipif(not contacts_jit.available(), reason=f"compiled loop unavailable: {contacts_jit.why_not()}")
+needs_jit = pytest.mark.skipif(not compiled.available(), reason=f"compiled code unavailable: {compiled.why_not()}")
 
 
 def _episode(jit: bool, monkeypatch, cfg, B: int, M: int, seed: int, steps: int, policy: str,
              randomise: Randomisation | None = None) -> dict[str, Any]:
     """Positions, headings, beacons, observations and rewards of one batch of episodes, compiled loop on or off."""
-    monkeypatch.setenv(contacts_jit.ENV_SWITCH, "1" if jit else "0")
+    monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
     env = SwarmEnv(cfg, B, M, seed=seed, randomise=randomise)
     pol = make_policy(policy, cfg)
     obs, _ = env.reset()
@@ -52,6 +53,33 @@ def test_compiled_loop_gives_the_numpy_episode(monkeypatch, M, B, policy, random
 
 
 @needs_jit
+@pytest.mark.parametrize("moving_beacon,varied_periods,noise", [(False, False, False), (True, True, True)])
+def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, varied_periods, noise):
+    """tick_radio's messages (senders, receivers, ticks, distances, loss and noise draws, single) are bit-identical."""
+    cfg = preset("kilobot", msg_loss=0.2 if noise else 0.0, dist_noise_mm=3.0 if noise else 0.0)
+    rng = np.random.default_rng(5)
+    P, B, M = cfg.period_ticks, 6, 24
+    start = rng.uniform(-120, 120, (B, M, 2))
+    pos = start + np.cumsum(rng.normal(0, 1.5, (P, B, M, 2)), axis=0)  # robots that move during the period
+    target = rng.uniform(-60, 60, (B, 2))
+    tticks = target + np.cumsum(rng.normal(0, 0.5, (P, B, 2)), axis=0) if moving_beacon else None
+    periods = rng.integers(15, 18, (B, M + 1)) if varied_periods else None
+    flags = rng.integers(0, 2, (B, M)).astype(np.uint8)
+    out = []
+    for jit in (True, False):
+        monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
+        rngs = [np.random.default_rng(100 + e) for e in range(B)]
+        phases = draw_phases([np.random.default_rng(e) for e in range(B)], M, cfg, periods)
+        out.append(tick_radio(pos, target, phases, 62, flags, cfg, rngs,
+                              target_ticks=tticks, msg_period=periods))
+    a, b = out
+    assert a.s_env.size > 50 and a.t_env.size > 0
+    for f in ("s_env", "s_rx", "s_snd", "s_tick", "s_dist", "s_flag", "t_env", "t_rx", "t_tick", "t_dist"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+    assert a.single == b.single
+
+
+@needs_jit
 def test_compiled_loop_in_a_crowded_small_arena(monkeypatch):
     """A dense jam against the walls of a small arena (many sweeps and pair-list rebuilds) stays bit-identical."""
     cfg = preset("kilobot", arena_half_mm=150.0, episode_steps=80)
@@ -62,14 +90,14 @@ def test_compiled_loop_in_a_crowded_small_arena(monkeypatch):
 
 
 def test_switch_turns_it_off(monkeypatch):
-    """KILOFORGE_JIT=0 turns the compiled loop off and says so."""
-    monkeypatch.setenv(contacts_jit.ENV_SWITCH, "0")
-    assert not contacts_jit.available()
-    assert contacts_jit.ENV_SWITCH in contacts_jit.why_not()
+    """KILOFORGE_JIT=0 turns the compiled code off and says so."""
+    monkeypatch.setenv(compiled.ENV_SWITCH, "0")
+    assert not compiled.available()
+    assert compiled.ENV_SWITCH in compiled.why_not()
 
 
 def test_ci_has_the_compiled_loop():
-    """In CI (numba from the test extras) the compiled loop runs, so the equality tests above are not skipped."""
+    """In CI (numba from the test extras) the compiled code runs, so the equality tests above are not skipped."""
     if os.environ.get("CI") != "true":
         pytest.skip("outside CI the compiled loop may be missing (numba not installed)")
-    assert contacts_jit.available(), contacts_jit.why_not()
+    assert compiled.available(), compiled.why_not()
