@@ -1,6 +1,7 @@
 """The compiled contact loop and radio (sim.compiled) against the NumPy code: bit-identical episodes and messages."""
 from __future__ import annotations
 
+import json
 import os
 from typing import Any
 
@@ -101,3 +102,32 @@ def test_ci_has_the_compiled_loop():
     if os.environ.get("CI") != "true":
         pytest.skip("outside CI the compiled loop may be missing (numba not installed)")
     assert compiled.available(), compiled.why_not()
+
+
+@needs_jit
+def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
+    """A short ES training (clone, generations, evaluation) ends with the same weights with and without compiled code."""
+    torch = pytest.importorskip("torch")
+    from learn.checkpoint import load_checkpoint
+    from learn.config import ESConfig
+    from learn.es_train import train_es
+
+    tiny = dict(n_robots=(4, 16), t_prev=2, actor_hidden=(8,), episode_steps=40, demo_robot_episodes=6, bc_updates=20,
+                bc_batch=64, generations=2, pairs=2, eval_every=2, eval_episodes=2, eval_steps=40, threads=1, seed=4)
+    theta, rows = [], []
+    calls = {"tick_loop": 0, "radio_messages": 0}
+    for name in calls:
+        def counted(*a, _f=getattr(compiled, name), _n=name, **k):
+            calls[_n] += 1
+            return _f(*a, **k)
+        monkeypatch.setattr(compiled, name, counted)
+    for jit in (True, False):
+        monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
+        run = train_es(ESConfig(**tiny), tmp_path / f"jit{int(jit)}", progress=False, log=lambda _m: None)
+        theta.append(load_checkpoint(run.run_dir / "checkpoint.pt")["theta"])
+        timing = ("wall_s", "env_steps_per_s", "updates_per_s")  # NaNs compare equal in JSON text
+        rows.append(json.dumps([{k: v for k, v in r.items() if k not in timing} for r in run.counters.rows],
+                               sort_keys=True))
+    assert calls["tick_loop"] > 0 and calls["radio_messages"] > 0, calls  # the compiled run used both
+    assert torch.equal(theta[0], theta[1])
+    assert rows[0] == rows[1]
