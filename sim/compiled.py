@@ -36,12 +36,18 @@ import numpy as np
 ENV_SWITCH = "KILOFORGE_JIT"  #: "0" turns the compiled code off (the NumPy code runs)
 
 
+_problem: list[str] = []  #: why the kernels could not be loaded or checked (for why_not)
+
+
 @functools.lru_cache(maxsize=1)
 def _compiled():
-    """The kernels (:mod:`sim.compiled_kernels`), or None when Numba is missing."""
+    """The kernels (:mod:`sim.compiled_kernels`), or None when Numba is missing or does not load."""
     try:
         from . import compiled_kernels
     except ImportError:
+        return None
+    except Exception as e:  # a Numba that does not work here: the NumPy code runs
+        _problem.append(f"numba does not load here ({type(e).__name__}: {e})")
         return None
     return compiled_kernels
 
@@ -66,7 +72,15 @@ def _cabs_matches_numpy(cabs_many) -> bool:
 def _checked():
     """The kernels when Numba is there and their |z| is NumPy's here, else None."""
     k = _compiled()
-    if k is None or not _cabs_matches_numpy(k.cabs_many):
+    if k is None:
+        return None
+    try:
+        same = _cabs_matches_numpy(k.cabs_many)
+    except Exception as e:  # compilation failed on this machine: the NumPy code runs
+        _problem.append(f"numba cannot compile the kernels here ({type(e).__name__}: {e})")
+        return None
+    if not same:
+        _problem.append("NumPy computes |z| differently on this machine, so compiled code would not be bit-identical")
         return None
     return k
 
@@ -87,10 +101,8 @@ def why_not() -> str:
     """One line: why the compiled code does not run here ('' when it does)."""
     if os.environ.get(ENV_SWITCH, "").strip() == "0":
         return f"{ENV_SWITCH}=0 in the environment"
-    if _compiled() is None:
-        return "numba is not installed (pip install 'kiloforge[fast]')"
     if _checked() is None:
-        return "NumPy computes |z| differently on this machine, so compiled code would not be bit-identical"
+        return _problem[-1] if _problem else "numba is not installed (pip install 'kiloforge[fast]')"
     return ""
 
 

@@ -131,3 +131,29 @@ def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
     assert calls["tick_loop"] > 0 and calls["radio_messages"] > 0, calls  # the compiled run used both
     assert torch.equal(theta[0], theta[1])
     assert rows[0] == rows[1]
+
+
+@needs_jit
+@pytest.mark.parametrize("broken,reason", [("raise", "cannot compile"), ("differ", "differently")])
+def test_a_kernel_that_fails_its_check_is_not_used(monkeypatch, broken, reason):
+    """A kernel that fails to compile or whose |z| differs from np.abs is not used, and why_not says why."""
+    from sim import compiled_kernels
+
+    def bad(z, out):
+        if broken == "raise":
+            raise RuntimeError("no compiler")
+        out[:] = np.abs(z) * (1 + 1e-15)
+
+    monkeypatch.setattr(compiled_kernels, "cabs_many", bad)
+    compiled._checked.cache_clear()
+    try:
+        assert not compiled.available()
+        assert reason in compiled.why_not()
+        cfg = preset("kilobot", episode_steps=5)
+        env = SwarmEnv(cfg, 2, 8, seed=1)
+        env.reset()
+        env.step(np.full((2, 8, 2), 1.0))  # the NumPy code runs
+    finally:
+        monkeypatch.undo()
+        compiled._checked.cache_clear()
+    assert compiled.available()
