@@ -112,25 +112,6 @@ def _need():
     return k
 
 
-def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mobility,
-              lim, target, gain, skin, r2, cap, max_iters):
-    """Run the compiled contact loop (arguments as :func:`sim.kinematics._per_tick` computes them; ``gain``
-    is 0.5 x RELAX_OMEGA, ``r2`` the squared rebuild radius); returns (rec (k_end - kmin, Bs, N), zs (Bs, N))
-    complex128."""
-    kernel = _need().tick_loop
-    Bs = sel.size
-    has_beacon = zb is not None
-    N = zk.shape[2] + has_beacon
-    rec = np.empty((k_end - kmin, Bs, N), np.complex128)
-    zs = np.empty((Bs, N), np.complex128)
-    zb_arr = zb if has_beacon else np.zeros(1, np.complex128)
-    mob = mobility if has_beacon else np.zeros(1)
-    kernel(np.ascontiguousarray(zk), np.ascontiguousarray(z0), zb_arr, sel.astype(np.int64), np.ascontiguousarray(inc),
-           moving, limit, loose, ks.astype(np.int64), int(kmin), int(k_end), ptr, pi, pj, built0, mob, has_beacon,
-           float(lim), float(target), float(gain), float(skin), float(r2), int(cap), int(max_iters), zs, rec)
-    return rec, zs
-
-
 #: the compiled radio considers every pair of an env (no grid): used up to this many transmitters
 RADIO_MAX_N = 65
 
@@ -145,3 +126,28 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
         np.ascontiguousarray(pos_ticks, np.float64), np.ascontiguousarray(target, np.float64), tt, moves,
         np.ascontiguousarray(phases, np.int64), int(tick0), np.ascontiguousarray(periods, np.int64), float(R))
     return e, rx, snd, k, d, bool(single)
+
+
+def period_contacts(zk, z0, zb, travel, leg, disp, inc, e, t, s, mobility, target_record, diam, skin, lim, margin,
+                    omega, tol_end, tol_tick, cap, max_iters) -> bool:
+    """The collision part of :func:`sim.kinematics.tick_move` after the closed-form paths, compiled: first
+    contacts, then the per-tick loop of the envs that have one, written into ``zk`` (P, B, M), ``zb`` (B,)
+    and ``target_record`` (P, B, 2) in place. ``inc`` (P, B, M) the per-tick steps of curved runs, else
+    ``e`` (B, M) the step of every straight tick. Returns whether any env had a contact (when none,
+    ``target_record`` is not written)."""
+    kernel = _need().period_contacts
+    assert zk.flags.c_contiguous and zk.dtype == np.complex128, "zk must be C-contiguous complex128 (written in place)"
+    has_beacon = zb is not None
+    want = has_beacon and target_record is not None
+    if want:
+        assert target_record.flags.c_contiguous and target_record.dtype == np.float64
+    c0 = np.zeros(1, np.complex128)
+    return bool(kernel(
+        zk, np.ascontiguousarray(z0), zb if has_beacon else c0, has_beacon, np.ascontiguousarray(travel, np.float64),
+        bool(leg), np.ascontiguousarray(disp), np.ascontiguousarray(inc) if inc is not None else np.zeros((1, 1, 1), np.complex128),
+        inc is not None, np.ascontiguousarray(e, np.complex128) if e is not None else np.zeros((1, 1), np.complex128),
+        np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
+        np.ascontiguousarray(mobility, np.float64) if has_beacon else np.zeros(1),
+        target_record if want else np.zeros((1, 1, 2)), want,
+        float(skin), float(diam), float(diam - tol_end), float(diam - tol_tick), float(diam + skin), float(lim),
+        float(diam + margin), float(0.5 * omega), float((diam + skin) * (diam + skin)), int(cap), int(max_iters)))

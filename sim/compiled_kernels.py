@@ -281,3 +281,154 @@ def radio_messages(pos, tgt, tgt_ticks, tgt_moves, phases, tick0, periods, R):
                         d_out[n] = d
                         n += 1
     return e_out[:n].copy(), rx_out[:n].copy(), snd_out[:n].copy(), k_out[:n].copy(), d_out[:n].copy(), most <= 1
+
+
+@jit
+def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e2, t, s, mobility, trec, want_trec,
+                    skin, diam, lim_end, lim_tick, diam_skin, lim, target, gain, r2_rebuild, cap, max_iters):
+    """The collision part of sim.kinematics.tick_move after the closed-form paths ``zk`` (P, B, M): the pairs
+    that can touch (sim.grid's test at the period start), each env's first contact (_first_contacts), and
+    for the envs with one the tick loop (_per_tick: its set-up, tick_loop, the write-back into zk, zb and
+    ``trec``). Returns whether any env had a contact (else ``trec`` is left to the caller)."""
+    P, B, M = zk.shape
+    N = M + 1 if has_beacon else M
+    trmax = 0.0
+    for b in range(B):
+        for i in range(M):
+            trmax = max(trmax, travel[b, i])
+    reach = max(2.0 * trmax, skin)
+    radius = diam + reach + 1e-9
+    r2 = radius * radius
+    maxp = max(1, N * (N - 1) // 2)
+    k0 = np.full(B, P, np.int64)
+    cnt = np.zeros(B, np.int64)  # contact-list pairs per env (within 2r + skin at the start)
+    pi_all = np.empty((B, maxp), np.int64)
+    pj_all = np.empty((B, maxp), np.int64)
+    x = np.empty(N)
+    y = np.empty(N)
+    for b in range(B):
+        for i in range(M):
+            x[i] = z0[b, i].real
+            y[i] = z0[b, i].imag
+        if has_beacon:
+            x[M] = zb[b].real
+            y[M] = zb[b].imag
+        for i in range(N):
+            for j in range(i + 1, N):
+                dx = x[i] - x[j]
+                dy = y[i] - y[j]
+                d2 = dx * dx + dy * dy
+                if not d2 <= r2:
+                    continue
+                dist = math.sqrt(d2)
+                if dist <= diam_skin:
+                    pi_all[b, cnt[b]] = i
+                    pj_all[b, cnt[b]] = j
+                    cnt[b] += 1
+                tri = travel[b, i] if i < M else 0.0
+                trj = travel[b, j] if j < M else 0.0
+                trij = tri + trj
+                if not ((trij > 0 and dist < diam + trij) or dist < lim_end):
+                    continue
+                for k in range(min(P, k0[b])):  # the first tick at which the two paths overlap
+                    zi = zk[k, b, i]
+                    zj = zk[k, b, j] if j < M else zb[b]
+                    if cabs(zi.real - zj.real, zi.imag - zj.imag) < lim_end:
+                        k0[b] = k
+                        break
+    Bs = 0
+    for b in range(B):
+        if k0[b] < P:
+            Bs += 1
+    if Bs == 0:
+        return False
+    sel = np.empty(Bs, np.int64)
+    q = 0
+    for b in range(B):
+        if k0[b] < P:
+            sel[q] = b
+            q += 1
+    ks = np.empty(Bs, np.int64)
+    last = np.empty(Bs, np.int64)
+    moving_env = np.zeros((P, Bs), np.bool_)
+    for q in range(Bs):
+        b = sel[q]
+        ks[q] = k0[b]
+        lst = 0
+        for k in range(P):
+            for i in range(M):
+                go = k < t[b, i] + s[b, i] if leg else (k < t[b, i] + s[b, i] and k >= t[b, i])
+                if go:
+                    moving_env[k, q] = True
+                    lst = k + 1
+                    break
+        last[q] = max(lst, ks[q] + 1)  # an env with contacts resolves strictly at least once
+    kmin = ks.min()
+    k_end = last.max()
+    moving = np.zeros(P, np.bool_)
+    limit = np.empty((P, Bs))
+    loose = np.empty((P, Bs), np.bool_)
+    for k in range(P):
+        for q in range(Bs):
+            moving[k] = moving[k] or moving_env[k, q]
+            strict = k == last[q] - 1
+            active = (moving_env[k, q] or strict) and k >= ks[q]
+            limit[k, q] = (lim_end if strict else lim_tick) if active else -1.0
+            loose[k, q] = not strict
+    inc = np.empty((P, Bs, M), np.complex128)
+    for q in range(Bs):
+        b = sel[q]
+        for k in range(P):
+            for i in range(M):
+                if leg:
+                    inc[k, q, i] = disp[k, b, i] if k == 0 else disp[k, b, i] - disp[k - 1, b, i]
+                elif use_inc3:
+                    inc[k, q, i] = inc3[k, b, i]
+                elif k < t[b, i] + s[b, i] and k >= t[b, i]:
+                    inc[k, q, i] = e2[b, i]
+                else:
+                    inc[k, q, i] = 0.0
+    ptr = np.zeros(Bs + 1, np.int64)
+    for q in range(Bs):
+        ptr[q + 1] = ptr[q] + cnt[sel[q]]
+    pi = np.empty(ptr[Bs], np.int64)
+    pj = np.empty(ptr[Bs], np.int64)
+    built0 = np.empty((Bs, N), np.complex128)
+    mob = np.empty(Bs)
+    for q in range(Bs):
+        b = sel[q]
+        for p in range(cnt[b]):
+            pi[ptr[q] + p] = pi_all[b, p]
+            pj[ptr[q] + p] = pj_all[b, p]
+        for i in range(M):
+            built0[q, i] = z0[b, i]
+        if has_beacon:
+            built0[q, M] = zb[b]
+            mob[q] = mobility[b]
+    rec = np.empty((k_end - kmin, Bs, N), np.complex128)
+    zs = np.empty((Bs, N), np.complex128)
+    tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mob, has_beacon, lim,
+              target, gain, skin, r2_rebuild, cap, max_iters, zs, rec)
+    for q in range(Bs):  # _store_ticks
+        b = sel[q]
+        for k in range(kmin, k_end):
+            for i in range(M):
+                zk[k, b, i] = rec[k - kmin, q, i]
+        for k in range(k_end, P):
+            for i in range(M):
+                zk[k, b, i] = zs[q, i]
+    if has_beacon:
+        if want_trec:
+            for k in range(P):
+                for b in range(B):
+                    trec[k, b, 0] = zb[b].real
+                    trec[k, b, 1] = zb[b].imag
+            for q in range(Bs):
+                b = sel[q]
+                for k in range(kmin, P):
+                    z = rec[k - kmin, q, M] if k < k_end else zs[q, M]
+                    trec[k, b, 0] = z.real
+                    trec[k, b, 1] = z.imag
+        for q in range(Bs):
+            zb[sel[q]] = zs[q, M]
+    return True

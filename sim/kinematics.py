@@ -368,20 +368,27 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
-    start = cand = None
-    if collider is not None:  # pairs near enough to touch this period (also the per-tick contact lists)
-        start = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N) discs at the start
-        tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
-        reach = max(2.0 * float(tr.max()), collider.skin)
-        cand = grid.pairs_within(start.view(np.float64).reshape(B, -1, 2), collider.diam + reach + 1e-9,
-                                 cfg.arena_half_mm)
-        np.minimum(k0, _first_contacts(cand, zk, zb, tr, collider.diam), out=k0)
-    if (k0 < P).any():
-        _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider,
-                  None if not has_beacon else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)),
-                  target_record, start, cand)
-    elif target_record is not None:
-        target_record[...] = target  # the beacon stays put
+    mobility = np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)) if has_beacon else None
+    if collider is not None and compiled.available():  # all of the else branch, compiled (bit-identical)
+        if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
+                                        mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,
+                                        RELAX_OMEGA, OVERLAP_TOL_MM, TICK_OVERLAP_TOL_MM, TICK_SWEEPS,
+                                        MAX_RELAX_ITERS) and target_record is not None:
+            target_record[...] = target  # no contact anywhere: the beacon stays put
+    else:
+        start = cand = None
+        if collider is not None:  # pairs near enough to touch this period (also the per-tick contact lists)
+            start = z0 if zb is None else np.concatenate([z0, zb[:, None]], axis=1)  # (B, N) discs at the start
+            tr = travel if zb is None else np.concatenate([travel, np.zeros((B, 1))], axis=1)
+            reach = max(2.0 * float(tr.max()), collider.skin)
+            cand = grid.pairs_within(start.view(np.float64).reshape(B, -1, 2), collider.diam + reach + 1e-9,
+                                     cfg.arena_half_mm)
+            np.minimum(k0, _first_contacts(cand, zk, zb, tr, collider.diam), out=k0)
+        if (k0 < P).any():
+            _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider, mobility,
+                      target_record, start, cand)
+        elif target_record is not None:
+            target_record[...] = target  # the beacon stays put
     pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
     if has_beacon:
         target[:, 0], target[:, 1] = zb.real, zb.imag
@@ -523,25 +530,15 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         loc[sel] = np.arange(Bs)
         le = loc.take(cand.env)
         near = np.flatnonzero((le >= 0) & (cand.dist <= collider.diam + collider.skin))
-        pairs = (le.take(near), cand.i.take(near), cand.j.take(near))  # sorted by (env, i, j)
+        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
+                             None if zb is None else mobility[sel],
+                             (le.take(near), cand.i.take(near), cand.j.take(near)))
         diam = collider.diam
         strict = ticks == last - 1
         active = (moving_env | strict) & (ticks >= ks)  # (P, Bs) envs resolving at tick k
         limit = np.where(active, np.where(strict, diam - OVERLAP_TOL_MM, diam - TICK_OVERLAP_TOL_MM), -1.0)
         resolving = active.any(axis=1).tolist()
         loose = ~strict
-        if compiled.available():  # the same loop compiled (bit-identical; sim/compiled.py)
-            ptr = np.searchsorted(pairs[0], np.arange(Bs + 1))
-            skin = collider.skin
-            rec, zs = compiled.tick_loop(
-                zk, z0, zb, sel, inc_s, np.asarray(moving), limit, np.ascontiguousarray(loose), ks, kmin, k_end, ptr,
-                pairs[1], pairs[2], start.take(sel, axis=0), None if zb is None else mobility[sel], lim,
-                diam + RELAX_MARGIN_MM, 0.5 * RELAX_OMEGA, skin, (diam + skin) * (diam + skin), TICK_SWEEPS,
-                MAX_RELAX_ITERS)
-            _store_ticks(zk, zb, sel, rec, zs, kmin, k_end, target_record)
-            return
-        contacts = _Contacts(start.take(sel, axis=0).reshape(-1), Bs, N, cfg, collider.skin,
-                             None if zb is None else mobility[sel], pairs)
     flat = zs.reshape(-1)
     zsf = flat.view(np.float64)
     body = zs[:, :M]
@@ -557,20 +554,10 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         if collider is not None and resolving[k]:
             contacts.relax(flat, limit[k], loose[k], TICK_SWEEPS)
         rec[k - kmin] = zs
-    if later.size:  # before an env's first tick its closed form stays
+    own = rec[..., :M]  # an env's own ticks; before an env's first tick its closed form stays
+    if later.size:
         mine = (np.arange(kmin, k_end)[:, None] >= ks)[..., None]  # (ticks, Bs, 1)
-        rec[..., :M] = np.where(mine, rec[..., :M], zk[kmin:k_end].take(sel, axis=1))
-    _store_ticks(zk, zb, sel, rec, zs, kmin, k_end, target_record)
-
-
-def _store_ticks(zk: np.ndarray, zb: np.ndarray | None, sel: np.ndarray, rec: np.ndarray, zs: np.ndarray, kmin: int,
-                 k_end: int, target_record: np.ndarray | None) -> None:
-    """Write the per-tick loop's result back: ``rec`` (k_end - kmin, Bs, N) the discs of the envs ``sel``
-    after each tick from kmin, ``zs`` (Bs, N) where they end; robots into zk (P, B, M), the beacon into
-    zb (B,) and ``target_record`` (P, B, 2)."""
-    P, B, M = zk.shape
-    Bs = sel.size
-    own, body = rec[..., :M], zs[:, :M]
+        own = np.where(mine, own, zk[kmin:k_end].take(sel, axis=1))
     if Bs == B:
         zk[kmin:k_end] = own
         zk[k_end:] = body
