@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.config import OBS_RBF, WorldConfig
-from sim.radio import rbf_fast
+from sim.radio import rbf_rows
 
 
 class PhantomNeighbours:
@@ -42,6 +42,6 @@ class PhantomNeighbours:
             d = np.round(d)
         n = cfg.n_rbf
         slot = np.repeat(np.arange(B * M) * n, k)[:, None] + np.arange(n)  # (K, n_rbf) flat (robot, bin)
-        hist = np.bincount(slot.ravel(), weights=rbf_fast(cfg, d).ravel(), minlength=B * M * n)  # sums in draw order
+        hist = np.bincount(slot.ravel(), weights=rbf_rows(cfg, d).ravel(), minlength=B * M * n)  # sums in draw order
         obs[..., OBS_RBF:] += hist.reshape(B, M, n).astype(obs.dtype)
         return obs

@@ -1,9 +1,10 @@
 """Two hot loops of the kilobot world compiled with Numba, bit-identical to their NumPy versions.
 
-* :func:`tick_loop`: the per-tick contact loop of :func:`sim.kinematics.tick_move`. The envs in which
-  discs touch are re-run tick by tick (move, walls, over-relaxed Jacobi sweeps of
-  :class:`sim.kinematics._Contacts`); in NumPy that is a Python loop over ticks and sweeps on arrays of
-  a few dozen discs, so interpreter overhead is most of its cost. Here it runs env by env in machine code.
+* :func:`period_contacts`: the collision part of :func:`sim.kinematics.tick_move` after the closed-form
+  paths: which pairs can touch, each env's first contact (``_first_contacts``), and the per-tick loop of
+  the envs that have one (``_per_tick``: move, walls, over-relaxed Jacobi sweeps of
+  :class:`sim.kinematics._Contacts`). In NumPy the loop is a Python loop over ticks and sweeps on arrays
+  of a few dozen discs, so interpreter overhead is most of its cost. Here it runs env by env in machine code.
 * :func:`radio_messages`: who hears whom at which tick in :func:`sim.radio.tick_radio` (before loss and
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
 

@@ -132,7 +132,8 @@ def sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, limit, capped, cap, target, g
 @jit
 def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mobility,
               has_beacon, lim, target, gain, skin, r2, cap, max_iters, zs, rec):
-    """The tick loop of _per_tick for the envs ``sel``; fills rec (k_end - kmin, Bs, N) and zs (Bs, N)."""
+    """The tick loop of sim.kinematics._per_tick for the envs ``sel`` (arguments as _per_tick computes
+    them); fills rec (k_end - kmin, Bs, N) and zs (Bs, N)."""
     P, B, M = zk.shape
     N = M + 1 if has_beacon else M
     maxp = max(1, N * (N - 1) // 2)

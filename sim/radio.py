@@ -342,7 +342,7 @@ def _rbf_table(cfg: WorldConfig) -> np.ndarray:
     return t
 
 
-def _rbf_rows(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
+def rbf_rows(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
     """rbf_fast(cfg, d_mm), by table lookup when distances are integer mm (the same values)."""
     if cfg.dist_integer and cfg.dist_min_mm >= 0 and cfg.dist_max_mm <= 255:
         return _rbf_table(cfg).take(d_mm.astype(np.intp), axis=0)
@@ -401,9 +401,9 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         n_flags = np.bincount(g, weights=f, minlength=B * M)
         flat[:, OBS_NBR_SENSING] = n_flags > 0
         if ui is None:
-            hist, o = _segment_sums(_rbf_rows(cfg, d), starts, cnt, None)
+            hist, o = _segment_sums(rbf_rows(cfg, d), starts, cnt, None)
         else:  # symmetric distances: ψ once per unordered pair
-            hist, o = _segment_sums(_rbf_rows(cfg, period.s_udist), starts, cnt, ui)
+            hist, o = _segment_sums(rbf_rows(cfg, period.s_udist), starts, cnt, ui)
         flat[rcv.take(o), OBS_RBF:] = hist
     return obs, heard.reshape(B, M).astype(np.uint8)
 

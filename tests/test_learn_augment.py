@@ -47,3 +47,13 @@ def test_histogram_is_the_sum_of_each_robots_phantoms():
     want = np.stack([rbf(cfg, d[e - n:e]).sum(0) for n, e in zip(k, ends)]).reshape(B, M, -1)
     np.testing.assert_allclose(out[..., OBS_RBF:], want, rtol=1e-6, atol=1e-7)
     assert k.sum() > 0
+
+
+def test_table_rows_are_the_computed_rbf():
+    """The table lookup phantom neighbours use gives rbf_fast's bits for every integer distance, in any batch shape."""
+    from sim.radio import rbf_fast, rbf_rows
+
+    cfg = preset("kilobot")
+    d = np.round(np.sqrt(np.random.default_rng(3).uniform(0.0, cfg.comm_radius_mm ** 2, 1000)))
+    for x in (np.arange(256, dtype=np.float64), d, d[:7], d[:1]):
+        np.testing.assert_array_equal(rbf_rows(cfg, x), rbf_fast(cfg, x))
