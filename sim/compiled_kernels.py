@@ -226,6 +226,7 @@ def radio_messages(pos, tgt, tgt_ticks, tgt_moves, phases, tick0, periods, R):
                 r = max(r, cabs(dx, dy))
             reach[b, i] = r
             top = max(top, r)
+    far_r = R * R * (1.0 + 1e-12)
     radius = R + 2.0 * top + 1e-3  # sim.grid.pairs_within's radius in the NumPy path
     r2 = radius * radius
     sends = P // max(1, periods.min()) + 1  # at most this many sends of one transmitter in a period
@@ -273,7 +274,10 @@ def radio_messages(pos, tgt, tgt_ticks, tgt_moves, phases, tick0, periods, R):
                             xs, ys = tgt_ticks[k, b, 0], tgt_ticks[k, b, 1]
                         else:
                             xs, ys = tgt[b, 0], tgt[b, 1]
-                        d = cabs(pos[k, b, rx, 0] - xs, pos[k, b, rx, 1] - ys)
+                        dx, dy = pos[k, b, rx, 0] - xs, pos[k, b, rx, 1] - ys
+                        if dx * dx + dy * dy > far_r:  # surely out of range (see sweeps)
+                            continue
+                        d = cabs(dx, dy)
                     if d <= R:
                         e_out[n] = b
                         rx_out[n] = rx
@@ -300,6 +304,7 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
     reach = max(2.0 * trmax, skin)
     radius = diam + reach + 1e-9
     r2 = radius * radius
+    far_end = lim_end * lim_end * (1.0 + 1e-12)
     maxp = max(1, N * (N - 1) // 2)
     k0 = np.full(B, P, np.int64)
     cnt = np.zeros(B, np.int64)  # contact-list pairs per env (within 2r + skin at the start)
@@ -334,7 +339,10 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
                 for k in range(min(P, k0[b])):  # the first tick at which the two paths overlap
                     zi = zk[k, b, i]
                     zj = zk[k, b, j] if j < M else zb[b]
-                    if cabs(zi.real - zj.real, zi.imag - zj.imag) < lim_end:
+                    dx, dy = zi.real - zj.real, zi.imag - zj.imag
+                    if dx * dx + dy * dy > far_end:  # surely apart (see sweeps): no exact distance needed
+                        continue
+                    if cabs(dx, dy) < lim_end:
                         k0[b] = k
                         break
     Bs = 0
