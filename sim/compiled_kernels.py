@@ -312,7 +312,10 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
     pj_all = np.empty((B, maxp), np.int64)
     x = np.empty(N)
     y = np.empty(N)
+    near_i = np.empty(maxp, np.int64)
+    near_j = np.empty(maxp, np.int64)
     for b in range(B):
+        n_near = 0
         for i in range(M):
             x[i] = z0[b, i].real
             y[i] = z0[b, i].imag
@@ -334,17 +337,23 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
                 tri = travel[b, i] if i < M else 0.0
                 trj = travel[b, j] if j < M else 0.0
                 trij = tri + trj
-                if not ((trij > 0 and dist < diam + trij) or dist < lim_end):
+                if (trij > 0 and dist < diam + trij) or dist < lim_end:  # may overlap during the period
+                    near_i[n_near] = i
+                    near_j[n_near] = j
+                    n_near += 1
+        for k in range(P):  # the env's first tick at which two paths overlap (tick by tick: zk[k, b] is contiguous)
+            for p in range(n_near):
+                i, j = near_i[p], near_j[p]
+                zi = zk[k, b, i]
+                zj = zk[k, b, j] if j < M else zb[b]
+                dx, dy = zi.real - zj.real, zi.imag - zj.imag
+                if dx * dx + dy * dy > far_end:  # surely apart (see sweeps): no exact distance needed
                     continue
-                for k in range(min(P, k0[b])):  # the first tick at which the two paths overlap
-                    zi = zk[k, b, i]
-                    zj = zk[k, b, j] if j < M else zb[b]
-                    dx, dy = zi.real - zj.real, zi.imag - zj.imag
-                    if dx * dx + dy * dy > far_end:  # surely apart (see sweeps): no exact distance needed
-                        continue
-                    if cabs(dx, dy) < lim_end:
-                        k0[b] = k
-                        break
+                if cabs(dx, dy) < lim_end:
+                    k0[b] = k
+                    break
+            if k0[b] < P:
+                break
     Bs = 0
     for b in range(B):
         if k0[b] < P:
