@@ -20,7 +20,7 @@ needs_jit = pytest.mark.skipif(not compiled.available(), reason=f"compiled code 
 
 def _episode(jit: bool, monkeypatch, cfg, B: int, M: int, seed: int, steps: int, policy: str,
              randomise: Randomisation | None = None) -> dict[str, Any]:
-    """Positions, headings, beacons, observations and rewards of one batch of episodes, compiled loop on or off."""
+    """Positions, headings, beacons, observations and rewards of one batch of episodes, compiled code on or off."""
     monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
     env = SwarmEnv(cfg, B, M, seed=seed, randomise=randomise)
     pol = make_policy(policy, cfg)
