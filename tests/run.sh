@@ -12,7 +12,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 TORCH="torch==2.13.0"
-EXTRAS="learn,onnx,pettingzoo,sweep,fast,test"  # sweep: the Ray Tune tests; fast: numba, so the compiled contact loop is tested
+EXTRAS="learn,onnx,pettingzoo,sweep,fast,test"  # sweep: the Ray Tune tests; fast: Numba, so the compiled simulator code is tested
 VENV="${TEST_VENV:-.venv-test}"
 
 need_apt=()
