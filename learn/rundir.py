@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Callable
 
 from kiloforge.io import write_atomic
+from sim import compiled
 
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, flag_name
@@ -168,6 +169,8 @@ def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: st
         "updates_per_s": round(c.updates / c.update_s, 1) if c.update_s else None,
         "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
         "algorithm": cfg.algorithm, "seed": cfg.seed, "git": git_hash(),
+        #: the simulator's hot loops ran compiled (sim/compiled.py); the rates above depend on it, nothing else does
+        "sim_compiled": compiled.available(), "sim_compiled_off_because": compiled.why_not() or None,
     }
     write_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
 

@@ -125,6 +125,8 @@ def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
         monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
         run = train_es(ESConfig(**tiny), tmp_path / f"jit{int(jit)}", progress=False, log=lambda _m: None)
         theta.append(load_checkpoint(run.run_dir / "checkpoint.pt")["theta"])
+        summary = json.loads((run.run_dir / "summary.json").read_text())
+        assert summary["sim_compiled"] is jit and (summary["sim_compiled_off_because"] is None) is jit
         timing = ("wall_s", "env_steps_per_s", "updates_per_s")  # NaNs compare equal in JSON text
         rows.append(json.dumps([{k: v for k, v in r.items() if k not in timing} for r in run.counters.rows],
                                sort_keys=True))
