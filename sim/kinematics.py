@@ -47,7 +47,8 @@ maximum; the running minimum for the other wall; :func:`_clip_path`). Only the e
 paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
 the period start, travel = arc + straight path length) are re-run tick by tick from the first such
 tick, with the collision resolution; a tick's move there is the closed form's increment, which does
-not depend on where pushes put the robot.
+not depend on where pushes put the robot. With Numba installed, everything from the contact candidates on runs compiled
+(:func:`sim.compiled.period_contacts`, the same float operations in the same order; ``KILOFORGE_JIT=0``: this module's code).
 
 Trigonometry: thesis moves use float32 (:func:`unit`, ~1e-7 relative, below 1e-5 mm per step);
 Kilobot moves take float64 ``exp(iφ)`` per robot and period (and, for arcs, a table of
