@@ -80,8 +80,7 @@ def rebuild(x, y, N, r2, fi, fj):
 
 
 @jit
-def sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, limit, capped, cap, target, gain, lim, hit, hx, hy, hd,
-           max_iters):
+def sweeps(x, y, N, n, fi, fj, wi, wj, limit, capped, cap, target, gain, lim, hit, hx, hy, hd, max_iters):
     """sim.kinematics._Contacts._sweeps for one env.
 
     A pair whose squared distance exceeds ``far2`` = limit² (1 + 1e-12) cannot be closer than ``limit``
@@ -110,22 +109,14 @@ def sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, limit, capped, cap, target, g
             f = (target - hd[h]) * gain / max(hd[h], 1e-300)
             hx[h] = (hx[h] + 1e-300) * f
             hy[h] = (hy[h] + 0.0) * f
+        for h in range(nh):  # shares are 1.0 without a beacon (shares()), and a product with 1.0 is exact
+            p = hit[h]
+            x[fi[p]] += hx[h] * wi[p]
+            y[fi[p]] += hy[h] * wi[p]
         for h in range(nh):
             p = hit[h]
-            if has_beacon:
-                x[fi[p]] += hx[h] * wi[p]
-                y[fi[p]] += hy[h] * wi[p]
-            else:
-                x[fi[p]] += hx[h]
-                y[fi[p]] += hy[h]
-        for h in range(nh):
-            p = hit[h]
-            if has_beacon:
-                x[fj[p]] -= hx[h] * wj[p]
-                y[fj[p]] -= hy[h] * wj[p]
-            else:
-                x[fj[p]] -= hx[h]
-                y[fj[p]] -= hy[h]
+            x[fj[p]] -= hx[h] * wj[p]
+            y[fj[p]] -= hy[h] * wj[p]
         walls(x, y, N, lim)
 
 
@@ -183,8 +174,7 @@ def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, 
             lm = limit[k, e]
             if lm > 0:  # _Contacts.relax: sweep, then rebuild and sweep again while discs left the skin
                 capped = loose[k, e]
-                sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, lm, capped, cap, target, gain, lim, hit, hx, hy, hd,
-                       max_iters)
+                sweeps(x, y, N, n, fi, fj, wi, wj, lm, capped, cap, target, gain, lim, hit, hx, hy, hd, max_iters)
                 while True:
                     moved = 0.0
                     for i in range(N):
@@ -196,8 +186,7 @@ def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, 
                     for i in range(N):
                         bx[i] = x[i]
                         by[i] = y[i]
-                    sweeps(x, y, N, n, fi, fj, wi, wj, has_beacon, lm, capped, cap, target, gain, lim, hit, hx, hy,
-                           hd, max_iters)
+                    sweeps(x, y, N, n, fi, fj, wi, wj, lm, capped, cap, target, gain, lim, hit, hx, hy, hd, max_iters)
             for i in range(N):
                 rec[k - kmin, e, i] = complex(x[i], y[i])
         for i in range(N):
@@ -289,6 +278,13 @@ def radio_messages(pos, tgt, tgt_ticks, tgt_moves, phases, tick0, periods, R):
 
 
 @jit
+def moves(k, turn, straight, leg):
+    """Whether a robot with ``turn`` pivot ticks, then ``straight`` straight ticks moves its centre at tick k
+    (pivots about a leg move it, pivots about the centre do not)."""
+    return k < turn + straight and (leg or k >= turn)
+
+
+@jit
 def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e2, t, s, mobility, trec, want_trec,
                     skin, diam, lim_end, lim_tick, diam_skin, lim, target, gain, r2_rebuild, cap, max_iters):
     """The collision part of sim.kinematics.tick_move after the closed-form paths ``zk`` (P, B, M): the pairs
@@ -354,18 +350,10 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
                     break
             if k0[b] < P:
                 break
-    Bs = 0
-    for b in range(B):
-        if k0[b] < P:
-            Bs += 1
+    sel = np.nonzero(k0 < P)[0]  # the envs with a contact
+    Bs = sel.size
     if Bs == 0:
         return False
-    sel = np.empty(Bs, np.int64)
-    q = 0
-    for b in range(B):
-        if k0[b] < P:
-            sel[q] = b
-            q += 1
     ks = np.empty(Bs, np.int64)
     last = np.empty(Bs, np.int64)
     moving_env = np.zeros((P, Bs), np.bool_)
@@ -375,8 +363,7 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
         lst = 0
         for k in range(P):
             for i in range(M):
-                go = k < t[b, i] + s[b, i] if leg else (k < t[b, i] + s[b, i] and k >= t[b, i])
-                if go:
+                if moves(k, t[b, i], s[b, i], leg):
                     moving_env[k, q] = True
                     lst = k + 1
                     break
@@ -402,7 +389,7 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
                     inc[k, q, i] = disp[k, b, i] if k == 0 else disp[k, b, i] - disp[k - 1, b, i]
                 elif use_inc3:
                     inc[k, q, i] = inc3[k, b, i]
-                elif k < t[b, i] + s[b, i] and k >= t[b, i]:
+                elif moves(k, t[b, i], s[b, i], False):
                     inc[k, q, i] = e2[b, i]
                 else:
                     inc[k, q, i] = 0.0
