@@ -36,11 +36,12 @@ class MAGDDPG(CentralisedDDPG):
                  critic_hidden: tuple[int, ...], gamma: float, tau: float, lr_actor: float, lr_critic: float,
                  reward_scale: float = 1.0, grad_clip: float = 0.0, action_gradient: str = "invert",
                  actor_robots: int = 0, make_critic: Callable[[], torch.nn.Module] | None = None,
-                 t_prev: int | None = None, device: str | torch.device = "cpu", actor_others: str = "policy") -> None:
+                 t_prev: int | None = None, device: str | torch.device = "cpu", actor_others: str = "policy",
+                 precision: str = "fp32") -> None:
         actor = Actor(history_dim, actor_hidden)  # drawn first, then the critic (the seeds of earlier runs)
         critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
         super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
-                         actor_robots, device, actor_others)
+                         actor_robots, device, actor_others, precision)
         self.t_prev = t_prev
 
     @classmethod
@@ -50,7 +51,7 @@ class MAGDDPG(CentralisedDDPG):
         return cls(world.history_dim(cfg.t_prev), world.state_dim(M), M, cfg.actor_hidden, cfg.critic_hidden,
                    cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic, cfg.reward_scale, cfg.grad_clip,
                    cfg.action_gradient, cfg.actor_robots, lambda: config_critic(cfg, world), cfg.t_prev, device,
-                   cfg.actor_others)
+                   cfg.actor_others, cfg.precision)
 
     # --- what the experiment loop asks ----------------------------------------------------------
     @property

@@ -43,12 +43,12 @@ class MAGRDPG(CentralisedDDPG):
                  gamma: float, tau: float, lr_actor: float, lr_critic: float, reward_scale: float = 1.0,
                  burn_in: int = 8, grad_clip: float = 0.0, action_gradient: str = "invert", actor_robots: int = 0,
                  make_critic: Callable[[], torch.nn.Module] | None = None, unroll: int = 8, cell: str = "gru",
-                 device: str | torch.device = "cpu", actor_others: str = "policy") -> None:
+                 device: str | torch.device = "cpu", actor_others: str = "policy", precision: str = "fp32") -> None:
         assert cell in RECURRENT_ACTORS, f"unknown recurrent cell {cell!r}"
         actor = RECURRENT_ACTORS[cell](in_dim, hidden)
         critic = make_critic() if make_critic is not None else Critic(state_dim, n_robots, critic_hidden)
         super().__init__(actor, critic, gamma, tau, lr_actor, lr_critic, reward_scale, grad_clip, action_gradient,
-                         actor_robots, device, actor_others)
+                         actor_robots, device, actor_others, precision)
         self.burn_in, self.unroll, self.cell = int(burn_in), int(unroll), cell
 
     @classmethod
@@ -57,7 +57,8 @@ class MAGRDPG(CentralisedDDPG):
         M = cfg.n_robots[0]
         return cls(world.tuple_dim, world.state_dim(M), M, cfg.hidden, cfg.critic_hidden, cfg.gamma, cfg.tau,
                    cfg.lr_actor, cfg.lr_critic, cfg.reward_scale, cfg.burn_in, cfg.grad_clip, cfg.action_gradient,
-                   cfg.actor_robots, lambda: config_critic(cfg, world), cfg.unroll, cfg.cell, device, cfg.actor_others)
+                   cfg.actor_robots, lambda: config_critic(cfg, world), cfg.unroll, cfg.cell, device, cfg.actor_others,
+                   cfg.precision)
 
     # --- what the experiment loop asks ----------------------------------------------------------
     replay_t_prev = 1

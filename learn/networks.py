@@ -26,6 +26,18 @@ CRITIC_OUT_INIT = 3e-4
 ACTOR_OUT_INIT = 3e-3
 
 
+class OutputLinear(nn.Linear):
+    """The output layer: computed in float32 even inside a bfloat16 autocast (``--precision bf16``), so Q values
+    and motor commands keep full precision (a Q of 100 in bfloat16 is only good to ±0.5); outside autocast it is
+    ``nn.Linear`` exactly."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.is_autocast_enabled(x.device.type):
+            with torch.autocast(x.device.type, enabled=False):
+                return nn.functional.linear(x.float(), self.weight, self.bias)
+        return nn.functional.linear(x, self.weight, self.bias)
+
+
 def mlp(in_dim: int, hidden: tuple[int, ...], out_dim: int, out_init: float) -> nn.Sequential:
     """Linear+ELU hidden layers and a linear output layer, initialised as in thesis §4.3.1."""
     layers: list[nn.Module] = []
@@ -37,7 +49,7 @@ def mlp(in_dim: int, hidden: tuple[int, ...], out_dim: int, out_init: float) -> 
         nn.init.uniform_(lin.bias, -bound, bound)
         layers += [lin, nn.ELU()]
         width = h
-    out = nn.Linear(width, out_dim)
+    out = OutputLinear(width, out_dim)
     nn.init.uniform_(out.weight, -out_init, out_init)
     nn.init.uniform_(out.bias, -out_init, out_init)
     layers.append(out)

@@ -23,7 +23,7 @@ from kiloforge.actors.gru import GRUPolicy
 from kiloforge.actors.lstm import LSTMPolicy
 from sim.config import ACTION_DIM, WorldConfig
 
-from .networks import ACTOR_OUT_INIT
+from .networks import ACTOR_OUT_INIT, OutputLinear
 
 
 class GRUActor(nn.Module):
@@ -38,7 +38,7 @@ class GRUActor(nn.Module):
         assert in_dim >= 1 and hidden >= 1, f"bad GRU actor sizes {in_dim}, {hidden}"
         self.in_dim, self.hidden = int(in_dim), int(hidden)
         self.gru = nn.GRU(self.in_dim, self.hidden, batch_first=True)  # init U(±1/√H)
-        self.out = nn.Linear(self.hidden, ACTION_DIM)
+        self.out = OutputLinear(self.hidden, ACTION_DIM)
         nn.init.uniform_(self.out.weight, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
         nn.init.uniform_(self.out.bias, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
 
@@ -90,7 +90,7 @@ class LSTMActor(nn.Module):
         assert in_dim >= 1 and hidden >= 1, f"bad LSTM actor sizes {in_dim}, {hidden}"
         self.in_dim, self.hidden = int(in_dim), int(hidden)
         self.lstm = nn.LSTM(self.in_dim, self.hidden, batch_first=True)  # init U(±1/√H)
-        self.out = nn.Linear(self.hidden, ACTION_DIM)
+        self.out = OutputLinear(self.hidden, ACTION_DIM)
         nn.init.uniform_(self.out.weight, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
         nn.init.uniform_(self.out.bias, -ACTOR_OUT_INIT, ACTOR_OUT_INIT)
 

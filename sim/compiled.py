@@ -1,5 +1,8 @@
-"""Two hot loops of the kilobot world compiled with Numba, bit-identical to their NumPy versions.
+"""The hot loops of the kilobot world compiled with Numba, bit-identical to their NumPy versions.
 
+* :func:`closed_form`: the collision-free part of :func:`sim.kinematics.tick_move` for straight runs: every
+  tick's displacement (straight ticks and arcs about the pivot legs), the path clipped to the walls, the
+  path lengths. The complex exponentials stay NumPy's (they are computed before, once per robot and period).
 * :func:`period_contacts`: the collision part of :func:`sim.kinematics.tick_move` after the closed-form
   paths: which pairs can touch, each env's first contact (``_first_contacts``), and the per-tick loop of
   the envs that have one (``_per_tick``: move, walls, over-relaxed Jacobi sweeps of
@@ -14,7 +17,8 @@ Both compute exactly what the NumPy code does, float operation for float operati
   discs), so one env after the other gives the same numbers;
 * a sweep measures every pair of the env's list at the sweep's start, then adds all i-pushes in pair
   order, then subtracts all j-pushes (as ``np.add.at`` then ``np.subtract.at`` do), then clips;
-* complex products with a real factor are two real products (exact either way); distances between
+* complex products with a real factor are two real products (exact either way); complex × complex is
+  :func:`sim.compiled_kernels.cmul`, NumPy's formula (two fused multiply-adds), checked like ``np.abs``; distances between
   complex positions are :func:`sim.compiled_kernels.cabs`, NumPy's own formula for ``np.abs`` of a
   complex number on this machine, which is checked against ``np.abs`` before anything compiled runs
   (:func:`available`): where NumPy computes it differently (another CPU, another NumPy) the NumPy code
@@ -69,20 +73,39 @@ def _cabs_matches_numpy(cabs_many) -> bool:
     return True
 
 
+def _cmul_matches_numpy(cmul_many) -> bool:
+    """Whether :func:`cmul` gives NumPy's complex products here, contiguous and broadcast as tick_move uses them
+    (c (B, M) times rotations (T, B, M), in place)."""
+    rng = np.random.default_rng(54321)
+    for shape in [(1, 1, 1), (3, 1, 4), (31, 16, 4), (7, 50, 32), (1, 1, 1 << 14)] + [(2, 1, k) for k in range(1, 18)]:
+        scale = rng.choice([1e-6, 1e-3, 1.0, 33.0, 500.0], (4,) + shape[1:])
+        a = rng.standard_normal(shape[1:]) * scale[0] + 1j * rng.standard_normal(shape[1:]) * scale[1]
+        b = rng.standard_normal(shape) * scale[2] + 1j * rng.standard_normal(shape) * scale[3]
+        want = b.copy()
+        np.multiply(a, want, out=want)
+        got = np.empty(shape, np.complex128)
+        cmul_many(np.ascontiguousarray(np.broadcast_to(a, shape)).ravel(), b.ravel(), got.ravel())
+        if not np.array_equal(got, want):
+            return False
+    return True
+
+
 @functools.lru_cache(maxsize=1)
 def _checked():
-    """The kernels when Numba is there and their |z| is NumPy's here, else None."""
+    """The kernels when Numba is there and their |z| and complex products are NumPy's here, else None."""
     k = _compiled()
     if k is None:
         return None
     try:
-        same = _cabs_matches_numpy(k.cabs_many)
+        same = _cabs_matches_numpy(k.cabs_many), _cmul_matches_numpy(k.cmul_many)
     except Exception as e:  # compilation failed on this machine: the NumPy code runs
         _problem.append(f"numba cannot compile the kernels here ({type(e).__name__}: {e})")
         return None
-    if not same:
-        _problem.append("NumPy computes |z| differently on this machine, so compiled code would not be bit-identical")
-        return None
+    for ok, what in zip(same, ("|z|", "complex products")):
+        if not ok:
+            _problem.append(f"NumPy computes {what} differently on this machine, so compiled code would not be "
+                            "bit-identical")
+            return None
     return k
 
 
@@ -127,6 +150,27 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
         np.ascontiguousarray(pos_ticks, np.float64), np.ascontiguousarray(target, np.float64), tt, moves,
         np.ascontiguousarray(phases, np.int64), int(tick0), np.ascontiguousarray(periods, np.int64), float(R))
     return e, rx, snd, k, d, bool(single)
+
+
+def closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel) -> None:
+    """The collision-free path of :func:`sim.kinematics.tick_move` (straight runs, no curve), compiled: fills
+    ``zk`` (P, B, M) (the clipped positions after each tick), ``disp`` (the unclipped displacements) and
+    ``travel`` (B, M). With ``leg``: ``c`` the legs (B, M) and either ``table`` (exp(i j dphi), j = -P..P,
+    nominal turn rates) or ``rot`` (T, B, M) their rotations."""
+    kernel = _need().closed_form
+    B, M = t.shape
+    for a in (zk, disp, travel):
+        assert a.flags.c_contiguous, "closed_form writes zk, disp and travel in place: they must be C-contiguous"
+    c0 = np.zeros((1, 1), np.complex128)
+    kernel(np.ascontiguousarray(z0), np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
+           np.ascontiguousarray(left, np.bool_), np.ascontiguousarray(e, np.complex128),
+           np.ascontiguousarray(np.broadcast_to(np.asarray(step, np.float64), (B, M))), bool(leg),
+           np.ascontiguousarray(c, np.complex128) if leg else c0,
+           np.ascontiguousarray(table, np.complex128) if table is not None else np.zeros(1, np.complex128),
+           np.ascontiguousarray(rot, np.complex128) if rot is not None else np.zeros((1, 1, 1), np.complex128),
+           table is not None,
+           np.ascontiguousarray(np.broadcast_to(np.asarray(R, np.float64), (B, M))),
+           np.ascontiguousarray(theta, np.float64), float(lim), zk, disp, travel)
 
 
 def period_contacts(zk, z0, zb, travel, leg, disp, inc, e, t, s, mobility, target_record, diam, skin, lim, margin,

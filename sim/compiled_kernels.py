@@ -437,3 +437,80 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
         for q in range(Bs):
             zb[sel[q]] = zs[q, M]
     return True
+
+
+@jit
+def cmul(ar, ai, br, bi):
+    """(ar + i ai)(br + i bi) as NumPy's SIMD loop computes it: re = fma(ar, br, -(ai bi)), im = fma(ar, bi, ai br)."""
+    return fma(ar, br, -(ai * bi)), fma(ar, bi, ai * br)
+
+
+@jit
+def cmul_many(a, b, out):
+    for k in range(a.size):
+        re, im = cmul(a[k].real, a[k].imag, b[k].real, b[k].imag)
+        out[k] = complex(re, im)
+
+
+@jit
+def closed_form(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta, lim, zk, disp, travel):
+    """The collision-free part of sim.kinematics.tick_move for straight runs (no curve): every tick's
+    unclipped displacement ``disp`` (P, B, M) (straight ticks, plus the arcs about the pivot legs when ``leg``),
+    the positions ``zk`` = z0 + disp clipped to the walls tick by tick (sim.kinematics._clip_path where a
+    coordinate passes a wall, then the clip), and each robot's path length ``travel`` (B, M).
+    ``c`` (B, M): c of _add_arcs; its rotations come from ``table`` (exp(i j dphi), j = -P..P) when
+    ``use_table``, else from ``rot`` (T, B, M)."""
+    P, B, M = zk.shape
+    T = 0
+    if leg:
+        for b in range(B):
+            for i in range(M):
+                T = max(T, t[b, i])
+    for b in range(B):
+        for i in range(M):
+            tb, sb = t[b, i], s[b, i]
+            er, ei = e[b, i].real, e[b, i].imag
+            cr, ci = c[b, i].real, c[b, i].imag
+            sign = 1 if left[b, i] else -1
+            ar = ai = 0.0
+            for k in range(P):
+                n = min(max(k + 1 - tb, 0), sb)
+                dr = n * er
+                di = n * ei
+                if leg:
+                    if k < T:  # the arc after min(k + 1, t) pivot ticks (kept after T: the whole arc)
+                        m = min(k + 1, tb)
+                        if use_table:
+                            q = table[m * sign + P]
+                        else:
+                            q = rot[k, b, i]
+                        rr, ri = cmul(cr, ci, q.real, q.imag)
+                        ar, ai = cr - rr, ci - ri
+                    dr += ar
+                    di += ai
+                disp[k, b, i] = complex(dr, di)
+            tr = sb * step[b, i]
+            if leg:
+                tr = tr + tb * (R[b, i] * abs(theta[b, i]))
+            travel[b, i] = tr
+            x0, y0 = z0[b, i].real, z0[b, i].imag
+            out = False
+            for k in range(P):
+                d = disp[k, b, i]
+                if abs(x0 + d.real) > lim or abs(y0 + d.imag) > lim:
+                    out = True
+                    break
+            # _clip_path (pivots may turn a coordinate back), only for robots that pass a wall
+            hx = hy = -math.inf
+            lx = ly = math.inf
+            for k in range(P):
+                d = disp[k, b, i]
+                x, y = x0 + d.real, y0 + d.imag
+                if leg and out:
+                    hx, lx = max(hx, d.real), min(lx, d.real)
+                    hy, ly = max(hy, d.imag), min(ly, d.imag)
+                    x = min(x, lim - (max(hx, 0.0) - d.real))
+                    x = max(x, (d.real - min(lx, 0.0)) - lim)
+                    y = min(y, lim - (max(hy, 0.0) - d.imag))
+                    y = max(y, (d.imag - min(ly, 0.0)) - lim)
+                zk[k, b, i] = complex(max(min(x, lim), -lim), max(min(y, lim), -lim))

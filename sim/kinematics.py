@@ -335,37 +335,52 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
     phi0 = heading.copy() if leg else None
     phi_s = heading + t * theta  # heading when the straight ticks start
-    k = np.arange(P).reshape(P, 1, 1)
-    n = k + 1 - t  # (P, B, M) straight ticks done by the end of tick k
-    np.maximum(n, 0, out=n)
-    np.minimum(n, s, out=n)
     u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
     inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
-    if kappa is None:
-        e = step * u_s  # (B, M) displacement of one straight tick
-        disp = _scaled(n, e)
-        heading[...] = wrap_angle(phi_s)
-    else:  # each straight tick turns by kappa, then moves along the new heading
-        inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
-        disp = np.cumsum(inc, axis=0)
-        heading[...] = wrap_angle(phi_s + s * kappa)
-    travel = s * step  # (B, M) path length of the period: a bound on how far a disc gets
-    if leg:
-        travel = travel + _add_arcs(disp, phi0, theta, t, left, R, cfg, dphi if motion is None else None)
     z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
-    if record is not None and record.dtype == np.float64 and record.flags.c_contiguous:
-        zk = record.view(np.complex128).reshape(P, B, M)  # write the ticks straight into the record
-        np.add(z0, disp, out=zk)
+    into_record = record is not None and record.dtype == np.float64 and record.flags.c_contiguous
+    if kappa is None and compiled.available():  # everything down to the clipped path, compiled (bit-identical)
+        e = step * u_s
+        heading[...] = wrap_angle(phi_s)
+        zk = record.view(np.complex128).reshape(P, B, M) if into_record else np.empty((P, B, M), np.complex128)
+        disp, travel = np.empty((P, B, M), np.complex128), np.empty((B, M))
+        c = table = rot = None
+        if leg:
+            c = _arc_centre(phi0, left, R, cfg)
+            if motion is None:
+                table = _rotation_table(dphi, P)
+            else:
+                rot = np.exp(1j * (theta * _pivots_done(t)))
+        compiled.closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel)
     else:
-        zk = z0 + disp
-    zkf = zk.view(np.float64)
+        k = np.arange(P).reshape(P, 1, 1)
+        n = k + 1 - t  # (P, B, M) straight ticks done by the end of tick k
+        np.maximum(n, 0, out=n)
+        np.minimum(n, s, out=n)
+        if kappa is None:
+            e = step * u_s  # (B, M) displacement of one straight tick
+            disp = _scaled(n, e)
+            heading[...] = wrap_angle(phi_s)
+        else:  # each straight tick turns by kappa, then moves along the new heading
+            inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
+            disp = np.cumsum(inc, axis=0)
+            heading[...] = wrap_angle(phi_s + s * kappa)
+        travel = s * step  # (B, M) path length of the period: a bound on how far a disc gets
+        if leg:
+            travel = travel + _add_arcs(disp, phi0, theta, t, left, R, cfg, dphi if motion is None else None)
+        if into_record:
+            zk = record.view(np.complex128).reshape(P, B, M)  # write the ticks straight into the record
+            np.add(z0, disp, out=zk)
+        else:
+            zk = z0 + disp
+        zkf = zk.view(np.float64)
+        if leg or kappa is not None:  # a coordinate may turn back: the robots that meet a wall
+            b, r = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=(0, 3)).nonzero()
+            if b.size:
+                zk[:, b, r] = _clip_path(z0[b, r], disp.reshape(P, B * M).take(b * M + r, axis=1), lim)
+        np.minimum(zkf, lim, out=zkf)  # walls: clipping the path = clipping every tick, for monotone coordinates
+        np.maximum(zkf, -lim, out=zkf)
     k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
-    if leg or kappa is not None:  # a coordinate may turn back: the robots that meet a wall
-        b, r = (np.abs(zkf) > lim).reshape(P, B, M, 2).any(axis=(0, 3)).nonzero()
-        if b.size:
-            zk[:, b, r] = _clip_path(z0[b, r], disp.reshape(P, B * M).take(b * M + r, axis=1), lim)
-    np.minimum(zkf, lim, out=zkf)  # walls: clipping the path = clipping every tick, for monotone coordinates
-    np.maximum(zkf, -lim, out=zkf)
 
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
@@ -437,12 +452,11 @@ def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarr
     exponential per robot and tick), or None.
     """
     P = disp.shape[0]
-    a = math.radians(cfg.pivot_angle_deg)
-    c = R * np.where(left, complex(math.cos(a), math.sin(a)), complex(math.cos(a), -math.sin(a))) * np.exp(1j * phi0)
-    T = int(t.max())
-    m = np.minimum(np.arange(1, T + 1).reshape(T, 1, 1), t)  # (T, B, M) pivot ticks done by the end of tick k
+    c = _arc_centre(phi0, left, R, cfg)
+    m = _pivots_done(t)
+    T = m.shape[0]
     if nominal_dphi is not None:
-        table = np.exp(1j * nominal_dphi * np.arange(-P, P + 1))  # exp(i j dphi), j = -P..P
+        table = _rotation_table(nominal_dphi, P)
         m *= np.where(left, 1, -1)
         m += P
         rot = table.take(m)
@@ -453,6 +467,23 @@ def _add_arcs(disp: np.ndarray, phi0: np.ndarray, theta: np.ndarray, t: np.ndarr
     disp[:T] += arc
     disp[T:] += arc[-1]
     return t * (R * np.abs(theta))
+
+
+def _arc_centre(phi0: np.ndarray, left: np.ndarray, R: float | np.ndarray, cfg: WorldConfig) -> np.ndarray:
+    """c = R exp(i(φ0 + β)) (B, M): the pivot leg seen from the centre at the period start (_add_arcs)."""
+    a = math.radians(cfg.pivot_angle_deg)
+    return R * np.where(left, complex(math.cos(a), math.sin(a)), complex(math.cos(a), -math.sin(a))) * np.exp(1j * phi0)
+
+
+def _pivots_done(t: np.ndarray) -> np.ndarray:
+    """(T, B, M) pivot ticks done by the end of tick k, T = the most pivot ticks of any robot."""
+    T = int(t.max())
+    return np.minimum(np.arange(1, T + 1).reshape(T, 1, 1), t)
+
+
+def _rotation_table(dphi: float, P: int) -> np.ndarray:
+    """exp(i j dphi) for j = -P..P (2P + 1,)."""
+    return np.exp(1j * dphi * np.arange(-P, P + 1))
 
 
 def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr: np.ndarray,

@@ -220,3 +220,61 @@ def test_actor_others_from_the_replay(kind):
     mask[torch.arange(a_q.shape[0]), chosen] = True
     torch.testing.assert_close(a_q[~mask], rows.a[~mask])
     torch.testing.assert_close(a_q[mask], own[mask], rtol=1e-5, atol=1e-6)
+
+
+def test_output_layer_is_float32_inside_a_bf16_autocast():
+    """OutputLinear is nn.Linear bit for bit outside autocast, and keeps float32 output inside a bf16 autocast."""
+    from learn.networks import OutputLinear
+    torch.manual_seed(3)
+    out, ref = OutputLinear(7, 2), torch.nn.Linear(7, 2)
+    ref.load_state_dict(out.state_dict())
+    x = torch.randn(5, 7)
+    assert torch.equal(out(x), ref(x))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert ref(x).dtype == torch.bfloat16 and out(x).dtype == torch.float32
+        y = out(x.bfloat16())  # a bfloat16 input (a hidden layer's) is widened, then multiplied in float32
+    assert torch.equal(y, ref(x.bfloat16().float()))
+
+
+@pytest.mark.parametrize("kind", ["mlp", "gru"])
+def test_bf16_update_runs_hidden_layers_in_bfloat16(kind):
+    """precision='bf16': hidden layers of the update compute in bfloat16, Q, weights and Adam stay float32, and the
+    gradients point where the float32 ones do (MLP transitions and GRU windows)."""
+    from learn.magrdpg import MAGRDPG
+    from learn.replay import Batch, Windows
+    N, M, S, H, U = 16, 4, 2 + 3 * 4, 5, 3
+    gen = torch.Generator().manual_seed(8)
+    if kind == "mlp":
+        part = Batch(s=torch.rand(N, S, generator=gen), h=torch.rand(N, M, H, generator=gen),
+                     a=torch.rand(N, M, 2, generator=gen), r=torch.rand(N, generator=gen),
+                     s2=torch.rand(N, S, generator=gen), h2=torch.rand(N, M, H, generator=gen))
+    else:
+        part = Windows(x=torch.rand(N, M, 2 + U + 1, H, generator=gen), off=torch.randint(0, 3, (N,), generator=gen),
+                       s=torch.rand(N, U, S, generator=gen), a=torch.rand(N, U, M, 2, generator=gen),
+                       r=torch.rand(N, U, generator=gen), s2=torch.rand(N, U, S, generator=gen))
+    agents = {}
+    for precision in ("fp32", "bf16"):
+        torch.manual_seed(9)
+        if kind == "mlp":
+            agents[precision] = MAGDDPG(H, S, M, (16,), (32, 32), 0.9, 0.1, 1e-2, 1e-2, precision=precision)
+        else:
+            agents[precision] = MAGRDPG(H, S, M, 16, (32, 32), 0.9, 0.1, 1e-2, 1e-2, burn_in=2, unroll=U,
+                                        precision=precision)
+    hidden_dtypes = []
+    agents["bf16"].critic.net[0].register_forward_hook(lambda m, i, o: hidden_dtypes.append(o.dtype))
+    stats = {p: agents[p].update_parts([(part, False)]) for p in agents}
+    assert hidden_dtypes and set(hidden_dtypes) == {torch.bfloat16}
+    for p in ("actor", "critic", "actor_target", "critic_target"):
+        assert all(t.dtype == torch.float32 for t in getattr(agents["bf16"], p).parameters())
+    for net in ("critic", "actor"):  # the arithmetic differs, the gradient direction does not (to 1 %)
+        g = {p: torch.cat([t.grad.flatten() for t in getattr(agents[p], net).parameters()]) for p in agents}
+        assert not torch.equal(g["bf16"], g["fp32"])
+        assert torch.nn.functional.cosine_similarity(g["bf16"], g["fp32"], dim=0) > 0.99, net
+    assert abs(stats["bf16"].q_mean - stats["fp32"].q_mean) < 0.05 * abs(stats["fp32"].q_mean) + 1e-3
+
+
+def test_precision_is_validated():
+    """An unknown --precision is a one-line ConfigError naming the choices."""
+    from learn.config import ConfigError, TrainConfig
+    with pytest.raises(ConfigError, match="precision must be one of fp32, bf16, got 'fp16'"):
+        TrainConfig(precision="fp16").validate()

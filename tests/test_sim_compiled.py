@@ -15,6 +15,9 @@ from sim.env import SwarmEnv
 from sim.radio import draw_phases, tick_radio
 from sim.variants import RANDOMISATIONS, Randomisation
 
+#: per-robot turn rates and pivot points on straight runs: tick_move's closed form with per-robot rotations
+UNCURVED = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn_spread=0.1,
+                         pivot_offset_mm=(0.0, 16.5), beacon_mobility=(0.0, 1.0))
 needs_jit = pytest.mark.skipif(not compiled.available(), reason=f"compiled code unavailable: {compiled.why_not()}")
 
 
@@ -42,11 +45,12 @@ def _episode(jit: bool, monkeypatch, cfg, B: int, M: int, seed: int, steps: int,
     (32, 3, "baseline", "table-free-beacon"),
     (32, 2, "random", None),
     (12, 4, "baseline", "table-free-beacon"),
+    (16, 4, "random", "uncurved"),
 ])
 def test_compiled_loop_gives_the_numpy_episode(monkeypatch, M, B, policy, randomise):
     """Whole kilobot-world episodes (jams, walls, pushed beacons, randomised motion) are bit-identical with and without it."""
     cfg = preset("kilobot", episode_steps=120)
-    rand = RANDOMISATIONS[randomise] if randomise else None
+    rand = {**RANDOMISATIONS, "uncurved": UNCURVED}[randomise] if randomise else None
     a = _episode(True, monkeypatch, cfg, B, M, 7 + M, 120, policy, rand)
     b = _episode(False, monkeypatch, cfg, B, M, 7 + M, 120, policy, rand)
     for k in a:
@@ -136,9 +140,11 @@ def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
 
 
 @needs_jit
-@pytest.mark.parametrize("broken,reason", [("raise", "cannot compile"), ("differ", "differently")])
+@pytest.mark.parametrize("broken,reason", [("raise", "cannot compile"), ("differ", "|z| differently"),
+                                           ("product", "complex products differently")])
 def test_a_kernel_that_fails_its_check_is_not_used(monkeypatch, broken, reason):
-    """A kernel that fails to compile or whose |z| differs from np.abs is not used, and why_not says why."""
+    """A kernel that fails to compile, or whose |z| or complex product differs from NumPy's, is not used, and
+    why_not says why."""
     from sim import compiled_kernels
 
     def bad(z, out):
@@ -146,7 +152,13 @@ def test_a_kernel_that_fails_its_check_is_not_used(monkeypatch, broken, reason):
             raise RuntimeError("no compiler")
         out[:] = np.abs(z) * (1 + 1e-15)
 
-    monkeypatch.setattr(compiled_kernels, "cabs_many", bad)
+    def plain_product(a, b, out):  # without the fused multiply-adds NumPy uses
+        out[:] = (a.real * b.real - a.imag * b.imag) + 1j * (a.real * b.imag + a.imag * b.real)
+
+    if broken == "product":
+        monkeypatch.setattr(compiled_kernels, "cmul_many", plain_product)
+    else:
+        monkeypatch.setattr(compiled_kernels, "cabs_many", bad)
     compiled._checked.cache_clear()
     try:
         assert not compiled.available()

@@ -8,7 +8,9 @@ Inside the range it stops (``--inside stop``) or keeps pushing at the beacon too
 ``--agitate p`` replaces a fraction p of all commands by random ones (shaking a jam loose), and ``--slide n``
 makes a robot out of range that touches a body in front of it (within 60°) drive along the cluster instead, at
 90° to the beacon's bearing on a side drawn per blocking, for n periods before it aims again; ``--swirl w`` makes
-every robot aim w degrees to the left of the beacon (all the same way, a vortex about it). On the
+every robot aim w degrees to the left of the beacon (all the same way, a vortex about it). ``--ring H,S``
+keeps a hole and a band: a robot closer than H mm to the beacon turns away from it and drives out, and with
+``--inside stop`` a robot in range stops only within S mm (between S and the range it keeps driving in). On the
 same episodes as the shipped default and the hand-written searcher it prints final coverage and its
 fraction of each episode's packing ceiling: where the oracle jams, the contact model (frictionless
 discs pushed apart, a taped-down beacon) jams, and no policy that only gets there by pushing does better.
@@ -57,9 +59,10 @@ class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
     def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False,
-                 slide: int = 0, swirl_deg: float = 0.0) -> None:
+                 slide: int = 0, swirl_deg: float = 0.0, ring: tuple[float, float] | None = None) -> None:
         self.env, self.aim, self.inside, self.agitate = env, np.deg2rad(aim_deg), inside, agitate
         self.queue, self.slide, self.swirl = queue, slide, np.deg2rad(swirl_deg)
+        self.hole_mm, self.stop_mm = ring if ring is not None else (0.0, env.cfg.comm_radius_mm)
         self.rng = np.random.default_rng(0)
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
@@ -70,8 +73,11 @@ class OraclePush:
     def act(self, obs: np.ndarray) -> np.ndarray:
         env = self.env
         d = env.target[:, None, :] - env.pos
-        inside = np.linalg.norm(d, axis=-1) <= env.cfg.comm_radius_mm  # (B, M)
+        r = np.linalg.norm(d, axis=-1)
+        inside = r <= env.cfg.comm_radius_mm  # (B, M)
         goal = np.arctan2(d[..., 1], d[..., 0]) + self.swirl
+        hole = r < self.hole_mm
+        goal = np.where(hole, goal + np.pi, goal)  # in the hole: drive out
         if self.slide:  # blocked out of range: drive along the cluster, tangent to the beacon's bearing
             start = touching_ahead(env, 2.0).any(axis=2) & ~inside & (self.sliding <= 0)
             self.side = np.where(start, np.where(self.rng.random(start.shape) < 0.5, 1.0, -1.0), self.side)
@@ -82,7 +88,7 @@ class OraclePush:
         a[(off > self.aim)] = TURN_CCW
         a[(off < -self.aim)] = TURN_CW
         if self.inside == "stop":
-            a[inside] = 0.0
+            a[inside & ~hole & (r <= self.stop_mm)] = 0.0
         if self.queue:  # out of range, touching a robot in range in front (within 60°): wait, don't push the cluster
             touching = touching_ahead(env, 3.0) & inside[:, None, :]
             a[touching.any(axis=2) & ~inside] = 0.0
@@ -104,6 +110,9 @@ def main() -> None:
     ap.add_argument("--swirl", nargs="+", type=float, default=[0.0],
                     help="degrees every robot aims to the left of the beacon (all the same way: a vortex); "
                          "each value adds a row")
+    ap.add_argument("--ring", nargs="+", default=[None], type=lambda s: tuple(float(v) for v in s.split(",")),
+                    help="H,S: robots nearer than H mm drive out, robots in range stop only within S mm; "
+                         "each value adds a row")
     args = ap.parse_args()
     pol = load_policy(args.policy)
     world = WorldConfig.from_dict({**pol.world.to_dict(), "episode_steps": args.steps})
@@ -114,9 +123,12 @@ def main() -> None:
             for p in args.agitate:
                 for n in args.slide:
                     for w in args.swirl:
-                        name = (f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
-                                + (f", swirl {w:g}" if w else ""))
-                        contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n, swirl_deg=w)
+                        for ring in args.ring:
+                            name = (f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
+                                    + (f", swirl {w:g}" if w else "")
+                                    + (f", hole {ring[0]:g} mm, stop within {ring[1]:g} mm" if ring else ""))
+                            contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n, swirl_deg=w,
+                                                          ring=ring)
         table = {name: rollout(env, c, args.episodes, seed=args.seed).metrics(ceiling=True)
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
