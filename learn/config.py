@@ -400,6 +400,9 @@ class ESConfig(ConfigBase):
     #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
     init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
+    #: the demonstrator stops once it hears the beacon within this fraction of the range (0 = the searcher's tuned
+    #: value, 0.6 in the kilobot world; 0.94 crowds 32 robots better, docs/results.md)
+    demo_stop_dist: float = 0.0
     bc_updates: int = 6000  #: behaviour-cloning Adam steps
     bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning
     bc_batch: int = 2048  #: robot-steps per cloning step, split equally over the swarm sizes
@@ -440,6 +443,7 @@ class ESConfig(ConfigBase):
              f"actor_hidden must be one or more widths in 1..4096, got {list(self.actor_hidden)}")
         need(self.demo_policy in DEMO_POLICIES,
              f"demo_policy must be one of {', '.join(DEMO_POLICIES)}, got '{self.demo_policy}'")
+        need(0.0 <= self.demo_stop_dist <= 1.0, f"demo_stop_dist must be in [0, 1] (0 = tuned), got {self.demo_stop_dist}")
         for name in ("demo_robot_episodes", "bc_batch", "generations", "pairs", "episodes_per_member",
                      "eval_every", "eval_episodes", "eval_steps"):
             need(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")

@@ -35,22 +35,23 @@ from sim.env import SwarmEnv
 from .replay import EpisodeReplay
 
 
-def demonstrator(world: WorldConfig) -> HandWrittenSearcher:
-    """The hand-written searcher, tuned for ``world``, turning always left (imitable by a deterministic actor)."""
+def demonstrator(world: WorldConfig, stop_dist: float = 0.0) -> HandWrittenSearcher:
+    """The hand-written searcher, tuned for ``world``, turning always left (imitable by a deterministic actor);
+    ``stop_dist`` > 0 replaces its tuned stopping distance (fraction of the range)."""
     base = TUNED.get(world.name, SearcherParams())
-    return HandWrittenSearcher(world, dataclasses.replace(base, turn_sign=1))
+    return HandWrittenSearcher(world, dataclasses.replace(base, turn_sign=1, stop_dist=stop_dist or base.stop_dist))
 
 
 def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int, rng: np.random.Generator,
                   progress: Callable[[int], None] | None = None, t_prev: int = 1, device: str = "cpu",
-                  with_obs: bool = False) -> EpisodeReplay:
+                  with_obs: bool = False, stop_dist: float = 0.0) -> EpisodeReplay:
     """``episodes`` demonstrator episodes (rounded up to whole batches of ``n_envs``) in a replay of their own."""
     assert episodes >= 1 and n_envs >= 1, f"need episodes >= 1 and n_envs >= 1, got {episodes}, {n_envs}"
     T, M = world.episode_steps, n_robots
     batches = math.ceil(episodes / n_envs)
     replay = EpisodeReplay(batches * n_envs * T, T, M, world.tuple_dim, world.state_dim(M), t_prev, device, with_obs)
     env = SwarmEnv(world, n_envs=n_envs, n_robots=M, seed=int(rng.integers(2 ** 31)))
-    policy = demonstrator(world)
+    policy = demonstrator(world, stop_dist)
     for _ in range(batches):
         obs, _ = env.reset(seed=int(rng.integers(2 ** 31)))
         policy.reset(n_envs, M, np.random.default_rng(rng.integers(2 ** 63)))

@@ -70,6 +70,28 @@ def test_demonstrator_searches_as_well_as_the_hand_written_searcher():
     assert m["found_rate"].mean == 1.0 and m["final_coverage"].mean > 0.85
 
 
+def test_demo_stop_dist_moves_where_the_demonstrator_stops():
+    """demo_stop_dist replaces the tuned stopping distance (0 keeps it): stopping at 0.94 of the range leaves the
+    robots farther from the beacon than the tuned 0.6 does; out-of-range values are a one-line ConfigError."""
+    from learn.config import ConfigError, ESConfig
+    from sim.baselines import TUNED
+    world = preset("kilobot", episode_steps=150)
+    assert demonstrator(world).p.stop_dist == TUNED["kilobot"].stop_dist == 0.6
+    assert demonstrator(world, 0.94).p.stop_dist == 0.94
+    mean_dist = {}
+    for sd in (0.0, 0.94):
+        env = SwarmEnv(world, 8, 4, seed=5)
+        pol = demonstrator(world, sd)
+        obs, _ = env.reset(seed=5)
+        pol.reset(8, 4, np.random.default_rng(5))
+        for _ in range(150):
+            obs, *_ = env.step(pol.act(obs))
+        mean_dist[sd] = float(np.linalg.norm(env.pos - env.target[:, None], axis=-1).mean())
+    assert mean_dist[0.94] > mean_dist[0.0] + 5.0, mean_dist
+    with pytest.raises(ConfigError, match="demo_stop_dist must be in"):
+        ESConfig(demo_stop_dist=1.5).validate()
+
+
 def test_behaviour_cloning_fits_the_demonstrations():
     """bc_pretrain lowers the squared error of the GRU's commands on the demo episodes (unrolled from zero)."""
     rep = collect_demos(WORLD, 2, 8, 8, np.random.default_rng(1))
