@@ -10,7 +10,9 @@ makes a robot out of range that touches a body in front of it (within 60°) driv
 90° to the beacon's bearing on a side drawn per blocking, for n periods before it aims again; ``--swirl w`` makes
 every robot aim w degrees to the left of the beacon (all the same way, a vortex about it). ``--ring H,S``
 keeps a hole and a band: a robot closer than H mm to the beacon turns away from it and drives out, and with
-``--inside stop`` a robot in range stops only within S mm (between S and the range it keeps driving in). On the
+``--inside stop`` a robot in range stops only within S mm (between S and the range it keeps driving in);
+``--bearing-error N,F`` aims with an error on the bearing: a fresh normal error of standard deviation N degrees every
+step plus a fixed one (standard deviation F degrees) per robot and episode. On the
 same episodes as the shipped default and the hand-written searcher it prints final coverage and its
 fraction of each episode's packing ceiling: where the oracle jams, the contact model (frictionless
 discs pushed apart, a taped-down beacon) jams, and no policy that only gets there by pushing does better.
@@ -59,23 +61,28 @@ class OraclePush:
     """Drive every robot at the beacon from the env's true state (a bound, not a Kilobot policy)."""
 
     def __init__(self, env: SwarmEnv, aim_deg: float, inside: str, agitate: float, queue: bool = False,
-                 slide: int = 0, swirl_deg: float = 0.0, ring: tuple[float, float] | None = None) -> None:
+                 slide: int = 0, swirl_deg: float = 0.0, ring: tuple[float, float] | None = None,
+                 bearing_error: tuple[float, float] = (0.0, 0.0)) -> None:
         self.env, self.aim, self.inside, self.agitate = env, np.deg2rad(aim_deg), inside, agitate
         self.queue, self.slide, self.swirl = queue, slide, np.deg2rad(swirl_deg)
         self.hole_mm, self.stop_mm = ring if ring is not None else (0.0, env.cfg.comm_radius_mm)
+        self.noise, self.bias_sd = np.deg2rad(bearing_error[0]), np.deg2rad(bearing_error[1])
         self.rng = np.random.default_rng(0)
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
         self.rng = rng
         self.sliding = np.zeros((n_envs, n_robots), np.int64)  # periods of sliding left
         self.side = np.ones((n_envs, n_robots))  # +1: slide counter-clockwise about the beacon, -1 clockwise
+        self.bias = rng.normal(0.0, self.bias_sd, (n_envs, n_robots)) if self.bias_sd else 0.0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         env = self.env
         d = env.target[:, None, :] - env.pos
         r = np.linalg.norm(d, axis=-1)
         inside = r <= env.cfg.comm_radius_mm  # (B, M)
-        goal = np.arctan2(d[..., 1], d[..., 0]) + self.swirl
+        goal = np.arctan2(d[..., 1], d[..., 0]) + self.swirl + self.bias
+        if self.noise:
+            goal = goal + self.rng.normal(0.0, self.noise, goal.shape)
         hole = r < self.hole_mm
         goal = np.where(hole, goal + np.pi, goal)  # in the hole: drive out
         if self.slide:  # blocked out of range: drive along the cluster, tangent to the beacon's bearing
@@ -113,6 +120,10 @@ def main() -> None:
     ap.add_argument("--ring", nargs="+", default=[None], type=lambda s: tuple(float(v) for v in s.split(",")),
                     help="H,S: robots nearer than H mm drive out, robots in range stop only within S mm; "
                          "each value adds a row")
+    ap.add_argument("--bearing-error", nargs="+", default=[(0.0, 0.0)],
+                    type=lambda s: tuple(float(v) for v in s.split(",")),
+                    help="N,F: aim with a fresh N-degree (sd) error every step and a fixed F-degree (sd) one per robot; "
+                         "each value adds a row")
     args = ap.parse_args()
     pol = load_policy(args.policy)
     world = WorldConfig.from_dict({**pol.world.to_dict(), "episode_steps": args.steps})
@@ -124,11 +135,14 @@ def main() -> None:
                 for n in args.slide:
                     for w in args.swirl:
                         for ring in args.ring:
-                            name = (f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
-                                    + (f", swirl {w:g}" if w else "")
-                                    + (f", hole {ring[0]:g} mm, stop within {ring[1]:g} mm" if ring else ""))
-                            contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n, swirl_deg=w,
-                                                          ring=ring)
+                            for err in args.bearing_error:
+                                name = (f"oracle, inside {inside}, agitate {p:g}" + (f", slide {n}" if n else "")
+                                        + (f", swirl {w:g}" if w else "")
+                                        + (f", hole {ring[0]:g} mm, stop within {ring[1]:g} mm" if ring else "")
+                                        + (f", bearing error {err[0]:g} deg/step + {err[1]:g} deg/robot" if any(err)
+                                           else ""))
+                                contenders[name] = OraclePush(env, args.aim_deg, inside, p, slide=n, swirl_deg=w,
+                                                              ring=ring, bearing_error=err)
         table = {name: rollout(env, c, args.episodes, seed=args.seed).metrics(ceiling=True)
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
