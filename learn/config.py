@@ -194,7 +194,7 @@ class ExperimentConfig(ConfigBase):
     threads: int = 0  #: torch CPU threads; 0 = auto (1 per process: on a shared CPU more threads oversubscribe)
     device: str = "auto"  #: networks and replay on cpu or cuda; auto = cuda when available (the env stays NumPy)
     #: arithmetic of the updates: fp32, or bf16 (hidden layers in a bfloat16 autocast, outputs, losses and weights
-    #: float32; ~1.5x faster updates at 32 robots on a CPU with AVX-512 bf16; changes what is learned, docs/speed.md)
+    #: float32; 1.2-1.3x faster updates at 32 robots on a CPU with AVX-512 bf16, none at 4; changes what is learned)
     precision: str = "fp32"
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 20_000  #: evaluate every this many transitions (at the next episode end)

@@ -17,8 +17,8 @@ changes: how a part becomes per-transition rows, and the target and online actor
   critic rates the demonstrated joint action above the actor's own (the Q-filter, Nair et al. 2018).
 * Soft target updates θ' ← τ θ + (1 − τ) θ'.
 * ``precision="bf16"``: the update's hidden layers run under a bfloat16 autocast (matrix products with
-  bfloat16 inputs and float32 accumulation; about 1.5x faster at 32 robots on an AVX-512 CPU with bf16, little
-  at 4 robots); output layers, losses, gradients of the actions, parameters and Adam stay float32. Acting, the
+  bfloat16 inputs and float32 accumulation; 1.2-1.3x faster updates at 32 robots on an AVX-512 CPU with bf16, none
+  at 4 robots: docs/speed.md); output layers, losses, gradients of the actions, parameters and Adam stay float32. Acting, the
   exported policy and behaviour cloning are float32 either way.
 """
 from __future__ import annotations
@@ -32,10 +32,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import PRECISIONS
+from .config import ACTION_GRADIENTS, PRECISIONS
 
 A_MIN, A_MAX = 0.0, 1.0  #: motor commands u_left, u_right are in [0, 1]
-ACTION_GRADIENTS = ("invert", "clip")
 
 
 def invert_gradients(grad: torch.Tensor, a: torch.Tensor, a_min: float = A_MIN,

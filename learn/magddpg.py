@@ -112,7 +112,8 @@ class MAGDDPG(CentralisedDDPG):
     def actor_step(self, s: Any, h: Any) -> None:
         """The actor step alone on states s (N, S) and histories h (N, M, history_dim)."""
         b = Batch(s=s, h=h, a=None, r=None, s2=None, h2=None)
-        self.actor_step_parts([(b, False)], [Rows(s=self.tensor(s), a=None, r=None, s2=None)], len(b))
+        with self.arithmetic():
+            self.actor_step_parts([(b, False)], [Rows(s=self.tensor(s), a=None, r=None, s2=None)], len(b))
 
 
 class HistoryActing:

@@ -47,7 +47,8 @@ maximum; the running minimum for the other wall; :func:`_clip_path`). Only the e
 paths come closer than 2r at some tick (found from the pairs within ``2r + travel_i + travel_j`` at
 the period start, travel = arc + straight path length) are re-run tick by tick from the first such
 tick, with the collision resolution; a tick's move there is the closed form's increment, which does
-not depend on where pushes put the robot. With Numba installed, everything from the contact candidates on runs compiled
+not depend on where pushes put the robot. With Numba installed, the closed form of straight runs and everything from the
+contact candidates on run compiled
 (:func:`sim.compiled.period_contacts`, the same float operations in the same order; ``KILOFORGE_JIT=0``: this module's code).
 
 Trigonometry: thesis moves use float32 (:func:`unit`, ~1e-7 relative, below 1e-5 mm per step);
@@ -339,9 +340,10 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
     into_record = record is not None and record.dtype == np.float64 and record.flags.c_contiguous
-    if kappa is None and compiled.available():  # everything down to the clipped path, compiled (bit-identical)
-        e = step * u_s
+    if kappa is None:
+        e = step * u_s  # (B, M) displacement of one straight tick
         heading[...] = wrap_angle(phi_s)
+    if kappa is None and compiled.available():  # everything down to the clipped path, compiled (bit-identical)
         zk = record.view(np.complex128).reshape(P, B, M) if into_record else np.empty((P, B, M), np.complex128)
         disp, travel = np.empty((P, B, M), np.complex128), np.empty((B, M))
         c = table = rot = None
@@ -358,9 +360,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         np.maximum(n, 0, out=n)
         np.minimum(n, s, out=n)
         if kappa is None:
-            e = step * u_s  # (B, M) displacement of one straight tick
             disp = _scaled(n, e)
-            heading[...] = wrap_angle(phi_s)
         else:  # each straight tick turns by kappa, then moves along the new heading
             inc = ((k >= t) & (k < t + s)) * (step * np.exp(1j * (phi_s + n * kappa)))
             disp = np.cumsum(inc, axis=0)
