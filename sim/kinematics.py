@@ -58,6 +58,7 @@ Everything else is float64.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -481,9 +482,12 @@ def _pivots_done(t: np.ndarray) -> np.ndarray:
     return np.minimum(np.arange(1, T + 1).reshape(T, 1, 1), t)
 
 
+@functools.lru_cache(maxsize=8)
 def _rotation_table(dphi: float, P: int) -> np.ndarray:
-    """exp(i j dphi) for j = -P..P (2P + 1,)."""
-    return np.exp(1j * dphi * np.arange(-P, P + 1))
+    """exp(i j dphi) for j = -P..P (2P + 1,), read-only: one per world, not one per period."""
+    table = np.exp(1j * dphi * np.arange(-P, P + 1))
+    table.flags.writeable = False
+    return table
 
 
 def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr: np.ndarray,
