@@ -78,6 +78,8 @@ class Counters:
     update_s: float = 0.0  # of which: gradient updates
     eval_s: float = 0.0  # of which: evaluations (and their logging and exports)
     checkpoint_s: float = 0.0  # of which: writing checkpoints
+    update_threads: dict = field(default_factory=dict)  # updates run per torch thread count ("1": n, "2": m)
+    update_threads_note: str | None = None  # why --threads 0 kept one thread (None: it did not, or was not asked)
     rows: list = field(default_factory=list)  # metrics.csv rows
     pending_returns: list = field(default_factory=list)  # training episode returns since the last evaluation
     pending_losses: list = field(default_factory=list)  # [critic loss, Q mean, BC pass] per update since then
@@ -167,6 +169,8 @@ def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: st
         "eval_share": share(c.eval_s), "checkpoint_share": share(c.checkpoint_s),
         "env_steps_per_s": round(c.env_steps / c.env_s, 1) if c.env_s else None,
         "updates_per_s": round(c.updates / c.update_s, 1) if c.update_s else None,
+        "update_threads": c.update_threads,  #: updates per torch thread count (--threads 0 measures which is faster)
+        "update_threads_note": c.update_threads_note,
         "best_eval": best, "last_eval": c.rows[-1] if c.rows else {},
         "algorithm": cfg.algorithm, "seed": cfg.seed, "git": git_hash(),
         #: the simulator's hot loops ran compiled (sim/compiled.py); the rates above depend on it, nothing else does
