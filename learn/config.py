@@ -191,7 +191,9 @@ class ExperimentConfig(ConfigBase):
     critic_pretrain: int = 0  #: critic-only updates on the demonstrations after cloning
     # --- speed -------------------------------------------------------------------------------
     n_envs: int = 1  #: environments stepped together per swarm size
-    threads: int = 0  #: torch CPU threads; 0 = auto (1 per process: on a shared CPU more threads oversubscribe)
+    #: torch CPU threads; 0 = auto: 1, and for the update blocks 1 or every core (at most 4), whichever is measured
+    #: faster, only where that gives the same bits (learn.speed); N = N threads everywhere
+    threads: int = 0
     device: str = "auto"  #: networks and replay on cpu or cuda; auto = cuda when available (the env stays NumPy)
     #: arithmetic of the updates: fp32, or bf16 (hidden layers in a bfloat16 autocast, outputs, losses and weights
     #: float32; 1.2-1.3x faster updates at 32 robots on a CPU with AVX-512 bf16, none at 4; changes what is learned)
@@ -622,9 +624,11 @@ _GUIDED = {"demo_policy": "searcher", "bc_weight": 1000.0, "actor_delay": 20_000
 TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "thesis": {"t_prev": 20},
-    #: blocks of 8 steps' updates: 1.4x the env steps/s between them (the updates no longer evict the env from
-    #: the cache); within noise in what is learned (docs/speed.md). quick and guided keep 1, as measured.
-    "fast": {**_FAST, "update_every": 8},
+    #: blocks of 8 steps' updates (1.4x the env steps/s: the updates no longer evict the env from the cache), the
+    #: actor on every other update (TD3's delay) and, above 4 robots, its objective on 4 robots per sample with the
+    #: others' replayed actions: 2.3x / 3.4x updates/s at 4 / 32 robots against 81d913c; the learning checks
+    #: are in docs/speed.md. quick and guided keep every-step updates and the full actor objective, as measured.
+    "fast": {**_FAST, "update_every": 8, "policy_every": 2, "actor_robots": 4, "actor_others": "replay"},
     #: a first policy in minutes: the searcher's clone, then RL anchored to it (kilobot world, 16 robots: 11x random, docs/training.md)
     "quick": {**_FAST, **_GUIDED, "demo_episodes": 128, "bc_updates": 1000, "replay_size": 100_000,
               "eval_every": 12_800, "max_minutes": 5.0, "exp_name": "quick"},
