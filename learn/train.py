@@ -241,7 +241,8 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
                         for _ in range(n):
                             one_update()
                     c.update_debt -= n
-                    c.update_threads[str(k)] = c.update_threads.get(str(k), 0) + n
+                    if n:
+                        c.update_threads[str(k)] = c.update_threads.get(str(k), 0) + n
                     c.update_threads_note = threads.why_one
                     upd_time += time.perf_counter() - u0
             if bar is not None:

@@ -110,13 +110,14 @@ def test_two_threads_learn_what_one_does(tmp_path, kind, extra):
     assert sb["update_threads"] == {"2": sb["updates"]} and sb["updates"] > 0
 
 
-@pytest.mark.parametrize("extra, exact", [
-    (dict(n_robots=[4]), True),
-    (dict(n_robots=[4], precision="bf16"), False),
+@pytest.mark.parametrize("kind, extra, exact", [
+    ("mlp", dict(n_robots=[4]), True),
+    ("gru", dict(n_robots=[4]), True),
+    ("mlp", dict(n_robots=[4], precision="bf16"), False),
 ])
-def test_auto_threads_learn_what_one_thread_does(tmp_path, extra, exact):
+def test_auto_threads_learn_what_one_thread_does(tmp_path, kind, extra, exact):
     """--threads 0 trains exactly as --threads 1; where 2 threads round differently (bf16, long sums) it keeps 1."""
-    (a, _), (b, sb) = _run(tmp_path, "one", _config("mlp", 1, **extra)), _run(tmp_path, "auto", _config("mlp", 0, **extra))
+    (a, _), (b, sb) = _run(tmp_path, "one", _config(kind, 1, **extra)), _run(tmp_path, "auto", _config(kind, 0, **extra))
     _assert_same_agent(a, b)
     assert sum(sb["update_threads"].values()) == sb["updates"] > 0
     if UpdateThreads(0).choices == (1,):
