@@ -626,7 +626,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     "thesis": {"t_prev": 20},
     #: blocks of 8 steps' updates (1.4x the env steps/s: the updates no longer evict the env from the cache), the
     #: actor on every other update (TD3's delay) and, above 4 robots, its objective on 4 robots per sample with the
-    #: others' replayed actions: 2.3x / 3.4x updates/s at 4 / 32 robots against 81d913c; the learning checks
+    #: others' replayed actions: 2.1x / 3.7x updates/s at 4 / 32 robots against 81d913c; the learning checks
     #: are in docs/speed.md. quick and guided keep every-step updates and the full actor objective, as measured.
     "fast": {**_FAST, "update_every": 8, "policy_every": 2, "actor_robots": 4, "actor_others": "replay"},
     #: a first policy in minutes: the searcher's clone, then RL anchored to it (kilobot world, 16 robots: 11x random, docs/training.md)
