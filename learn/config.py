@@ -26,11 +26,12 @@ Training presets (``--preset``; distinct from the *world*, ``--world``), in ``TR
 ``thesis``   ``default`` with the thesis's history length (20).
 ``fast``     tuned for wall clock on a small CPU: 16 environments, bigger minibatches, faster target
              tracking, higher learning rates, phantom neighbours (:mod:`learn.augment`), the owed updates
-             in blocks every 8 env steps; 50 evaluation episodes every 51 200 transitions (evaluation ≈ 5 %
-             of the wall clock).
+             in blocks every 8 env steps, the actor on every other update and, above 4 robots, its objective on
+             4 robots per sample; 50 evaluation episodes every 51 200 transitions (evaluation ≈ 5 % of the wall
+             clock).
 ``quick``    ``guided`` in minutes: 128 demonstration episodes, 1,000 cloning steps, a 5-minute budget and a
              small replay memory.
-``guided``   ``fast`` (updates after every env step) started from demonstrations of the hand-written searcher (:mod:`learn.demos`):
+``guided``   ``fast`` (updates after every env step, the actor on every update and robot) started from demonstrations of the hand-written searcher (:mod:`learn.demos`):
              behaviour cloning, a critic-only phase, small BC-anchored actor steps through ``clip``
              action gradients (README: guided training).
 """

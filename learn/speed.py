@@ -12,13 +12,14 @@
   On a quiet 2-core machine two threads win (1.2x updates/s at 4 robots, 1.5x at 32 on issue 14's command);
   beside other work they are several times slower (oversubscribed cores: 3.4x on a fixed minibatch with the
   other core busy), which the probes notice. Auto never changes results: it uses more than one thread only
-  after one update on both counts gave the same bits (``learn.train.threads_differ``; torch's float32 kernels
+  after one update on both counts gave the same bits (:func:`threads_differ`; torch's float32 kernels
   here split rows, not sums), and never with bfloat16. ``--threads N`` fixes N threads for everything. Several
   trainings at once (seeds, a sweep) use the cores better still.
 """
 from __future__ import annotations
 
 import contextlib
+import copy
 import ctypes
 import ctypes.util
 import os
@@ -138,6 +139,37 @@ class UpdateThreads:
         best = min(self.choices, key=lambda c: statistics.median(self.times[c]))
         if best != self.best:
             self.best, self.probe_every, self.since_probe = best, self.base_probe, 0
+
+
+def threads_differ(algo, parts: list, bc_weight: float, n: int) -> str | None:
+    """Why updates on ``n`` torch threads would not be bit for bit those on one, or None: one update on ``parts``
+    is run both ways from the same state and compared (networks and optimiser state); the agent and torch's RNG
+    are left as they were. Float32 kernels that split a sum across threads change almost every output, so one
+    update shows it; bfloat16 ones round most such changes away and differ only now and then, so they are
+    not tried."""
+    if algo.precision != "fp32":
+        return f"{algo.precision} products over long sums round differently on {n} threads now and then"
+    start, rng = copy.deepcopy(algo.state_dict()), torch.get_rng_state()
+    after = []
+    for k in (1, n):
+        set_threads(k)
+        algo.update_parts(parts, bc_weight, train_actor=True)
+        after.append(copy.deepcopy(algo.state_dict()))
+        algo.load_state_dict(copy.deepcopy(start))
+        torch.set_rng_state(rng)
+    set_threads(1)
+    return None if same_tensors(after[0], after[1]) else f"an update on {n} threads does not give the bits it gives on one"
+
+
+def same_tensors(a, b) -> bool:
+    """Two nested state dicts hold equal tensors (bit for bit) and equal other values."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(same_tensors(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(same_tensors(x, y) for x, y in zip(a, b))
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
+    return a == b
 
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  #: glibc mallopt parameters (malloc.h)

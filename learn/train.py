@@ -25,7 +25,6 @@ The run directory's files are listed in :mod:`learn.rundir`.
 """
 from __future__ import annotations
 
-import copy
 import json
 import math
 import os
@@ -50,7 +49,7 @@ from .replay import EpisodeReplay
 from .rundir import (METRIC_COLUMNS, RESUME_MAY_CHANGE, Counters, RunResult, check_resumable,  # noqa: F401
                      finite_or_none, git_hash, prepare_run_dir, rows_to_csv, run_name, write_summary)
 from .runfiles import read_metrics
-from .speed import UpdateThreads, resolve_device, set_threads, tune_allocator
+from .speed import UpdateThreads, resolve_device, set_threads, threads_differ, tune_allocator
 
 CHECKPOINT_VERSION = 2
 PLOT_EVERY_S = 60.0  #: redraw learning_curve.png at most this often (and at the end): plotting is slow
@@ -279,37 +278,6 @@ def run_loop(cfg, algo, groups, evaluators, c: Counters, sample_rng, env_rng, sh
         if over_time:
             return "time"
     return "done"  # also after a signal during the last episode batch: the run is complete
-
-
-def threads_differ(algo, parts: list, bc_weight: float, n: int) -> str | None:
-    """Why updates on ``n`` torch threads would not be bit for bit those on one, or None: one update on ``parts``
-    is run both ways from the same state and compared (networks and optimiser state); the agent and torch's RNG
-    are left as they were. Float32 kernels that split a sum across threads change almost every output, so one
-    update shows it; bfloat16 ones round most such changes away and differ only now and then, so they are
-    not tried."""
-    if algo.precision != "fp32":
-        return f"{algo.precision} products over long sums round differently on {n} threads now and then"
-    start, rng = copy.deepcopy(algo.state_dict()), torch.get_rng_state()
-    after = []
-    for k in (1, n):
-        set_threads(k)
-        algo.update_parts(parts, bc_weight, train_actor=True)
-        after.append(copy.deepcopy(algo.state_dict()))
-        algo.load_state_dict(copy.deepcopy(start))
-        torch.set_rng_state(rng)
-    set_threads(1)
-    return None if same_tensors(after[0], after[1]) else f"an update on {n} threads does not give the bits it gives on one"
-
-
-def same_tensors(a, b) -> bool:
-    """Two nested state dicts hold equal tensors (bit for bit) and equal other values."""
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(same_tensors(a[k], b[k]) for k in a)
-    if isinstance(a, (list, tuple)):
-        return len(a) == len(b) and all(same_tensors(x, y) for x, y in zip(a, b))
-    if isinstance(a, torch.Tensor):
-        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
-    return a == b
 
 
 def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, run_dir: Path, export, log, bar, tb,

@@ -140,7 +140,7 @@ def test_auto_threads_learn_what_one_thread_does(tmp_path, kind, extra, exact):
 def test_check_notices_an_update_that_depends_on_threads():
     """The one-update comparison reports an update whose result depends on the thread count, and restores the agent."""
     from learn.magddpg import MAGDDPG
-    from learn.train import same_tensors, threads_differ
+    from learn.speed import same_tensors, threads_differ
 
     cfg = TrainConfig(n_robots=[2], t_prev=3, actor_hidden=(8,), critic_hidden=(16,), batch_size=8)
     world = cfg.world_config()
