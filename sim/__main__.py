@@ -4,7 +4,7 @@
     python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
     python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
 
-``--policy`` is ``random``, ``baseline`` (the hand-written searcher) or the path of a policy
+``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the path of a policy
 artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
 ``coverage.png`` (all episodes) and ``metrics.json``. ``--suite robustness`` instead runs the policy
@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="searching robots per env (default 4); with --suite, one or more counts")
     p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
     p.add_argument("--policy", default="baseline",
-                   help="'random', 'baseline' (hand-written searcher) or a policy artifact file (.npz)")
+                   help="'random', 'baseline' (hand-written searcher), 'pusher' (its crowd variant) or a policy artifact file (.npz)")
     p.add_argument("--out", required=True, help="output folder (created if needed)")
     p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
     p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
@@ -91,16 +91,16 @@ def _load_policy(a: argparse.Namespace):
     world = preset(a.world or ("kilobot" if a.suite else "thesis"))
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
-    if a.policy in ("random", "baseline"):
+    if a.policy in ("random", "baseline", "pusher"):
         from .baselines import make_policy
 
         desc: dict = {"kind": a.policy}
-        if a.policy == "baseline":
+        if a.policy != "random":
             desc["params"] = dataclasses.asdict(make_policy(a.policy, world).p)
         return world, lambda w: make_policy(a.policy, w), desc, None
     path = Path(a.policy)
     if not os.path.lexists(path):
-        raise UserError(f"--policy must be 'random', 'baseline' or a policy file; '{a.policy}' is neither")
+        raise UserError(f"--policy must be 'random', 'baseline', 'pusher' or a policy file; '{a.policy}' is neither")
     try:
         art = load_policy(path)
     except PolicyError as e:

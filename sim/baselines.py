@@ -19,6 +19,12 @@ Behaviour, per robot and control period, by *level* of what it senses:
 * whenever the level drops (the robot has just left the target's or the neighbour's range) it makes a
   U-turn, which takes it straight back in.
 
+The *pusher* (:data:`PUSHER`, ``make_policy("pusher", …)``) is the same searcher with three parameters set for
+crowds at the target: it stops only within 0.94 of the range, at level 2 it counts a period as worse only once
+the distance has grown by ``push_margin`` above its best since the last turn (so a robot blocked by the crowd
+keeps pushing straight instead of tumbling along its edge), and a settled robot pushed out beyond its stopping
+distance drives on (``hold_within``). It packs 32 robots closer than the searcher (docs/results.md).
+
 Commands are only ``(speed, speed)`` (straight), ``(1, 0)`` / ``(0, 1)`` (one turn period: ≈45°; in
 the thesis kinematics with 5 mm forward, in the kilobot preset a pivot) and ``(0, 0)`` (stop).
 Parameters: :class:`SearcherParams`; tuned values per preset in :data:`TUNED`.
@@ -64,9 +70,16 @@ class SearcherParams:
     settle_patience: int = 6  #: ... or after this many non-improving periods inside the target range
     settle_hold: int = 3  #: a stopped robot moves on after missing the target this many periods in a row
     nbr_gradient: bool = True  #: level 1: run and tumble on neighbour proximity (else keep going)
-    #: turn direction: 0 = random left/right per turn; +1 always left, -1 always right (a deterministic
-    #: choice a learner can imitate: used as MAGRDPG's demonstrator, see learn.demos)
+    #: turn direction: 0 = random left/right per turn; +1 always left, -1 always right; 2 = left, but turns at
+    #: level 2 alternate right, left, … (the deterministic choices a learner can imitate: learn.demos)
     turn_sign: int = 0
+    #: level 2 only: a period counts as worse only once the distance has grown by more than this fraction of the
+    #: comm radius above its best since the last turn (0: any non-improving period is worse). Robots blocked by a
+    #: crowd at the target then keep pushing straight instead of tumbling along its edge
+    push_margin: float = 0.0
+    #: a settled robot that hears the target beyond ``stop_dist`` (pushed out of the band) drives straight on
+    #: instead of holding there
+    hold_within: bool = False
 
     def __post_init__(self) -> None:
         assert 0.0 < self.speed <= 1.0, f"speed must be in (0, 1], got {self.speed}"
@@ -78,7 +91,8 @@ class SearcherParams:
         assert self.wall_cooldown >= 0 and self.uturn_steps >= 0, "wall_cooldown, uturn_steps must be >= 0"
         assert 0.0 <= self.stop_dist <= 1.0, f"stop_dist must be in [0, 1], got {self.stop_dist}"
         assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
-        assert self.turn_sign in (-1, 0, 1), f"turn_sign must be -1, 0 or 1, got {self.turn_sign}"
+        assert self.turn_sign in (-1, 0, 1, 2), f"turn_sign must be -1, 0, 1 or 2, got {self.turn_sign}"
+        assert 0.0 <= self.push_margin <= 1.0, f"push_margin must be in [0, 1], got {self.push_margin}"
 
 
 #: tuned parameters per world preset (the dataclass defaults are the thesis values). Kilobot discs
@@ -88,6 +102,9 @@ TUNED: dict[str, SearcherParams] = {
     "thesis": SearcherParams(),
     "kilobot": SearcherParams(run_min_steps=30, tumble_max_steps=2, wall_cooldown=3, stop_dist=0.6),
 }
+
+#: what the pusher changes in a world's tuned searcher (module doc; 0.035 of the kilobot range is 3 mm)
+PUSHER = {"stop_dist": 0.94, "push_margin": 0.035, "hold_within": True}
 
 
 def run_lengths(p: SearcherParams, u: np.ndarray) -> np.ndarray:
@@ -117,11 +134,12 @@ class HandWrittenSearcher:
         shape = (n_envs, n_robots)
         self.rng = rng
         self.turn_left = np.zeros(shape, np.int32)  # pivot periods still to do
-        self.turn_dir = np.ones(shape, np.int8)  # +1 left (counter-clockwise), -1 right
+        self.turn_dir = np.full(shape, -1, np.int8)  # +1 left (counter-clockwise), -1 right (as the firmware's 0)
         self.run_left = np.zeros(shape, np.int32)  # straight periods still to do (exploration)
         self.wall_cool = np.zeros(shape, np.int32)  # periods during which the wall flag is ignored
         self.prev_level = np.zeros(shape, np.int8)  # 0 nothing, 1 neighbour senses target, 2 target heard
         self.prev_score = np.zeros(shape)  # gradient signal of the previous period
+        self.best = np.zeros(shape)  # best target score since the last turn (push_margin)
         self.fails = np.zeros(shape, np.int32)  # non-improving periods in the target range
         self.settled = np.zeros(shape, bool)  # stopped at the target
         self.miss = np.zeros(shape, np.int32)  # consecutive periods a settled robot missed the target
@@ -151,21 +169,28 @@ class HandWrittenSearcher:
         score = np.where(heard, -tdist, prox)
 
         dirs, tumble, wall_turn, runs = self.draws(shape)
-        if p.turn_sign:
+        if p.turn_sign == 2:
+            dirs = np.where(level == 2, -self.turn_dir, 1).astype(np.int8)
+        elif p.turn_sign:
             dirs = np.full(shape, p.turn_sign, np.int8)  # the draw still happened: same stream whatever the sign
 
         # settled robots: hold position through short target dropouts
         self.miss = np.where(self.settled & ~heard, self.miss + 1, 0)
+        pushed_out = self.settled & heard & (tdist > p.stop_dist) if p.hold_within else np.zeros(shape, bool)
         leave = self.settled & (self.miss >= p.settle_hold)
         holding = self.settled & ~leave
         level = np.where(holding, 2, level).astype(np.int8)  # a holding robot still counts as at the target
+        holding &= ~pushed_out
         self.settled = holding
 
         turning = self.turn_left > 0
         same = (level == self.prev_level) & (level >= 1) & ~holding  # a gradient to compare
         improved = same & (score > self.prev_score)
         worse = same & ~improved & ~turning
-        entered = level > self.prev_level
+        if p.push_margin > 0:
+            push = same & (level == 2)
+            worse = np.where(push, ~turning & (score < self.best - p.push_margin), worse)
+        entered = (level > self.prev_level) | pushed_out
         lost = (level < self.prev_level) | leave
 
         def start_turn(mask: np.ndarray, steps: np.ndarray, run: np.ndarray | int) -> None:
@@ -205,14 +230,17 @@ class HandWrittenSearcher:
         self.run_left = np.where(straight, self.run_left - 1, self.run_left)
         self.prev_level = level
         self.prev_score = score
+        self.best = np.where(same & ~turning, np.maximum(self.best, score), score)
         return a
 
 
 def make_policy(name: str, cfg: WorldConfig, **params) -> "RandomPolicy | HandWrittenSearcher":
-    """``"random"`` or ``"baseline"`` (the hand-written searcher, tuned defaults for ``cfg.name``)."""
+    """``"random"``, ``"baseline"`` (the hand-written searcher, tuned for ``cfg.name``) or ``"pusher"`` (the same
+    with :data:`PUSHER`); ``params`` replace searcher parameters."""
     if name == "random":
         return RandomPolicy()
-    if name == "baseline":
+    if name in ("baseline", "pusher"):
         base = TUNED.get(cfg.name, SearcherParams())
-        return HandWrittenSearcher(cfg, dataclasses.replace(base, **params) if params else base)
-    raise ValueError(f"unknown baseline policy '{name}'; choose 'random' or 'baseline'")
+        changes = {**(PUSHER if name == "pusher" else {}), **params}
+        return HandWrittenSearcher(cfg, dataclasses.replace(base, **changes) if changes else base)
+    raise ValueError(f"unknown baseline policy '{name}'; choose 'random', 'baseline' or 'pusher'")

@@ -100,10 +100,11 @@ def golden_lstm() -> QuantizedLSTM:
 def golden_searcher() -> QuantizedSearcher:
     """The hand-written searcher with non-default integer parameters and a fixed run-length table (no floats)."""
     p = SearcherParams(run_max_steps=700, tumble_max_steps=5, wall_turn_min=2, wall_turn_max=6, wall_cooldown=4,
-                       uturn_steps=3, stop_dist=0.625, settle_patience=9, settle_hold=2, nbr_gradient=False, turn_sign=1)
+                       uturn_steps=3, stop_dist=0.625, settle_patience=9, settle_hold=2, nbr_gradient=False, turn_sign=2,
+                       push_margin=0.0625, hold_within=True)
     run = (np.arange(RUN_TABLE_SIZE) * 11 % 700 + 1).astype(np.uint16)
-    return QuantizedSearcher(params=p, speed_q=200, stop_q=40, run_table=run, e_in=E_IN, world=WORLD,  # 40 = 0.625 * 2**6
-                             policy_hash=GOLDEN_HASH, **sensing_tables(WORLD, E_IN))
+    return QuantizedSearcher(params=p, speed_q=200, stop_q=40, margin_q=4, run_table=run, e_in=E_IN,  # 40 = 0.625 * 2**6,
+                             world=WORLD, policy_hash=GOLDEN_HASH, **sensing_tables(WORLD, E_IN))  # 4 = 0.0625 * 2**6
 
 
 def golden_policies() -> dict[str, QuantizedActor]:

@@ -141,7 +141,7 @@ def test_evaluation_reports_ceiling(tmp_path):
     r = rollout(SwarmEnv(world, 2, 32, seed=3), make_policy("baseline", world), 2, seed=3)
     want = ceiling.episode_ceiling(world, 32, r.beacon)
     assert np.all(want < 1.0)
-    for name in ("tiny", "hand-written", "random"):  # a taped-down beacon: the same episodes, the same ceilings
+    for name in ("tiny", "hand-written", "hand-written pusher", "random"):  # a taped-down beacon: the same episodes, the same ceilings
         np.testing.assert_allclose(row["ceiling"][name], want, atol=1e-6)
         assert "of_ceiling" in row["metrics"][name]["summary"]
     got = row["metrics"]["hand-written"]["summary"]["of_ceiling"]["mean"]

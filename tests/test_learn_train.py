@@ -176,7 +176,7 @@ def test_cli_smoke_train_plot_evaluate(tmp_path, capsys):
     assert main(["evaluate", "--policy", str(run / "policy_best.npz"), "--robots", "3", "--episodes", "2",
                  "--steps", "12", "--n-envs", "2", "--out", str(ev), "--quiet"]) == 0
     res = json.loads((ev / "evaluation.json").read_text())
-    assert set(res["robots"]["3"]["metrics"]) == {"run1/policy_best", "hand-written", "random"}
+    assert set(res["robots"]["3"]["metrics"]) == {"run1/policy_best", "hand-written", "hand-written pusher", "random"}
     for name in ("reward_over_time_3.png", "returns_box_3.png", "coverage_3.png", "episode_run1_policy_best_3.gif"):
         assert (ev / name).stat().st_size > 500, name
     assert main(["evaluate", "--policy", str(tmp_path / "missing.npz"), "--out", str(ev)]) == 2

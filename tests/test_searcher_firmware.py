@@ -1,4 +1,4 @@
-"""The hand-written searcher as firmware (``--policy searcher``): its draws, the integer reference, host and AVR builds, closed loop."""
+"""The hand-written searcher as firmware (``--policy searcher`` and ``pusher``): its draws, the integer reference, host and AVR builds, closed loop."""
 from __future__ import annotations
 
 import dataclasses
@@ -18,30 +18,37 @@ from export.contract.firmware import EVENT_DTYPE
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host
 from kiloforge.actors.searcher import (SEARCHER, FirmwareDrawSearcher, SearcherArch, SearcherState,
-                                       draw_bytes, firmware_draws, quantize_searcher, rng_seed, run_table,
-                                       searcher_policy, xorshift32)
+                                       draw_bytes, firmware_draws, pusher_policy, quantize_searcher, rng_seed,
+                                       run_table, searcher_policy, xorshift32)
 from recorded_loop import record_loop
-from sim.baselines import TUNED, SearcherParams
+from sim.baselines import PUSHER, TUNED, SearcherParams
 from sim.config import preset
 from sim.motion import action_to_u8
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
 WORLD = preset("kilobot")
 TARGETS = (0,)
+NAMES = ("searcher", "pusher")  #: the shipped searchers
 
 
 @functools.lru_cache(maxsize=None)
-def shipped():
-    """The shipped searcher (``--policy searcher``) and its integer searcher."""
-    p = load(Path("searcher"))
+def shipped(name: str = "searcher"):
+    """A shipped searcher (``--policy searcher`` or ``pusher``) and its integer searcher."""
+    p = load(Path(name))
     return p, quantize_searcher(p)
 
 
+@pytest.fixture(scope="module", params=NAMES)
+def name(request):
+    """Each shipped searcher in turn."""
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def exe(tmp_path_factory):
-    """The host build of the shipped searcher's program."""
-    files = render_firmware(shipped()[1], target_uids=TARGETS, generator_version="test")
-    return build_host(files[POLICY_FILE], tmp_path_factory.mktemp("searcher_host"), name="searcher")
+def exe(name, tmp_path_factory):
+    """The host build of that shipped searcher's program."""
+    files = render_firmware(shipped(name)[1], target_uids=TARGETS, generator_version="test")
+    return build_host(files[POLICY_FILE], tmp_path_factory.mktemp(f"{name}_host"), name=name)
 
 
 # --- the draws ---------------------------------------------------------------------------------
@@ -50,7 +57,15 @@ def test_shipped_policy_is_the_tuned_kilobot_searcher():
     p, qp = shipped()
     assert p.kind == "searcher" and p.world == WORLD and p.params == TUNED["kilobot"]
     assert p.hash == searcher_policy(WORLD).hash, "export/data/searcher_policy.npz is stale: see kiloforge/actors/searcher.py"
-    assert qp.speed_q == 255 and qp.stop_q == int(np.floor(TUNED["kilobot"].stop_dist * 64))
+    assert qp.speed_q == 255 and qp.stop_q == int(np.floor(TUNED["kilobot"].stop_dist * 64)) and qp.margin_q == 0
+
+
+def test_shipped_pusher_is_the_tuned_searcher_with_pusher():
+    """`--policy pusher` loads TUNED["kilobot"] with sim.baselines.PUSHER; its margin is floor(0.035 * 64) = 2 obs units."""
+    p, qp = shipped("pusher")
+    assert p.params == dataclasses.replace(TUNED["kilobot"], **PUSHER)
+    assert p.hash == pusher_policy(WORLD).hash, "export/data/pusher_policy.npz is stale: see kiloforge/actors/searcher.py"
+    assert qp.stop_q == 60 and qp.margin_q == 2
 
 
 @pytest.mark.parametrize("params", [TUNED["kilobot"], SearcherParams(), SearcherParams(run_alpha=0.0, run_min_steps=7,
@@ -110,9 +125,10 @@ def _stream(seed: int, n_robots: int = 48, n_steps: int = 80):
                          comm_radius_mm=WORLD.comm_radius_mm, light_threshold=WORLD.light_threshold)
 
 
-def test_integer_searcher_is_the_float_rules_on_dequantised_observations():
+@pytest.mark.parametrize("name", NAMES)
+def test_integer_searcher_is_the_float_rules_on_dequantised_observations(name):
     """The emulator's commands equal sim.baselines' float rules fed its int8 observations / 2**e_in and the same draws."""
-    p, qp = shipped()
+    p, qp = shipped(name)
     inputs = _stream(1)
     emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=TARGETS)
     out = emu.run(inputs)
@@ -124,15 +140,20 @@ def test_integer_searcher_is_the_float_rules_on_dequantised_observations():
     np.testing.assert_array_equal(got, cmd)
     kinds = {tuple(c) for c in cmd.reshape(-1, 2).tolist()}
     assert {(255, 255), (255, 0), (0, 255), (0, 0)} <= kinds, f"not every command occurred: {kinds}"
+    if name == "pusher":  # the stream exercises the pusher's own rules: the plain searcher answers it differently
+        plain = FirmwareDrawSearcher(p.world, TUNED["kilobot"], inputs.uids[s])
+        plain.reset(1, int(s.sum()))
+        other = np.stack([action_to_u8(plain.act(obs[None, :, t])[0]) for t in range(obs.shape[1])], 1)
+        assert (other != cmd).any(-1).mean() > 0.05
 
 
 @needs_cc
-def test_host_build_equals_emulator_on_random_streams(exe):
-    """Host build of `--policy searcher` == the emulator byte for byte over 2 x 48 robots x 80 control steps of random streams."""
+def test_host_build_equals_emulator_on_random_streams(name, exe):
+    """Host build of `--policy searcher` / `pusher` == the emulator byte for byte over 2 x 48 robots x 80 control steps of random streams."""
     total = 0
     for seed in (2, 3):
         inputs = _stream(seed)
-        emu = FirmwareEmulator(shipped()[1], inputs.uids, inputs.calib, target_uids=TARGETS)
+        emu = FirmwareEmulator(shipped(name)[1], inputs.uids, inputs.calib, target_uids=TARGETS)
         want = emu.run(inputs)
         got = run_host(exe, inputs, WORLD.period_ticks, WORLD.obs_dim, fill=f"random:{seed}")
         np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
@@ -144,14 +165,14 @@ def test_host_build_equals_emulator_on_random_streams(exe):
 
 
 @needs_cc
-def test_host_build_seeds_from_kilo_uid(exe):
+def test_host_build_seeds_from_kilo_uid(name, exe):
     """With no messages, robots of distinct uids tumble differently, equal uids alike; a uid-blind emulator is caught."""
     P, S = WORLD.period_ticks, 300
     uids = np.array([5, 6, 5, 999], np.uint16)
     light = np.full((4, S), 900, np.int16)  # bright: never the wall flag
     inputs = FirmwareInputs(uids=uids, calib=np.zeros((4, 4), np.uint8), light=light,
                             events=np.zeros(0, EVENT_DTYPE), n_ticks=(S + 1) * P)
-    want = FirmwareEmulator(shipped()[1], uids, inputs.calib, target_uids=TARGETS).run(inputs)
+    want = FirmwareEmulator(shipped(name)[1], uids, inputs.calib, target_uids=TARGETS).run(inputs)
     got = run_host(exe, inputs, P, WORLD.obs_dim, fill="0xA5")
     np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
@@ -165,15 +186,15 @@ def test_host_build_seeds_from_kilo_uid(exe):
             super().reset()
             self.state = self.qp.setup_state(np.zeros_like(self.uids))
 
-    assert compare(UidBlind(shipped()[1], uids, inputs.calib, target_uids=TARGETS).run(inputs), got) != ""
+    assert compare(UidBlind(shipped(name)[1], uids, inputs.calib, target_uids=TARGETS).run(inputs), got) != ""
 
 
 @needs_cc
-def test_firmware_in_the_loop_replays_on_host(exe):
+def test_firmware_in_the_loop_replays_on_host(name, exe):
     """SwarmEnv driven by the searcher emulator for 120 steps (16 robots): the recorded stream replays bit-exactly on host."""
     cfg = dataclasses.replace(WORLD, episode_steps=200)
     M, P, K = 16, cfg.period_ticks, 120
-    qp = shipped()[1]
+    qp = shipped(name)[1]
     inputs = record_loop(qp, cfg, M, K, seed=3)
     want = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
     got = run_host(exe, inputs, P, cfg.obs_dim)
@@ -185,10 +206,11 @@ def test_firmware_in_the_loop_replays_on_host(exe):
 
 # --- AVR ---------------------------------------------------------------------------------------
 @pytest.mark.avr
-def test_avr_build_fits_the_budget():
-    """avr-gcc builds `--policy searcher` within the flash and SRAM budget (stack measured in simavr when installed)."""
+@pytest.mark.parametrize("name", NAMES)
+def test_avr_build_fits_the_budget(name):
+    """avr-gcc builds `--policy searcher` and `pusher` within the flash and SRAM budget (stack measured in simavr when installed)."""
     require_avr()
-    qp = shipped()[1]
+    qp = shipped(name)[1]
     exact = avr.exact_budget(render_firmware(qp), qp, stack_steps=20)
     b = estimate(SEARCHER, WORLD, SearcherArch()).with_exact(exact)
     assert b.ok, b.table()

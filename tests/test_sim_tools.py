@@ -81,6 +81,45 @@ def test_handwritten_u_turns_after_losing_target():
     assert all(x[0, 0, 0] != x[0, 0, 1] for x in a)
 
 
+def _commands(pol, cfg, targets):
+    """One robot's commands for a sequence of heard target distances (fractions of the range; -1: not heard)."""
+    pol.reset(1, 1, np.random.default_rng(0))
+    return [tuple(pol.act(_obs(cfg, target=t))[0, 0]) for t in targets]
+
+
+STRAIGHT, STOP = (1.0, 1.0), (0.0, 0.0)
+
+
+def test_pusher_keeps_pushing_until_the_distance_grows_by_the_margin():
+    """At the target a pusher drives on while the distance stays within push_margin of its best; the searcher tumbles."""
+    cfg = preset("kilobot")
+    heard = [0.99, 0.97, 0.97, 0.98, 0.99, 0.9999]  # improving, then blocked: equal, +0.01, +0.02, then +0.03
+    push = _commands(make_policy("pusher", cfg, push_margin=0.025), cfg, heard)
+    assert push[:5] == [STRAIGHT] * 5 and push[5][0] != push[5][1], push
+    plain = _commands(make_policy("baseline", cfg), cfg, heard)
+    assert plain[2][0] != plain[2][1], plain  # no improvement: the searcher tumbles at once
+
+
+def test_pusher_pushed_out_of_its_band_drives_on():
+    """A settled pusher that hears the target beyond stop_dist drives straight on; the searcher holds still there."""
+    cfg = preset("kilobot")
+    heard = [0.99, 0.93, 0.93, 0.96, 0.96]  # entering, stopping within 0.94, pushed out to 0.96
+    assert _commands(make_policy("pusher", cfg), cfg, heard)[1:] == [STOP, STOP, STRAIGHT, STRAIGHT]
+    assert _commands(make_policy("baseline", cfg, stop_dist=0.94), cfg, heard)[1:] == [STOP] * 4
+
+
+def test_turn_sign_2_alternates_at_the_target_and_turns_left_elsewhere():
+    """turn_sign 2: tumbles at the target go right, left, right, …; away from it every turn is to the left."""
+    cfg = preset("kilobot")
+    pol = HandWrittenSearcher(cfg, SearcherParams(turn_sign=2, tumble_max_steps=1, stop_dist=0.1, settle_patience=99))
+    worse = [0.5] + [0.5 + 0.01 * k for k in range(1, 9)]  # every period a little further: a tumble each other period
+    turns = [c for c in _commands(pol, cfg, worse) if c[0] != c[1]]
+    assert len(turns) >= 3 and all(a != b for a, b in zip(turns, turns[1:])), turns
+    pol = HandWrittenSearcher(cfg, SearcherParams(turn_sign=2, run_min_steps=1, run_max_steps=1))
+    away = [c for c in _commands(pol, cfg, [-1.0] * 12) if c[0] != c[1]]
+    assert away and set(away) == {(1.0, 0.0)}, away
+
+
 def test_handwritten_beats_random_on_final_coverage():
     """Thesis world, 4 robots, 32 episodes: the searcher's final coverage beats random by a wide margin."""
     cfg = preset("thesis")

@@ -23,7 +23,8 @@ EXIT_USER_ERROR = 2
 DEFAULT_POLICY = ("data", "default_policy.npz")  #: the shipped reference policy, inside the export package
 #: ``--policy NAME`` for a shipped policy (when no file of that name exists)
 SHIPPED_POLICIES = {"default": DEFAULT_POLICY,
-                    "searcher": ("data", "searcher_policy.npz")}  #: sim.baselines' searcher, TUNED["kilobot"]
+                    "searcher": ("data", "searcher_policy.npz"),  #: sim.baselines' searcher, TUNED["kilobot"]
+                    "pusher": ("data", "pusher_policy.npz")}  #: the same with sim.baselines.PUSHER
 
 
 class Parser(ArgumentParser):

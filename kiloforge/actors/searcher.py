@@ -3,9 +3,11 @@
 The float actor is :class:`sim.baselines.HandWrittenSearcher` itself; its artifact holds no arrays,
 only the :class:`~sim.baselines.SearcherParams` in the meta (``params``: every field, ints as ints,
 floats as JSON floats, so a file reads back to exactly the searcher it was written from). The
-shipped one is ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``), so
-``python -m export --policy searcher`` renders it. When the preset or the tuned parameters change, rewrite it with
-``save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")``
+shipped ones are ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``) and
+``export/data/pusher_policy.npz`` (the same with :data:`sim.baselines.PUSHER`), so ``python -m export --policy
+searcher`` (or ``pusher``) renders them. When the preset or the tuned parameters change, rewrite them with
+``save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")`` and
+``save_policy(pusher_policy(preset("kilobot")), "export/data/pusher_policy.npz")``
 (tests/test_searcher_firmware.py fails on a stale file).
 
 The integer searcher (:meth:`QuantizedSearcher.step_int`, rendered by
@@ -48,7 +50,7 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams, run_lengths
+from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, SearcherParams, run_lengths
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 from sim.motion import action_to_u8
 
@@ -66,7 +68,9 @@ SEED_ADD = 0x7F4A7C15
 COUNT_MAX = 255  #: fails and miss saturate here (uint8)
 BYTE_LIMITS = {"tumble_max_steps": 255, "wall_turn_max": 255, "uturn_steps": 255, "settle_patience": COUNT_MAX - 1,
                "settle_hold": COUNT_MAX - 1, "run_max_steps": 0xFFFF}  #: what the firmware's fields hold
-STATE_BYTES = 4 + 4 + 4 + 7  #: rng, run_left, prev_score (uint32/int32) + seven uint8 counters and flags
+STATE_BYTES = 4 + 4 + 4 + 4 + 7  #: rng, run_left, prev_score, best (uint32/int32) + seven uint8 counters and flags
+#: SearcherParams fields newer than the first searcher artifacts, with the values that keep those files' rules
+LATER_FIELDS = {"push_margin": 0.0, "hold_within": False}
 _INT_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("int", int)}
 _BOOL_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("bool", bool)}
 
@@ -176,7 +180,9 @@ class SearcherPolicy(FloatPolicy):
         return {}
 
     def kind_meta(self) -> dict[str, Any]:
-        return {"params": dataclasses.asdict(self.params)}
+        """Every parameter, except a :data:`LATER_FIELDS` one at its old value (older files read back alike)."""
+        d = dataclasses.asdict(self.params)
+        return {"params": {k: v for k, v in d.items() if k not in LATER_FIELDS or v != LATER_FIELDS[k]}}
 
     def initial_state(self, n: int) -> SeededSearcher:
         """A float searcher of n robots (its counters and its own generator, seed 0)."""
@@ -191,10 +197,12 @@ class SearcherPolicy(FloatPolicy):
 
 
 def params_of(meta_params: Any) -> SearcherParams:
-    """SearcherParams of an artifact's ``params`` (every field, of its type); raises PolicyError."""
+    """SearcherParams of an artifact's ``params`` (every field, of its type; a field added after the file was
+    written, :data:`LATER_FIELDS`, reads as its default); raises PolicyError."""
     names = [f.name for f in dataclasses.fields(SearcherParams)]
     if not isinstance(meta_params, dict):
         raise PolicyError(f"policy: 'params' must be an object, got {show(meta_params)}")
+    meta_params = {**LATER_FIELDS, **meta_params}
     missing, extra = [n for n in names if n not in meta_params], sorted(set(meta_params) - set(names))
     if missing or extra:
         raise PolicyError(f"policy: 'params' lacks {missing} / has unknown {extra}" if missing and extra else
@@ -214,6 +222,13 @@ def params_of(meta_params: Any) -> SearcherParams:
         return SearcherParams(**meta_params)
     except AssertionError as e:
         raise PolicyError(f"policy: params: {e}") from None
+
+
+def pusher_policy(world: WorldConfig) -> SearcherPolicy:
+    """The pusher artifact for ``world``: its tuned searcher with :data:`sim.baselines.PUSHER`."""
+    p = dataclasses.replace(TUNED.get(world.name, SearcherParams()), **PUSHER)
+    return searcher_policy(world, p, {"notes": f"sim.baselines.HandWrittenSearcher, TUNED parameters of "
+                                               f"'{world.name}' with sim.baselines.PUSHER"})
 
 
 def searcher_policy(world: WorldConfig, params: SearcherParams | None = None,
@@ -238,6 +253,7 @@ class SearcherState:
     wall_cool: np.ndarray  #: periods the wall flag is still ignored, >= 0
     prev_level: np.ndarray
     prev_score: np.ndarray
+    best: np.ndarray  #: best target score since the last turn (push_margin)
     fails: np.ndarray
     settled: np.ndarray
     miss: np.ndarray
@@ -251,11 +267,13 @@ class QuantizedSearcher(QuantizedActor):
     params: SearcherParams
     speed_q: int  #: uint8 command of both motors on a straight run (action_to_u8(speed))
     stop_q: int  #: stop once obs_target <= this (floor(stop_dist * 2**e_in))
+    margin_q: int  #: push_margin in obs_target units, floor(push_margin * 2**e_in): worse once it grew by more
     run_table: np.ndarray  #: (256,) uint16, run_table(params)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         assert 0 <= self.speed_q <= 255 and 0 <= self.stop_q <= numfmt.INT8_MAX, "speed_q / stop_q out of range"
+        assert 0 <= self.margin_q <= numfmt.INT8_MAX, "margin_q out of range"
         assert self.run_table.shape == (RUN_TABLE_SIZE,) and self.run_table.dtype == np.uint16, "run_table shape/dtype"
 
     @property
@@ -276,7 +294,7 @@ class QuantizedSearcher(QuantizedActor):
         R = np.asarray(uids).shape[0]
         z = np.zeros(R, np.int64)
         return SearcherState(rng=rng_seed(uids), turn_left=z, turn_dir=z, run_left=z, wall_cool=z, prev_level=z,
-                             prev_score=z, fails=z, settled=z.astype(bool), miss=z)
+                             prev_score=z, best=z, fails=z, settled=z.astype(bool), miss=z)
 
     def step_int(self, x: np.ndarray, state: SearcherState) -> tuple[np.ndarray, SearcherState]:
         """int8 tuples (R, D) and the state -> (uint8 commands (R, 2), the new state); the float rules, in order."""
@@ -294,20 +312,27 @@ class QuantizedSearcher(QuantizedActor):
         word = xorshift32(state.rng)
         dirs, tumble, wall_turn, _ = firmware_draws(p, draw_bytes(word))
         runs = self.run_table.astype(np.int64)[draw_bytes(word)[:, 3]]
-        left = (dirs > 0) if p.turn_sign == 0 else np.full(dirs.shape, p.turn_sign > 0)
+        if p.turn_sign == 2:
+            left = np.where(level == 2, state.turn_dir == 0, True)
+        else:
+            left = (dirs > 0) if p.turn_sign == 0 else np.full(dirs.shape, p.turn_sign > 0)
 
         turn_left, turn_dir, run_left = state.turn_left.copy(), state.turn_dir.copy(), state.run_left.copy()
         settled = state.settled
         miss = np.where(settled & ~heard, np.minimum(state.miss + 1, COUNT_MAX), 0)
+        pushed_out = settled & heard & (tq > self.stop_q) & p.hold_within
         leave = settled & (miss >= p.settle_hold)
         holding = settled & ~leave
         level = np.where(holding, 2, level)
+        holding = holding & ~pushed_out
         settled = holding
         turning = turn_left > 0
         same = (level == state.prev_level) & (level >= 1) & ~holding
         improved = same & (score > state.prev_score)
         worse = same & ~improved & ~turning
-        entered = level > state.prev_level
+        if p.push_margin > 0:
+            worse = np.where(same & (level == 2), ~turning & (score < state.best - self.margin_q), worse)
+        entered = (level > state.prev_level) | pushed_out
         lost = (level < state.prev_level) | leave
 
         def start(mask, steps, run):
@@ -336,12 +361,15 @@ class QuantizedSearcher(QuantizedActor):
         q[:, 1] = np.where(turn_now, np.where(turn_dir > 0, 0, 255), np.where(straight, self.speed_q, 0))
         new = SearcherState(rng=word, turn_left=np.where(turn_now, turn_left - 1, turn_left), turn_dir=turn_dir,
                             run_left=np.where(straight, np.maximum(run_left - 1, -1), run_left), wall_cool=wall_cool,
-                            prev_level=level, prev_score=score, fails=fails, settled=settled, miss=miss)
+                            prev_level=level, prev_score=score,
+                            best=np.where(same & ~turning, np.maximum(state.best, score), score), fails=fails,
+                            settled=settled, miss=miss)
         return q, new
 
     def summary(self) -> dict[str, Any]:
         return {"kind": self.kind, "format": self.format_name, "rounding": self.rounding, "e_in": int(self.e_in),
                 "params": dataclasses.asdict(self.params), "speed_q": int(self.speed_q), "stop_q": int(self.stop_q),
+                "margin_q": int(self.margin_q),
                 "run_table": {"min": int(self.run_table.min()), "max": int(self.run_table.max()),
                               "mean": float(self.run_table.mean())},
                 "rng": "xorshift32 (13, 17, 5), seed kilo_uid * 0x9E3779B1 + 0x7F4A7C15",
@@ -364,7 +392,8 @@ def quantize_searcher(policy: SearcherPolicy, e_in: int | None = None) -> Quanti
     if not 0 <= e <= numfmt.DEFAULT_INPUT_EXP:
         raise QuantizeError(f"e_in must be in 0..{numfmt.DEFAULT_INPUT_EXP}, got {e}")
     stop_q = min(int(np.floor(p.stop_dist * (1 << e))), numfmt.INT8_MAX)
-    return QuantizedSearcher(params=p, speed_q=int(action_to_u8(np.array(p.speed))), stop_q=stop_q,
+    margin_q = min(int(np.floor(p.push_margin * (1 << e))), numfmt.INT8_MAX)
+    return QuantizedSearcher(params=p, speed_q=int(action_to_u8(np.array(p.speed))), stop_q=stop_q, margin_q=margin_q,
                              run_table=run_table(p), e_in=e, world=policy.world, policy_hash=policy.hash,
                              **sensing_tables(policy.world, e))
 
@@ -485,7 +514,7 @@ class SearcherKind(ActorKind):
         return BudgetSpec(
             header="hand-written searcher (no dense layers)", layer_sizes=(world.tuple_dim, ACTION_DIM), dense=(),
             flash=(BudgetItem("flash", "run-length table", 2 * RUN_TABLE_SIZE, f"{RUN_TABLE_SIZE} x uint16"),),
-            memory=(BudgetItem("sram", "searcher state", STATE_BYTES, "rng, run, score (4 B each) + 7 counters"),),
+            memory=(BudgetItem("sram", "searcher state", STATE_BYTES, "rng, run, score, best (4 B each) + 7 counters"),),
             scratch=(BudgetItem("sram", "tuple buffer", world.tuple_dim, f"{world.tuple_dim} int8"),),
             code_b=CODE_B, code_note="(the searcher's rules, without the dense kernels; estimate)")
 
@@ -512,6 +541,10 @@ class SearcherKind(ActorKind):
                 CDefine("KF_NBR_GRADIENT", int(p.nbr_gradient), comment="level 1: climb the neighbour proximity"),
                 CDefine("KF_TURN_RANDOM", int(p.turn_sign == 0), comment="1: draw the turn direction"),
                 CDefine("KF_TURN_LEFT", int(p.turn_sign > 0), comment="the fixed direction when not drawn"),
+                CDefine("KF_TURN_ALTERNATE", int(p.turn_sign == 2), comment="1: turns at the target alternate"),
+                CDefine("KF_PUSH_MARGIN", int(p.push_margin > 0), comment="1: worse only once the distance grew"),
+                CDefine("KF_MARGIN_Q", qp.margin_q, comment=f"... by more than this ({p.push_margin:g} at e_in)"),
+                CDefine("KF_HOLD_WITHIN", int(p.hold_within), comment="1: a settled robot pushed out drives on"),
                 CDefine("KF_BIG", BIG, "int32_t", "run until something happens (periods)"),
                 CDefine("KF_SEED_MUL", SEED_MUL, "uint32_t", "xorshift32 seed = kilo_uid * MUL + ADD (never 0)"),
                 CDefine("KF_SEED_ADD", SEED_ADD, "uint32_t"),

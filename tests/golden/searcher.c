@@ -74,6 +74,10 @@
 #define KF_NBR_GRADIENT 0u /* level 1: climb the neighbour proximity */
 #define KF_TURN_RANDOM 0u /* 1: draw the turn direction */
 #define KF_TURN_LEFT 1u /* the fixed direction when not drawn */
+#define KF_TURN_ALTERNATE 1u /* 1: turns at the target alternate */
+#define KF_PUSH_MARGIN 1u /* 1: worse only once the distance grew */
+#define KF_MARGIN_Q 4u /* ... by more than this (0.0625 at e_in) */
+#define KF_HOLD_WITHIN 1u /* 1: a settled robot pushed out drives on */
 #define KF_BIG 1048576L /* run until something happens (periods) */
 #define KF_SEED_MUL 2654435761UL /* xorshift32 seed = kilo_uid * MUL + ADD (never 0) */
 #define KF_SEED_ADD 2135587861UL
@@ -242,6 +246,7 @@ typedef struct {
     uint32_t rng;        /* xorshift32 word, stepped once per control period */
     int32_t run_left;    /* straight periods still to do, -1 .. KF_BIG */
     int32_t prev_score;  /* gradient signal of the previous period */
+    int32_t best;        /* best target score since the last turn (KF_PUSH_MARGIN) */
     uint8_t turn_left;   /* pivot periods still to do */
     uint8_t turn_dir;    /* 1 left (counter-clockwise), 0 right */
     uint8_t wall_cool;   /* periods during which the wall flag is ignored */
@@ -428,7 +433,7 @@ static void kf_start_turn(kf_state_t *s, uint8_t steps, uint8_t left, int32_t ru
 static void kf_forward(kf_state_t *s, const int8_t *obs)
 {
     uint32_t r = s->rng;
-    uint8_t left, tumble, wturn, level, heard, wall, leave, holding, turning, same, improved, worse;
+    uint8_t left, tumble, wturn, level, heard, wall, leave, holding, pushed_out, turning, same, improved, worse;
     uint8_t entered, lost, grad, hit, turn_now, straight, k;
     int32_t run, score, prox = 0;
     int8_t tq = obs[KF_OBS_TARGET];
@@ -447,20 +452,28 @@ static void kf_forward(kf_state_t *s, const int8_t *obs)
     heard = (uint8_t)(tq >= 0);
     level = heard ? 2u : (2 * (int16_t)obs[KF_OBS_NBR_SENSING] > KF_ONE ? 1u : 0u);
     score = heard ? -(int32_t)tq : prox;
+    if (KF_TURN_ALTERNATE && level == 2u) { /* at the target: the other way from the last turn */
+        left = (uint8_t)!s->turn_dir;
+    }
 
     /* settled robots hold position through short target dropouts */
     s->miss = (s->settled && !heard) ? kf_inc_sat(s->miss) : 0u;
+    pushed_out = (uint8_t)(KF_HOLD_WITHIN && s->settled && heard && tq > (int8_t)KF_STOP_Q);
     leave = (uint8_t)(s->settled && s->miss >= KF_SETTLE_HOLD);
     holding = (uint8_t)(s->settled && !leave);
     if (holding) {
         level = 2u;
     }
+    holding = (uint8_t)(holding && !pushed_out);
     s->settled = holding;
     turning = (uint8_t)(s->turn_left > 0u);
     same = (uint8_t)(level == s->prev_level && level >= 1u && !holding);
     improved = (uint8_t)(same && score > s->prev_score);
     worse = (uint8_t)(same && !improved && !turning);
-    entered = (uint8_t)(level > s->prev_level);
+    if (KF_PUSH_MARGIN && same && level == 2u) { /* in a crowd: worse only once the distance grew */
+        worse = (uint8_t)(!turning && score < s->best - (int32_t)KF_MARGIN_Q);
+    }
+    entered = (uint8_t)(level > s->prev_level || pushed_out);
     lost = (uint8_t)(level < s->prev_level || leave);
 
     if (level == 0u && !turning && s->run_left <= 0) { /* exploration: tumble when a run ends */
@@ -513,6 +526,7 @@ static void kf_forward(kf_state_t *s, const int8_t *obs)
         s->q_left = 0u;
         s->q_right = 0u;
     }
+    s->best = (same && !turning && s->best > score) ? s->best : score;
     s->prev_level = level;
     s->prev_score = score;
 }
