@@ -17,7 +17,10 @@ Any actor (MLP or recurrent) can start from a *demonstrator* instead of from scr
 The demonstrator is the hand-written searcher of :mod:`sim.baselines` with one change: it always
 turns left (``turn_sign=+1``). A deterministic actor cannot imitate "left or right at random" (the
 mean of the two is "straight on"); with a fixed turn direction the searcher is as good (thesis world:
-0.96 vs 0.97 final coverage with 2 robots) and an actor can copy it.
+0.96 vs 0.97 final coverage with 2 robots) and an actor can copy it. ``--demo-policy pusher`` clones
+the crowd variant (:data:`sim.baselines.PUSHER`) instead, turning left except at the target, where its
+turns alternate (``turn_sign=2``; always left packed 32 robots worse there, 0.535 against 0.545 on 30
+validation episodes), which an actor can still read off the last turn in its history.
 """
 from __future__ import annotations
 
@@ -28,30 +31,36 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams
+from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, SearcherParams
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
 
 from .replay import EpisodeReplay
 
 
-def demonstrator(world: WorldConfig, stop_dist: float = 0.0) -> HandWrittenSearcher:
-    """The hand-written searcher, tuned for ``world``, turning always left (imitable by a deterministic actor);
-    ``stop_dist`` > 0 replaces its tuned stopping distance (fraction of the range)."""
-    base = TUNED.get(world.name, SearcherParams())
-    return HandWrittenSearcher(world, dataclasses.replace(base, turn_sign=1, stop_dist=stop_dist or base.stop_dist))
+#: the demonstrators (``--demo-policy``): what each changes in the searcher's tuned parameters. "searcher" always
+#: turns left; "pusher" is :data:`sim.baselines.PUSHER` turning left, except at the target, where its turns
+#: alternate (deterministic, and imitable from a history that holds the last turn)
+DEMONSTRATORS: dict[str, dict] = {"searcher": {"turn_sign": 1}, "pusher": {**PUSHER, "turn_sign": 2}}
+
+
+def demonstrator(world: WorldConfig, stop_dist: float = 0.0, kind: str = "searcher") -> HandWrittenSearcher:
+    """The demonstrator ``kind`` (a :data:`DEMONSTRATORS` key) on the searcher tuned for ``world``; ``stop_dist``
+    > 0 replaces its stopping distance (fraction of the range)."""
+    base = dataclasses.replace(TUNED.get(world.name, SearcherParams()), **DEMONSTRATORS[kind])
+    return HandWrittenSearcher(world, dataclasses.replace(base, stop_dist=stop_dist or base.stop_dist))
 
 
 def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int, rng: np.random.Generator,
                   progress: Callable[[int], None] | None = None, t_prev: int = 1, device: str = "cpu",
-                  with_obs: bool = False, stop_dist: float = 0.0) -> EpisodeReplay:
+                  with_obs: bool = False, stop_dist: float = 0.0, kind: str = "searcher") -> EpisodeReplay:
     """``episodes`` demonstrator episodes (rounded up to whole batches of ``n_envs``) in a replay of their own."""
     assert episodes >= 1 and n_envs >= 1, f"need episodes >= 1 and n_envs >= 1, got {episodes}, {n_envs}"
     T, M = world.episode_steps, n_robots
     batches = math.ceil(episodes / n_envs)
     replay = EpisodeReplay(batches * n_envs * T, T, M, world.tuple_dim, world.state_dim(M), t_prev, device, with_obs)
     env = SwarmEnv(world, n_envs=n_envs, n_robots=M, seed=int(rng.integers(2 ** 31)))
-    policy = demonstrator(world, stop_dist)
+    policy = demonstrator(world, stop_dist, kind)
     for _ in range(batches):
         obs, _ = env.reset(seed=int(rng.integers(2 ** 31)))
         policy.reset(n_envs, M, np.random.default_rng(rng.integers(2 ** 63)))

@@ -171,7 +171,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                     theta = get_theta(algo)
                     export("policy_bc.npz", {})
                     bc = evaluate()
-                    teacher = demonstrator(eval_world, cfg.demo_stop_dist)
+                    teacher = demonstrator(eval_world, cfg.demo_stop_dist, cfg.demo_policy)
                     demo = {M: metrics_row(ev(teacher))["eval_final_coverage"] for M, ev in zip(cfg.n_robots, evaluators)}
                     write_atomic(run_dir / "demos.json", json.dumps(finite_or_none(
                         {"clone": bc, "demonstrator_final_coverage": demo}), indent=2, sort_keys=True) + "\n")
@@ -276,7 +276,7 @@ def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, 
     for M in cfg.n_robots:
         episodes = math.ceil(cfg.demo_robot_episodes / M)
         demos.append(collect_demos(world, M, episodes, min(episodes, DEMO_ENVS), rng, t_prev=cfg.t_prev,
-                                   stop_dist=cfg.demo_stop_dist))
+                                   stop_dist=cfg.demo_stop_dist, kind=cfg.demo_policy))
         stop.check()
     shares = [max(1, cfg.bc_batch // (len(cfg.n_robots) * M)) for M in cfg.n_robots]
     bar = None

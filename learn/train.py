@@ -368,7 +368,7 @@ class Preparation:
 
         with self.bar(cfg.demo_episodes, "episode", f"demonstrations, {g.n_robots} robots") as bar:
             demos = collect_demos(self.world, g.n_robots, cfg.demo_episodes, cfg.n_envs, rng, tick, t_prev,
-                                  self.algo.device, cfg.critic_obs)
+                                  self.algo.device, cfg.critic_obs, kind=cfg.demo_policy)
         self.log(f"demonstrations: {int((demos.filled > 0).sum())} episodes of the {cfg.demo_policy} with "
                  f"{g.n_robots} robots in {time.perf_counter() - t0:.0f} s")
         return demos
@@ -387,7 +387,7 @@ class Preparation:
             loss = bc_pretrain(algo, [g.demos for g in self.groups], shares, cfg.bc_updates, cfg.bc_lr, rng, tick)
         algo.actor_target.load_state_dict(algo.actor.state_dict())
         bc_s = time.perf_counter() - t0
-        demo_m = {ev.n_robots: metrics_row(ev(demonstrator(self.world))) for ev in self.evaluators}
+        demo_m = {ev.n_robots: metrics_row(ev(demonstrator(self.world, kind=cfg.demo_policy))) for ev in self.evaluators}
         bc_m = {ev.n_robots: metrics_row(ev(LearnerPolicy(algo, self.world))) for ev in self.evaluators}
         mean = {k: float(np.mean([m[k] for m in bc_m.values()])) for k in next(iter(bc_m.values()))}
         first = next(iter(bc_m))

@@ -1,6 +1,7 @@
 """Guided MAGRDPG (learn/demos.py): the demonstrator, demo episodes, behaviour cloning, the Q-filter, the CLI."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -15,7 +16,7 @@ from learn.demos import bc_pretrain, collect_demos, demonstrator
 from learn.magrdpg import MAGRDPG
 from learn.replay import concat
 from sim.baselines import HandWrittenSearcher, SearcherParams
-from sim.config import OBS_RBF, preset
+from sim.config import OBS_RBF, OBS_TARGET, preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 
@@ -38,7 +39,7 @@ def test_turn_sign_fixes_the_turn_direction_and_keeps_the_random_stream():
     p.act(obs), q.act(obs)
     assert rng_a.random() == rng_b.random()
     with pytest.raises(AssertionError, match="turn_sign"):
-        SearcherParams(turn_sign=2)
+        SearcherParams(turn_sign=3)
 
 
 def test_demo_episodes_are_the_demonstrators_rollouts():
@@ -90,6 +91,22 @@ def test_demo_stop_dist_moves_where_the_demonstrator_stops():
     assert mean_dist[0.94] > mean_dist[0.0] + 5.0, mean_dist
     with pytest.raises(ConfigError, match="demo_stop_dist must be in"):
         ESConfig(demo_stop_dist=1.5).validate()
+
+
+def test_pusher_demonstrator_is_the_pusher_with_imitable_turns():
+    """--demo-policy pusher: sim.baselines.PUSHER on the tuned searcher, turns fixed (left; alternating at the target),
+    accepted by both trainers' configs; collect_demos plays it (no right turn away from the target's range)."""
+    from learn.config import ESConfig, TrainConfig
+    from sim.baselines import PUSHER, TUNED
+    world = preset("kilobot", episode_steps=60)
+    assert demonstrator(world, kind="pusher").p == dataclasses.replace(TUNED["kilobot"], **PUSHER, turn_sign=2)
+    ESConfig(demo_policy="pusher").validate()
+    TrainConfig(world="kilobot", demo_policy="pusher").validate()
+    rep = collect_demos(world, 4, 4, 4, np.random.default_rng(0), kind="pusher", t_prev=1)
+    x = rep.tuples[:4].numpy().transpose(0, 2, 1, 3)  # (episodes, T + 1, robots, [a_{t-1}, o_t])
+    a, heard = x[:, 1:, :, :2], x[:, :-1, :, 2 + OBS_TARGET] >= 0
+    right = (a[..., 0] == 0) & (a[..., 1] == 1)
+    assert (a.sum(-1) > 0).any() and not (right & ~heard).any()
 
 
 def test_behaviour_cloning_fits_the_demonstrations():

@@ -7,8 +7,8 @@ Evaluates each run's ``policy_best.npz`` (or the ``.npz`` given) with ``python -
 machinery: every policy and the baselines play the same episodes, from ``--seed``, which no training
 or model selection used (training draws its episodes and evaluation seeds from the run's own
 ``SeedSequence``). Prints per robot count a table: each seed's final coverage (mean ± 95 % CI over
-episodes), the mean and sample standard deviation over seeds, the hand-written searcher and the
-random walk, and how many seeds beat the searcher. Writes ``seeds.json`` and the evaluation folders.
+episodes), the mean and sample standard deviation over seeds, the hand-written searcher, the pusher and
+the random walk, and how many seeds beat the searcher and the pusher. Writes ``seeds.json`` and the evaluation folders.
 """
 from __future__ import annotations
 
@@ -53,13 +53,16 @@ def main() -> int:
         for n in policies:
             print(f"  {n:28s} {fc[n]['mean']:.3f} ± {fc[n]['ci95']:.3f}")
         print(f"  {'mean ± std over seeds':28s} {np.mean(learned):.3f} ± {np.std(learned, ddof=1) if len(learned) > 1 else 0:.3f}")
+        push = fc["hand-written pusher"]
+        beat_push = sum(v > push["mean"] for v in learned)
         print(f"  {'hand-written searcher':28s} {base:.3f} ± {fc['hand-written']['ci95']:.3f}")
+        print(f"  {'hand-written pusher':28s} {push['mean']:.3f} ± {push['ci95']:.3f}")
         print(f"  {'random walk':28s} {fc['random']['mean']:.3f} ± {fc['random']['ci95']:.3f}")
-        print(f"  seeds beating the searcher: {beat} of {len(learned)}")
+        print(f"  seeds beating the searcher: {beat} of {len(learned)}; the pusher: {beat_push} of {len(learned)}")
         summary["robots"][str(M)] = {"per_seed": {n: fc[n] for n in policies}, "searcher": fc["hand-written"],
-                                     "random": fc["random"], "mean": float(np.mean(learned)),
+                                     "pusher": push, "random": fc["random"], "mean": float(np.mean(learned)),
                                      "std": float(np.std(learned, ddof=1)) if len(learned) > 1 else 0.0,
-                                     "beat_searcher": beat}
+                                     "beat_searcher": beat, "beat_pusher": beat_push}
     write_atomic(out / "seeds.json", json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return 0
 
