@@ -183,7 +183,7 @@ class ExperimentConfig(ConfigBase):
     noise_mu: float = 0.0  #: OU mean (added to the actor's action)
     phantom_neighbours: float = 0.0  #: training only: up to this many phantom neighbours per robot and step (learn/augment.py; 0 = off)
     # --- guidance by demonstrations (learn.demos) --------------------------------------------
-    demo_policy: str = "none"  #: demonstrator: none, searcher (the hand-written searcher, turning left) or pusher (learn.demos)
+    demo_policy: str = "none"  #: demonstrator: none, searcher or pusher (hand-written, learn.demos)
     demo_episodes: int = 1024  #: demonstrator episodes per swarm size, collected before training
     bc_updates: int = 1500  #: behaviour-cloning steps of the actor on the demonstrations before RL
     bc_lr: float = 3e-3  #: Adam learning rate of behaviour cloning
@@ -399,7 +399,7 @@ class ESConfig(ConfigBase):
     t_prev: HistoryLength = 20  #: history length T_prev in (previous action, observation) tuples
     actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
     # --- start: behaviour cloning of the demonstrator ------------------------------------------
-    demo_policy: str = "searcher"  #: demonstrator: searcher (the hand-written searcher, turning left), pusher (learn.demos) or none (random init)
+    demo_policy: str = "searcher"  #: demonstrator: searcher or pusher (learn.demos), or none (random init)
     #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
     init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)

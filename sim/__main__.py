@@ -4,8 +4,8 @@
     python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
     python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
 
-``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the path of a policy
-artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
+``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the
+path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
 ``coverage.png`` (all episodes) and ``metrics.json``. ``--suite robustness`` instead runs the policy
 in every world variant of :func:`sim.variants.robustness_suite` (default world: the kilobot
@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="searching robots per env (default 4); with --suite, one or more counts")
     p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
     p.add_argument("--policy", default="baseline",
-                   help="'random', 'baseline' (hand-written searcher), 'pusher' (its crowd variant) or a policy artifact file (.npz)")
+                   help="'random', 'baseline' (hand-written searcher), 'pusher' (its crowd variant) "
+                        "or a policy artifact file (.npz)")
     p.add_argument("--out", required=True, help="output folder (created if needed)")
     p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
     p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,

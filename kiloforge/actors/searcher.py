@@ -17,7 +17,9 @@ the int8 observation every firmware builds (wall, target, neighbour flag and RBF
 
 * **observations**: ``wall = 2 obs_wall > ONE``, ``heard = obs_target >= 0``, ``nbr = 2 obs_nbr > ONE``
   (the float ``> 0.5`` on values 0 / 1); the stop rule ``tdist <= stop_dist`` is
-  ``obs_target <= STOP_Q = floor(stop_dist * 2**e_in)``, exact on quantised distances; the neighbour
+  ``obs_target <= STOP_Q = floor(stop_dist * 2**e_in)``, exact on quantised distances (so is the pusher's
+  "pushed out" rule ``obs_target > STOP_Q``, and its margin: the distance grew by more than ``push_margin``
+  exactly when ``-obs_target < best - MARGIN_Q``, ``MARGIN_Q = floor(push_margin * 2**e_in)``); the neighbour
   proximity ``Σ_k rbf_k (n - k) / n`` is ``Σ_k obs_rbf_k (n - k)`` in int32 (the float one times
   ``n * 2**e_in``, so every comparison of two scores agrees). The only differences from the float
   searcher are those of the observation's quantisation (1/64 of the comm radius at ``e_in = 6``).

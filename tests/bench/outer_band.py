@@ -22,7 +22,6 @@ collisions cost).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -164,7 +163,7 @@ def main() -> None:
         contenders = {"shipped default": swarm_policy(pol, world), "searcher": make_policy("baseline", world),
                       "pusher": make_policy("pusher", world)}
         for err in args.bearing_error:
-            contenders[f"true bearing in the outer band" + (f", {err:g} deg error" if err else "")] = OuterBand(
+            contenders["true bearing in the outer band" + (f", {err:g} deg error" if err else "")] = OuterBand(
                 env, world, "bearing", args.stop_mm, bearing_error_deg=err)
         for m in args.margin_mm:
             contenders[f"outer band: straight, a pivot once {m:g} mm further"] = OuterBand(
