@@ -8,6 +8,9 @@ beyond that (the *outer band*, up to the 85 mm range):
 
 * ``bearing``: drives at the beacon with its true bearing (pivots until it faces it within 23°), an omniscient
   bound; ``--bearing-error F`` adds a fixed error per robot and episode (normal, F degrees sd);
+* ``entry``: aims once, on entering the outer band, at the beacon's true bearing (plus a normal error of
+  ``--entry-error`` degrees sd, drawn afresh at every entry), holds that heading in the world (a robot's heading
+  changes only by its own pivots) and turns it by one pivot, left or right at random, as ``hysteresis`` does;
 * ``hysteresis``: drives straight on and pivots once (left or right at random) only when the heard distance has
   grown by more than ``--margin-mm`` above its least since entering the outer band or since its last pivot
   (distances alone; a missed message keeps the latest distance for up to two periods);
@@ -50,11 +53,14 @@ def free_moves(world: WorldConfig) -> np.ndarray:
     for cmd in ((0.0, 0.0), (1.0, 1.0), TURN_CCW, TURN_CW):
         env = SwarmEnv(world, n_envs=1, n_robots=1, seed=0)
         env.reset(seed=0)
-        env.pos[:], env.heading[:] = env.target[:, None, :] + 150.0, 0.0  # clear of the beacon
+        far = -120.0 * np.sign(env.target[:, None, :] + 1e-9)  # on the far side of the arena's centre
+        env.pos[:], env.heading[:] = far, 0.0  # clear of the beacon and of the walls
         p0 = env.pos.copy()
         env.step(np.array([[cmd]]))
         out.append((*(env.pos - p0)[0, 0], float(env.heading[0, 0])))
-    return np.array(out)
+    moves = np.array(out)
+    assert abs(np.hypot(*moves[2, :2]) - np.hypot(*moves[3, :2])) < 1e-9 and moves[0, :2].tolist() == [0.0, 0.0], moves
+    return moves
 
 
 def command_code(a: np.ndarray) -> np.ndarray:
@@ -64,7 +70,7 @@ def command_code(a: np.ndarray) -> np.ndarray:
 
 
 class OuterBand:
-    """The searcher outside the band; stop in the band; ``mode`` ('bearing' or 'hysteresis') in the outer band."""
+    """The searcher outside the band; stop in the band; ``mode`` ('bearing', 'entry' or 'hysteresis') in the outer band."""
 
     def __init__(self, env: SwarmEnv, world: WorldConfig, mode: str, stop_mm: float, margin_mm: float = 3.0,
                  bearing_error_deg: float = 0.0, compass: bool = False, aim_deg: float = 23.0) -> None:
@@ -78,10 +84,11 @@ class OuterBand:
         self.rng = rng
         self.searcher = HandWrittenSearcher(self.world, TUNED[self.world.name])
         self.searcher.reset(n_envs, n_robots, rng)
-        self.bias = rng.normal(0.0, self.error, shape) if self.error else np.zeros(shape)
+        self.bias = rng.normal(0.0, self.error, shape) if self.error and self.mode == "bearing" else np.zeros(shape)
         self.recent = np.full(shape + (MEMORY,), -1.0)  # heard distances (mm) of the last periods, newest first
         self.least = np.full(shape, np.inf)  # hysteresis: least distance since entering / the last pivot
         self.was_outer = np.zeros(shape, bool)
+        self.aim_world = np.zeros(shape)  # entry: the heading to hold, in the world frame
         self.prev = np.zeros(shape, np.int64)
         T = 20
         self.odo = np.zeros(shape + (T, 2))  # compass: past positions in the current body frame (from commands)
@@ -105,18 +112,24 @@ class OuterBand:
         outer = have & ~band
         if self.compass:
             self._compass(np.where(heard, t * R, -1.0), outer)
+        steer = np.ones(a.shape)
         if self.mode == "bearing":
             off = wrap_angle(self.true_bearing() + self.bias)
-            steer = np.ones(a.shape)
             steer[off > self.aim], steer[off < -self.aim] = TURN_CCW, TURN_CW
         else:
             entering = outer & ~self.was_outer
             self.least = np.where(entering, dist, np.where(heard, np.minimum(self.least, dist), self.least))
             grew = outer & heard & (dist > self.least + self.margin)
             left = self.rng.random(grew.shape) < 0.5
-            steer = np.ones(a.shape)
-            steer[grew & left], steer[grew & ~left] = TURN_CCW, TURN_CW
             self.least = np.where(grew, np.inf, self.least)  # the next heard distance after the pivot
+            if self.mode == "entry":
+                error = self.rng.normal(0.0, self.error, entering.shape) if self.error else 0.0
+                self.aim_world = np.where(entering, self.true_bearing() + self.env.heading + error, self.aim_world)
+                self.aim_world += np.where(grew, np.where(left, 1.0, -1.0) * np.deg2rad(45.7), 0.0)
+                off = wrap_angle(self.aim_world - self.env.heading)
+                steer[off > self.aim], steer[off < -self.aim] = TURN_CCW, TURN_CW
+            else:
+                steer[grew & left], steer[grew & ~left] = TURN_CCW, TURN_CW
         a = np.where(outer[..., None], steer, a)
         a[band] = 0.0
         self.was_outer = outer
@@ -154,6 +167,8 @@ def main() -> None:
     ap.add_argument("--margin-mm", nargs="+", type=float, default=[3.0], help="hysteresis margins, a row each")
     ap.add_argument("--bearing-error", nargs="+", type=float, default=[0.0],
                     help="fixed bearing errors (sd, degrees) per robot for the bearing bound, a row each")
+    ap.add_argument("--entry-error", nargs="+", type=float, default=[],
+                    help="aim once on entering the outer band, with this error (sd, degrees; fresh per entry), a row each")
     ap.add_argument("--compass", action="store_true", help="also score a 20-period dead-reckoned compass")
     args = ap.parse_args()
     pol = load_policy(args.policy)
@@ -165,6 +180,9 @@ def main() -> None:
         for err in args.bearing_error:
             contenders["true bearing in the outer band" + (f", {err:g} deg error" if err else "")] = OuterBand(
                 env, world, "bearing", args.stop_mm, bearing_error_deg=err)
+        for err in args.entry_error:
+            contenders[f"outer band: aim once on entry ({err:g} deg error), then as below"] = OuterBand(
+                env, world, "entry", args.stop_mm, bearing_error_deg=err)
         for m in args.margin_mm:
             contenders[f"outer band: straight, a pivot once {m:g} mm further"] = OuterBand(
                 env, world, "hysteresis", args.stop_mm, margin_mm=m, compass=args.compass)
