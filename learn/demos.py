@@ -24,14 +24,13 @@ validation episodes), which an actor can still read off the last turn in its his
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
-from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, SearcherParams
+from sim.baselines import PUSHER, HandWrittenSearcher, make_policy
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
 
@@ -47,8 +46,8 @@ DEMONSTRATORS: dict[str, dict] = {"searcher": {"turn_sign": 1}, "pusher": {**PUS
 def demonstrator(world: WorldConfig, stop_dist: float = 0.0, kind: str = "searcher") -> HandWrittenSearcher:
     """The demonstrator ``kind`` (a :data:`DEMONSTRATORS` key) on the searcher tuned for ``world``; ``stop_dist``
     > 0 replaces its stopping distance (fraction of the range)."""
-    base = dataclasses.replace(TUNED.get(world.name, SearcherParams()), **DEMONSTRATORS[kind])
-    return HandWrittenSearcher(world, dataclasses.replace(base, stop_dist=stop_dist or base.stop_dist))
+    changes = {**DEMONSTRATORS[kind], **({"stop_dist": stop_dist} if stop_dist else {})}
+    return make_policy("baseline", world, **changes)
 
 
 def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int, rng: np.random.Generator,

@@ -52,7 +52,7 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, SearcherParams, run_lengths
+from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 from sim.motion import action_to_u8
 
@@ -228,9 +228,8 @@ def params_of(meta_params: Any) -> SearcherParams:
 
 def pusher_policy(world: WorldConfig) -> SearcherPolicy:
     """The pusher artifact for ``world``: its tuned searcher with :data:`sim.baselines.PUSHER`."""
-    p = dataclasses.replace(TUNED.get(world.name, SearcherParams()), **PUSHER)
-    return searcher_policy(world, p, {"notes": f"sim.baselines.HandWrittenSearcher, TUNED parameters of "
-                                               f"'{world.name}' with sim.baselines.PUSHER"})
+    notes = f"sim.baselines.HandWrittenSearcher, TUNED parameters of '{world.name}' with sim.baselines.PUSHER"
+    return searcher_policy(world, make_policy("pusher", world).p, {"notes": notes})
 
 
 def searcher_policy(world: WorldConfig, params: SearcherParams | None = None,
