@@ -23,7 +23,8 @@ The *pusher* (:data:`PUSHER`, ``make_policy("pusher", …)``) is the same search
 crowds at the target: it stops only within 0.94 of the range, at level 2 it counts a period as worse only once
 the distance has grown by ``push_margin`` above its best since the last turn (so a robot blocked by the crowd
 keeps pushing straight instead of tumbling along its edge), and a settled robot pushed out beyond its stopping
-distance drives on (``hold_within``). It packs 32 robots closer than the searcher (docs/results.md).
+distance drives on (``hold_within``), counting its best from where it was pushed to. It packs 32 robots closer
+than the searcher (docs/results.md).
 
 Commands are only ``(speed, speed)`` (straight), ``(1, 0)`` / ``(0, 1)`` (one turn period: ≈45°; in
 the thesis kinematics with 5 mm forward, in the kilobot preset a pivot) and ``(0, 0)`` (stop).
@@ -78,7 +79,7 @@ class SearcherParams:
     #: crowd at the target then keep pushing straight instead of tumbling along its edge
     push_margin: float = 0.0
     #: a settled robot that hears the target beyond ``stop_dist`` (pushed out of the band) drives straight on
-    #: instead of holding there
+    #: instead of holding there; its best distance (``push_margin``) starts again from where it was pushed to
     hold_within: bool = False
 
     def __post_init__(self) -> None:
@@ -103,8 +104,8 @@ TUNED: dict[str, SearcherParams] = {
     "kilobot": SearcherParams(run_min_steps=30, tumble_max_steps=2, wall_cooldown=3, stop_dist=0.6),
 }
 
-#: what the pusher changes in a world's tuned searcher (module doc; 0.035 of the kilobot range is 3 mm)
-PUSHER = {"stop_dist": 0.94, "push_margin": 0.035, "hold_within": True}
+#: what the pusher changes in a world's tuned searcher (module doc; 0.05 of the kilobot range is 4.25 mm)
+PUSHER = {"stop_dist": 0.94, "push_margin": 0.05, "hold_within": True}
 
 
 def run_lengths(p: SearcherParams, u: np.ndarray) -> np.ndarray:
@@ -230,7 +231,7 @@ class HandWrittenSearcher:
         self.run_left = np.where(straight, self.run_left - 1, self.run_left)
         self.prev_level = level
         self.prev_score = score
-        self.best = np.where(same & ~turning, np.maximum(self.best, score), score)
+        self.best = np.where(same & ~turning & ~entered, np.maximum(self.best, score), score)
         return a
 
 

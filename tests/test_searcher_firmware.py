@@ -61,11 +61,11 @@ def test_shipped_policy_is_the_tuned_kilobot_searcher():
 
 
 def test_shipped_pusher_is_the_tuned_searcher_with_pusher():
-    """`--policy pusher` loads TUNED["kilobot"] with sim.baselines.PUSHER; its margin is floor(0.035 * 64) = 2 obs units."""
+    """`--policy pusher` loads TUNED["kilobot"] with sim.baselines.PUSHER; its margin is floor(0.05 * 64) = 3 obs units."""
     p, qp = shipped("pusher")
     assert p.params == dataclasses.replace(TUNED["kilobot"], **PUSHER)
     assert p.hash == pusher_policy(WORLD).hash, "export/data/pusher_policy.npz is stale: see kiloforge/actors/searcher.py"
-    assert qp.stop_q == 60 and qp.margin_q == 2
+    assert qp.stop_q == 60 and qp.margin_q == 3
 
 
 @pytest.mark.parametrize("params", [TUNED["kilobot"], SearcherParams(), SearcherParams(run_alpha=0.0, run_min_steps=7,

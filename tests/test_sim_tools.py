@@ -108,6 +108,13 @@ def test_pusher_pushed_out_of_its_band_drives_on():
     assert _commands(make_policy("baseline", cfg, stop_dist=0.94), cfg, heard)[1:] == [STOP] * 4
 
 
+def test_pusher_pushed_out_counts_its_margin_from_where_it_was_pushed_to():
+    """Pushed out by more than push_margin, a pusher drives on from there instead of tumbling at its next period."""
+    cfg = preset("kilobot")
+    heard = [0.99, 0.93, 0.93, 0.99, 0.99, 0.99, 0.99]  # stopped within 0.94, pushed out by 0.06, held there
+    assert _commands(make_policy("pusher", cfg, push_margin=0.05), cfg, heard)[1:] == [STOP, STOP] + [STRAIGHT] * 4
+
+
 def test_turn_sign_2_alternates_at_the_target_and_turns_left_elsewhere():
     """turn_sign 2: tumbles at the target go right, left, right, …; away from it every turn is to the left."""
     cfg = preset("kilobot")

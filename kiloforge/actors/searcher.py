@@ -6,7 +6,7 @@ floats as JSON floats, so a file reads back to exactly the searcher it was writt
 shipped ones are ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``) and
 ``export/data/pusher_policy.npz`` (the same with :data:`sim.baselines.PUSHER`), so ``python -m export --policy
 searcher`` (or ``pusher``) renders them. When the preset or the tuned parameters change, rewrite them with
-``save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")`` and
+``kiloforge.policies.save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")`` and
 ``save_policy(pusher_policy(preset("kilobot")), "export/data/pusher_policy.npz")``
 (tests/test_searcher_firmware.py fails on a stale file).
 
@@ -363,7 +363,8 @@ class QuantizedSearcher(QuantizedActor):
         new = SearcherState(rng=word, turn_left=np.where(turn_now, turn_left - 1, turn_left), turn_dir=turn_dir,
                             run_left=np.where(straight, np.maximum(run_left - 1, -1), run_left), wall_cool=wall_cool,
                             prev_level=level, prev_score=score,
-                            best=np.where(same & ~turning, np.maximum(state.best, score), score), fails=fails,
+                            best=np.where(same & ~turning & ~entered, np.maximum(state.best, score), score),
+                            fails=fails,
                             settled=settled, miss=miss)
         return q, new
 

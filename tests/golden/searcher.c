@@ -526,7 +526,7 @@ static void kf_forward(kf_state_t *s, const int8_t *obs)
         s->q_left = 0u;
         s->q_right = 0u;
     }
-    s->best = (same && !turning && s->best > score) ? s->best : score;
+    s->best = (same && !turning && !entered && s->best > score) ? s->best : score;
     s->prev_level = level;
     s->prev_score = score;
 }
