@@ -1,6 +1,7 @@
 """Where a bearing pays at 32 robots: the outer band of the range, and what distances alone get there.
 
     python tests/bench/outer_band.py --robots 32 --episodes 100 --steps 500 --seed 20261202
+    python tests/bench/outer_band.py --episodes 100 --entry-error 0 20 --reach 100 120 170 250 --held-aim 120,0 250,0
 
 Every contender here is the hand-written searcher (``sim.baselines``, tuned) outside the beacon's range, and
 differs only inside it, where a robot stops once it hears the beacon within ``--stop-mm`` (the *band*) and,
@@ -16,6 +17,15 @@ beyond that (the *outer band*, up to the 85 mm range):
   (distances alone; a missed message keeps the latest distance for up to two periods);
 * the pusher (``sim.baselines.PUSHER``, the same idea inside the searcher's own rules, as firmware) and the
   shipped default, for comparison.
+
+Two bounds for what the messages could add (a sender's beacon distance, relayed as a gradient, extends "how far
+is the beacon" beyond the range, but a Kilobot's one omnidirectional receiver gives no direction):
+
+* ``--reach R``: ``hysteresis`` with a distance that also reaches ``R`` mm, beyond the range the true distance plus
+  the world's distance noise (better than any relayed gradient, which adds the hops' noise and overestimates);
+* ``--held-aim R,E``: ``entry``, but the bearing is taken once where that distance begins (out of range, within
+  ``R`` mm, error ``E`` degrees sd), while the robot still moves freely and could dead-reckon one, and held from
+  there: the robot aims with it out of range and in the outer band; it is forgotten beyond ``R`` mm.
 
 ``--compass`` also reports how well a robot could estimate its bearing from its own last ``T_prev`` = 20
 periods (commands dead-reckoned into positions, heard distances, the bearing on a 10° grid that fits them
@@ -73,8 +83,12 @@ class OuterBand:
     """The searcher outside the band; stop in the band; ``mode`` ('bearing', 'entry' or 'hysteresis') in the outer band."""
 
     def __init__(self, env: SwarmEnv, world: WorldConfig, mode: str, stop_mm: float, margin_mm: float = 3.0,
-                 bearing_error_deg: float = 0.0, compass: bool = False, aim_deg: float = 23.0) -> None:
+                 bearing_error_deg: float = 0.0, compass: bool = False, aim_deg: float = 23.0,
+                 reach_mm: float = 0.0) -> None:
+        assert mode in ("bearing", "entry", "hysteresis", "held"), mode
+        assert reach_mm == 0.0 or reach_mm > world.comm_radius_mm, f"reach {reach_mm} mm is within the range"
         self.env, self.world, self.mode, self.stop_mm, self.margin = env, world, mode, stop_mm, margin_mm
+        self.reach = reach_mm
         self.error, self.aim, self.compass = np.deg2rad(bearing_error_deg), np.deg2rad(aim_deg), compass
         self.moves = free_moves(world) if compass else None
         self.errors: dict[str, list[np.ndarray]] = {"commands": [], "true positions": []}
@@ -88,7 +102,8 @@ class OuterBand:
         self.recent = np.full(shape + (MEMORY,), -1.0)  # heard distances (mm) of the last periods, newest first
         self.least = np.full(shape, np.inf)  # hysteresis: least distance since entering / the last pivot
         self.was_outer = np.zeros(shape, bool)
-        self.aim_world = np.zeros(shape)  # entry: the heading to hold, in the world frame
+        self.aim_world = np.zeros(shape)  # entry, held: the heading to hold, in the world frame
+        self.has_aim = np.zeros(shape, bool)  # held: a bearing was taken and is held
         self.prev = np.zeros(shape, np.int64)
         T = 20
         self.odo = np.zeros(shape + (T, 2))  # compass: past positions in the current body frame (from commands)
@@ -109,7 +124,14 @@ class OuterBand:
         dist = np.where(have, latest, np.inf)
         a = self.searcher.act(obs)
         band = dist <= self.stop_mm
-        outer = have & ~band
+        beyond = np.zeros(band.shape, bool)  # out of range, within the reach
+        if self.reach:
+            true = np.linalg.norm(self.env.target[:, None, :] - self.env.pos, axis=-1)
+            beyond = ~have & (true > R) & (true <= self.reach)
+            noisy = np.round(true + self.world.dist_noise_mm * self.rng.standard_normal(true.shape))
+            dist = np.where(beyond, noisy, dist)
+        outer = have & ~band | beyond
+        fresh = heard | beyond  # a distance this period
         if self.compass:
             self._compass(np.where(heard, t * R, -1.0), outer)
         steer = np.ones(a.shape)
@@ -118,18 +140,21 @@ class OuterBand:
             steer[off > self.aim], steer[off < -self.aim] = TURN_CCW, TURN_CW
         else:
             entering = outer & ~self.was_outer
-            self.least = np.where(entering, dist, np.where(heard, np.minimum(self.least, dist), self.least))
-            grew = outer & heard & (dist > self.least + self.margin)
+            self.least = np.where(entering, dist, np.where(fresh, np.minimum(self.least, dist), self.least))
+            grew = outer & fresh & (dist > self.least + self.margin)
             left = self.rng.random(grew.shape) < 0.5
-            self.least = np.where(grew, np.inf, self.least)  # the next heard distance after the pivot
-            if self.mode == "entry":
-                error = self.rng.normal(0.0, self.error, entering.shape) if self.error else 0.0
-                self.aim_world = np.where(entering, self.true_bearing() + self.env.heading + error, self.aim_world)
+            self.least = np.where(grew, np.inf, self.least)  # the next distance after the pivot
+            steer[grew & left], steer[grew & ~left] = TURN_CCW, TURN_CW
+            if self.mode in ("entry", "held"):
+                take = entering if self.mode == "entry" else beyond & ~self.has_aim
+                self.has_aim = (self.has_aim | take) & (have | beyond)  # held: forgotten beyond the reach
+                error = self.rng.normal(0.0, self.error, take.shape) if self.error else 0.0
+                self.aim_world = np.where(take, self.true_bearing() + self.env.heading + error, self.aim_world)
                 self.aim_world += np.where(grew, np.where(left, 1.0, -1.0) * np.deg2rad(45.7), 0.0)
                 off = wrap_angle(self.aim_world - self.env.heading)
-                steer[off > self.aim], steer[off < -self.aim] = TURN_CCW, TURN_CW
-            else:
-                steer[grew & left], steer[grew & ~left] = TURN_CCW, TURN_CW
+                aim = np.where((off > self.aim)[..., None], TURN_CCW,
+                               np.where((off < -self.aim)[..., None], TURN_CW, 1.0))
+                steer = np.where(self.has_aim[..., None], aim, steer)
         a = np.where(outer[..., None], steer, a)
         a[band] = 0.0
         self.was_outer = outer
@@ -169,6 +194,11 @@ def main() -> None:
                     help="fixed bearing errors (sd, degrees) per robot for the bearing bound, a row each")
     ap.add_argument("--entry-error", nargs="+", type=float, default=[],
                     help="aim once on entering the outer band, with this error (sd, degrees; fresh per entry), a row each")
+    ap.add_argument("--reach", nargs="+", type=float, default=[],
+                    help="the hysteresis rule on a distance that reaches this far (mm; beyond the range: the true "
+                         "distance + noise, a bound for a gradient relayed in messages), a row each")
+    ap.add_argument("--held-aim", nargs="+", default=[], metavar="R,E",
+                    help="a bearing taken once out of range within R mm (error E degrees sd) and held, a row each")
     ap.add_argument("--compass", action="store_true", help="also score a 20-period dead-reckoned compass")
     args = ap.parse_args()
     pol = load_policy(args.policy)
@@ -183,6 +213,13 @@ def main() -> None:
         for err in args.entry_error:
             contenders[f"outer band: aim once on entry ({err:g} deg error), then as below"] = OuterBand(
                 env, world, "entry", args.stop_mm, bearing_error_deg=err)
+        for reach in args.reach:
+            contenders[f"outer band and out of range within {reach:g} mm: straight, a pivot once 3 mm further"] = \
+                OuterBand(env, world, "hysteresis", args.stop_mm, reach_mm=reach)
+        for spec in args.held_aim:
+            reach, err = (float(v) for v in spec.split(","))
+            contenders[f"a bearing taken within {reach:g} mm ({err:g} deg error) and held"] = OuterBand(
+                env, world, "held", args.stop_mm, bearing_error_deg=err, reach_mm=reach)
         for m in args.margin_mm:
             contenders[f"outer band: straight, a pivot once {m:g} mm further"] = OuterBand(
                 env, world, "hysteresis", args.stop_mm, margin_mm=m, compass=args.compass)
