@@ -104,7 +104,8 @@ TUNED: dict[str, SearcherParams] = {
     "kilobot": SearcherParams(run_min_steps=30, tumble_max_steps=2, wall_cooldown=3, stop_dist=0.6),
 }
 
-#: what the pusher changes in a world's tuned searcher (module doc; 0.05 of the kilobot range is 4.25 mm)
+#: what the pusher changes in a world's tuned searcher (module doc; 0.05 of the kilobot range is 4.25 mm: 5 mm on
+#: whole-mm readings)
 PUSHER = {"stop_dist": 0.94, "push_margin": 0.05, "hold_within": True}
 
 

@@ -23,6 +23,7 @@ is the beacon" beyond the range, but a Kilobot's one omnidirectional receiver gi
 
 * ``--reach R``: ``hysteresis`` with a distance that also reaches ``R`` mm, beyond the range the true distance plus
   the world's distance noise (better than any relayed gradient, which adds the hops' noise and overestimates);
+  near a wall the searcher's wall turns take over there;
 * ``--held-aim R,E``: ``entry``, but the bearing is taken once where that distance begins (out of range, within
   ``R`` mm, error ``E`` degrees sd), while the robot still moves freely and could dead-reckon one, and held from
   there: the robot aims with it out of range and in the outer band; it is forgotten beyond ``R`` mm.
@@ -47,7 +48,7 @@ sys.path.insert(0, str(ROOT / "tests" / "bench"))
 from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
 from oracle_push import TURN_CCW, TURN_CW, episode_args  # noqa: E402
 from sim.baselines import TUNED, HandWrittenSearcher, make_policy  # noqa: E402
-from sim.config import OBS_TARGET, WorldConfig  # noqa: E402
+from sim.config import OBS_TARGET, OBS_WALL, WorldConfig  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.kinematics import wrap_angle  # noqa: E402
 from sim.metrics import compare  # noqa: E402
@@ -80,7 +81,10 @@ def command_code(a: np.ndarray) -> np.ndarray:
 
 
 class OuterBand:
-    """The searcher outside the band; stop in the band; ``mode`` ('bearing', 'entry' or 'hysteresis') in the outer band."""
+    """The searcher outside the band; stop in the band; ``mode`` in the outer band (module doc).
+
+    ``mode`` is 'bearing', 'entry', 'hysteresis' or 'held'; ``reach_mm`` > 0 extends the distance beyond the range.
+    """
 
     def __init__(self, env: SwarmEnv, world: WorldConfig, mode: str, stop_mm: float, margin_mm: float = 3.0,
                  bearing_error_deg: float = 0.0, compass: bool = False, aim_deg: float = 23.0,
@@ -130,7 +134,9 @@ class OuterBand:
             beyond = ~have & (true > R) & (true <= self.reach)
             noisy = np.round(true + self.world.dist_noise_mm * self.rng.standard_normal(true.shape))
             dist = np.where(beyond, noisy, dist)
-        outer = have & ~band | beyond
+        # beyond the range the searcher's wall turns still apply (its wall_cool runs from a wall hit to the turn's end)
+        wall_turn = beyond & ((obs[..., OBS_WALL] > 0.5) | (self.searcher.wall_cool > 0))
+        outer = have & ~band | beyond & ~wall_turn
         fresh = heard | beyond  # a distance this period
         if self.compass:
             self._compass(np.where(heard, t * R, -1.0), outer)
@@ -147,7 +153,9 @@ class OuterBand:
             steer[grew & left], steer[grew & ~left] = TURN_CCW, TURN_CW
             if self.mode in ("entry", "held"):
                 take = entering if self.mode == "entry" else beyond & ~self.has_aim
-                self.has_aim = (self.has_aim | take) & (have | beyond)  # held: forgotten beyond the reach
+                self.has_aim |= take
+                if self.reach:  # held: forgotten beyond the reach
+                    self.has_aim &= np.linalg.norm(self.env.target[:, None, :] - self.env.pos, axis=-1) <= self.reach
                 error = self.rng.normal(0.0, self.error, take.shape) if self.error else 0.0
                 self.aim_world = np.where(take, self.true_bearing() + self.env.heading + error, self.aim_world)
                 self.aim_world += np.where(grew, np.where(left, 1.0, -1.0) * np.deg2rad(45.7), 0.0)
@@ -213,13 +221,14 @@ def main() -> None:
         for err in args.entry_error:
             contenders[f"outer band: aim once on entry ({err:g} deg error), then as below"] = OuterBand(
                 env, world, "entry", args.stop_mm, bearing_error_deg=err)
+        margin = args.margin_mm[0]
         for reach in args.reach:
-            contenders[f"outer band and out of range within {reach:g} mm: straight, a pivot once 3 mm further"] = \
-                OuterBand(env, world, "hysteresis", args.stop_mm, reach_mm=reach)
+            contenders[f"outer band and out of range within {reach:g} mm: straight, a pivot once {margin:g} mm "
+                       "further"] = OuterBand(env, world, "hysteresis", args.stop_mm, margin_mm=margin, reach_mm=reach)
         for spec in args.held_aim:
             reach, err = (float(v) for v in spec.split(","))
             contenders[f"a bearing taken within {reach:g} mm ({err:g} deg error) and held"] = OuterBand(
-                env, world, "held", args.stop_mm, bearing_error_deg=err, reach_mm=reach)
+                env, world, "held", args.stop_mm, margin_mm=margin, bearing_error_deg=err, reach_mm=reach)
         for m in args.margin_mm:
             contenders[f"outer band: straight, a pivot once {m:g} mm further"] = OuterBand(
                 env, world, "hysteresis", args.stop_mm, margin_mm=m, compass=args.compass)
