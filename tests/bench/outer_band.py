@@ -107,7 +107,7 @@ class OuterBand:
         self.least = np.full(shape, np.inf)  # hysteresis: least distance since entering / the last pivot
         self.was_outer = np.zeros(shape, bool)
         self.aim_world = np.zeros(shape)  # entry, held: the heading to hold, in the world frame
-        self.has_aim = np.zeros(shape, bool)  # held: a bearing was taken and is held
+        self.has_aim = np.zeros(shape, bool)  # entry, held: a bearing was taken and is held
         self.prev = np.zeros(shape, np.int64)
         T = 20
         self.odo = np.zeros(shape + (T, 2))  # compass: past positions in the current body frame (from commands)
