@@ -5,8 +5,9 @@
   evaluations of one run see the same starting positions and are directly comparable.
 * :func:`evaluate_policies` — ``python -m learn evaluate``: policy artifacts and the random and
   hand-written baselines (the searcher and its crowd variant, the pusher) at several swarm sizes
-  (thesis §5.1.2: 16 and 32 robots, 500 steps, 500 episodes), with the thesis's plots (mean reward over time, return box plots), a coverage
-  plot, a printed table, a JSON of the numbers and a GIF of one episode. Final coverage is also
+  (thesis §5.1.2: 16 and 32 robots, 500 steps, 500 episodes), with the thesis's plots (mean reward
+  over time, return box plots), a coverage plot, a printed table, a JSON of the numbers and a GIF of
+  one episode. Final coverage is also
   given as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`; column "of ceiling").
 """
 from __future__ import annotations

@@ -89,19 +89,19 @@ def _check_args(a: argparse.Namespace) -> None:
 
 def _load_policy(a: argparse.Namespace):
     """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy."""
+    from .baselines import BASELINE_NAMES, make_policy
+
     world = preset(a.world or ("kilobot" if a.suite else "thesis"))
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
-    if a.policy in ("random", "baseline", "pusher"):
-        from .baselines import make_policy
-
+    if a.policy in BASELINE_NAMES:
         desc: dict = {"kind": a.policy}
         if a.policy != "random":
             desc["params"] = dataclasses.asdict(make_policy(a.policy, world).p)
         return world, lambda w: make_policy(a.policy, w), desc, None
     path = Path(a.policy)
     if not os.path.lexists(path):
-        raise UserError(f"--policy must be 'random', 'baseline', 'pusher' or a policy file; '{a.policy}' is neither")
+        raise UserError(f"--policy must be one of {', '.join(BASELINE_NAMES)} or a policy file; '{a.policy}' is neither")
     try:
         art = load_policy(path)
     except PolicyError as e:

@@ -104,6 +104,9 @@ TUNED: dict[str, SearcherParams] = {
     "kilobot": SearcherParams(run_min_steps=30, tumble_max_steps=2, wall_cooldown=3, stop_dist=0.6),
 }
 
+#: the names :func:`make_policy` knows (``--policy`` of ``python -m sim`` takes them too)
+BASELINE_NAMES = ("random", "baseline", "pusher")
+
 #: what the pusher changes in a world's tuned searcher (module doc; 0.05 of the kilobot range is 4.25 mm: 5 mm on
 #: whole-mm readings)
 PUSHER = {"stop_dist": 0.94, "push_margin": 0.05, "hold_within": True}
@@ -245,4 +248,4 @@ def make_policy(name: str, cfg: WorldConfig, **params) -> "RandomPolicy | HandWr
         base = TUNED.get(cfg.name, SearcherParams())
         changes = {**(PUSHER if name == "pusher" else {}), **params}
         return HandWrittenSearcher(cfg, dataclasses.replace(base, **changes) if changes else base)
-    raise ValueError(f"unknown baseline policy '{name}'; choose 'random', 'baseline' or 'pusher'")
+    raise ValueError(f"unknown baseline policy '{name}'; choose one of {', '.join(BASELINE_NAMES)}")
