@@ -214,8 +214,10 @@ def _temp_beside(path: Path, suffix: str) -> Iterator[tuple[Path, int]]:
         tmp.unlink(missing_ok=True)
 
 
-def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = False) -> Path:
-    """Write one file atomically (str is UTF-8 encoded); returns its path."""
+def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = False, *,
+                 mode: int | None = None) -> Path:
+    """Write one file atomically (str is UTF-8 encoded); returns its path. ``mode``: its permission
+    bits (default: those of a new file, :func:`new_file_mode`)."""
     path = Path(path)
     raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
     _check_dir(path)
@@ -226,7 +228,7 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = 
             while view:
                 view = view[os.write(fd, view):]
             os.fsync(fd)
-            os.chmod(tmp, new_file_mode(executable))
+            os.chmod(tmp, new_file_mode(executable) if mode is None else mode)
             os.replace(tmp, path)
     except OSError as e:
         raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
@@ -234,10 +236,10 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = 
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, executable: bool = False) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, executable: bool = False, *, mode: int | None = None) -> Iterator[Path]:
     """Yield a temp sibling of ``path`` (same suffix) to write by name; on success it is fsynced, given
-    the mode of a new file (:func:`new_file_mode`) and moved onto ``path``, on an exception removed
-    (``path`` is left as it was)."""
+    ``mode`` (default: the mode of a new file, :func:`new_file_mode`) and moved onto ``path``, on an
+    exception removed (``path`` is left as it was)."""
     path = Path(path)
     _check_dir(path)
     recover(_dir_of(path), [path.name])
@@ -246,7 +248,7 @@ def atomic_path(path: str | os.PathLike, executable: bool = False) -> Iterator[P
         try:
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
-            os.chmod(tmp, new_file_mode(executable))
+            os.chmod(tmp, new_file_mode(executable) if mode is None else mode)
             os.replace(tmp, path)
         except OSError as e:
             raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None

@@ -2,7 +2,7 @@
 
 Everything here shells out to Debian's AVR toolchain (``gcc-avr``, ``binutils-avr``, ``avr-libc``)
 and, for runs, to a small simavr runner (``export/verify/simavr_run.c`` linked with ``libsimavr-dev``)
-that this module compiles once into a cache directory.
+that this module compiles once into the private build cache (:mod:`export.verify.buildcache`).
 
 * :func:`build` compiles C sources with kilolib's flags (:data:`KILOLIB_CFLAGS`) into an ELF and
   reports its exact sizes (:class:`Sizes`).
@@ -30,7 +30,6 @@ flags below). With a real kilolib checkout (``kilolib_dir``) no correction is ap
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 import shutil
 import subprocess
@@ -42,7 +41,6 @@ from typing import Sequence
 import numpy as np
 
 from kiloforge.actors.base import QuantizedActor
-from kiloforge.io import atomic_path
 
 from ..codegen.budget import CONTROL_STACK_B, KILOLIB_FLASH_B
 from ..codegen.kernel import KernelLayer
@@ -50,6 +48,7 @@ from ..codegen.render import POLICY_FILE
 from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..errors import ExportError
+from . import buildcache
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs
 from .hostbuild import HOST_DIR, StreamSpec, compare, decode_output, encode_stream, random_inputs, runtime_flags
 
@@ -90,13 +89,6 @@ def missing_tools(simulate: bool = False) -> str | None:
     return None
 
 
-def cache_dir() -> Path:
-    """Where the simavr runner is built (``KILOFORGE_CACHE`` or a per-user temp directory)."""
-    d = Path(os.environ.get("KILOFORGE_CACHE") or Path(tempfile.gettempdir()) / f"kiloforge-{os.getuid()}")
-    d.mkdir(parents=True, exist_ok=True)
-    return d
-
-
 def _run(cmd: Sequence[str], what: str, **kw) -> subprocess.CompletedProcess:
     p = subprocess.run(list(map(str, cmd)), capture_output=True, text=True, **kw)
     if p.returncode != 0:
@@ -104,18 +96,23 @@ def _run(cmd: Sequence[str], what: str, **kw) -> subprocess.CompletedProcess:
     return p
 
 
+RUNNER_NAME = "kf_simavr"
+RUNNER_CFLAGS = ("-O2", "-std=c99")
+
+
+def runner_key() -> str:
+    """The cache key of the simavr runner: a hash of its source and build flags."""
+    return hashlib.sha256(RUNNER_SRC.read_bytes() + "\0".join(RUNNER_CFLAGS).encode()).hexdigest()[:12]
+
+
 def runner() -> Path:
-    """The simavr runner binary, compiled from ``export/simavr_run.c`` on first use (cached by hash)."""
+    """The simavr runner, compiled from ``export/verify/simavr_run.c`` into the private build cache on
+    first use and verified before every use (:mod:`export.verify.buildcache`)."""
     why = missing_tools(simulate=True)
     if why:
         raise AvrError(why)
-    src = RUNNER_SRC.read_bytes()
-    exe = cache_dir() / f"kf_simavr-{hashlib.sha256(src).hexdigest()[:12]}"
-    if not exe.exists():
-        with atomic_path(exe, executable=True) as tmp:
-            _run(["gcc", "-O2", "-std=c99", "-I", SIMAVR_INCLUDE, "-o", tmp, RUNNER_SRC, "-lsimavr"],
-                 "building the simavr runner")
-    return exe
+    return buildcache.cached_program(RUNNER_NAME, runner_key(), lambda out: _run(
+        ["gcc", *RUNNER_CFLAGS, "-I", SIMAVR_INCLUDE, "-o", out, RUNNER_SRC, "-lsimavr"], "building the simavr runner"))
 
 
 # --------------------------------------------------------------------------------------------
