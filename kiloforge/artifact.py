@@ -7,6 +7,8 @@ One ``.npz`` in :func:`numpy.savez`'s layout, byte-for-byte reproducible (:func:
     meta           uint8 array holding UTF-8 JSON:
         format "kiloforge-policy", format_version 1, kind (a registered actor kind),
         action_mapping "clip01", world (WorldConfig.to_dict()), provenance {...},
+        task {"name", "version"} (the task it was trained for; a file without it was written before
+        tasks existed and is a localisation v1 policy: sim.tasks.LEGACY_TASK),
         the kind's own fields (layer sizes, hidden size, gate order, ...),
         policy_hash (sha256 of :func:`canonical_bytes`: the arrays and meta without this field)
 
@@ -31,6 +33,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from sim.config import WorldConfig
+from sim.tasks.base import LEGACY_TASK, TaskRef
 
 from .errors import InputError, PolicyError
 from .validate import MAX_POLICY_BYTES, parse_json, quote, read_npz, read_regular_file, show
@@ -59,10 +62,33 @@ def plain_provenance(provenance: Any) -> dict[str, Any]:
         raise PolicyError(f"policy: provenance is not plain JSON data ({e})") from None
 
 
-def base_meta(kind: str, world: WorldConfig, provenance: Mapping[str, Any]) -> dict[str, Any]:
-    """The meta fields every artifact has (the kind adds its own)."""
-    return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "action_mapping": ACTION_MAPPING,
+def base_meta(kind: str, world: WorldConfig, provenance: Mapping[str, Any],
+              task: TaskRef | None = None) -> dict[str, Any]:
+    """The meta fields every artifact has (the kind adds its own); ``task`` None only for a policy
+    read from a file written before tasks existed (so its hash stays what it was)."""
+    meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "action_mapping": ACTION_MAPPING,
             "world": world.to_dict(), "provenance": dict(provenance)}
+    if task is not None:
+        meta["task"] = task.to_dict()
+    return meta
+
+
+def task_of(meta: Mapping[str, Any]) -> TaskRef | None:
+    """The meta's task (None: a file from before tasks, i.e. :data:`~sim.tasks.LEGACY_TASK`); raises PolicyError."""
+    if "task" not in meta:
+        return None
+    t = meta["task"]
+    if not (isinstance(t, dict) and set(t) == {"name", "version"}):
+        raise PolicyError(f"policy: 'task' must be {{\"name\": ..., \"version\": ...}}, got {show(t)}")
+    try:
+        return TaskRef(t["name"], t["version"])
+    except InputError as e:
+        raise PolicyError(f"policy: {e}") from None
+
+
+def task_or_legacy(task: TaskRef | None) -> TaskRef:
+    """The task a policy was trained for: its recorded one, or localisation v1 for files from before tasks."""
+    return LEGACY_TASK if task is None else task
 
 
 def canonical_bytes(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> bytes:

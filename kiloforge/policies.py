@@ -10,6 +10,7 @@ mandatory; every problem is a one-line :class:`~kiloforge.errors.PolicyError` na
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from sim.config import WorldConfig
 
 from .actors.base import FloatPolicy
 from .actors.registry import kind_named, kind_of
-from .artifact import canonical_json, file_error, read_artifact, world_of
+from .artifact import canonical_json, file_error, read_artifact, task_of, world_of
 from .errors import OutputError, PolicyError
 from .io import write_atomic
 from .validate import quote, show
@@ -29,6 +30,9 @@ def _policy_of(path: Path, arrays: dict, meta: dict) -> FloatPolicy:
     try:
         kind = kind_named(meta.get("kind"))
         policy = kind.from_arrays(arrays, meta, world_of(meta), meta.get("provenance", {}))
+        task = task_of(meta)
+        if task is not None:
+            policy = dataclasses.replace(policy, task=task)
     except PolicyError as e:
         raise bad(str(e).removeprefix("policy: ")) from None
     _same_meta(bad, {k: v for k, v in meta.items() if k != "policy_hash"}, policy.meta(), policy.kind)

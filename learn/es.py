@@ -118,7 +118,7 @@ def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConf
         x = torch.from_numpy(h).reshape(K, E * M, -1)
         a = pop.forward(th, x).clamp_(0.0, 1.0).reshape(K * E, M, -1).numpy()
         obs, reward, _, _, info = env.step(a.astype(np.float64))
-        coverage[:, t] = info["coverage"]
+        coverage[:, t] = info["success"]
         returns += reward
         h = history.push(a, obs)
     return PopulationResult(final_coverage(coverage).reshape(K, E), returns.reshape(K, E))

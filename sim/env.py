@@ -1,4 +1,4 @@
-"""SwarmEnv: B synchronised swarm worlds of M searchers and one target beacon, on NumPy arrays.
+"""SwarmEnv: B synchronised swarm worlds of M robots and a task's bodies (:mod:`sim.tasks`), on NumPy arrays.
 
 One control period per :meth:`SwarmEnv.step`:
 
@@ -11,8 +11,8 @@ One control period per :meth:`SwarmEnv.step`:
    messages; messages carry each sender's ``sensing`` flag of its last control step.
 3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
    fast path) gives the observation and each robot's new ``sensing`` flag.
-4. **Reward** (thesis §4.2): ``scale * ((Σ_i δ_i / M)² - (1/M) Σ_i penalty · ||a_i||²)`` with δ_i =
-   true robot–target distance <= comm radius after the move and a_i the command actually applied
+4. **Task.** The task (:class:`sim.tasks.Task`, default localisation) gives the step's ``info``
+   entries, among them ``success`` (B,), and the team reward from the command actually applied
    (the float action in thesis worlds, q / 255 in tick-level worlds and in :meth:`step_u8`).
 
 Domain randomisation (``randomise=``, :mod:`sim.variants`): each env draws its own speed, turn
@@ -38,6 +38,7 @@ from .motion import action_to_u8
 from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
+from .tasks import Task, get_task
 
 ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clipped)
 MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
@@ -152,12 +153,13 @@ class SwarmEnv:
     ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
     own world parameters at every reset from its init stream (``world_draw`` holds them).
     ``fast_observe=False`` forces the general events path (for tests); ``neighbour_method``
-    ('auto', 'dense', 'grid') picks the neighbour search.
+    ('auto', 'dense', 'grid') picks the neighbour search. ``task``: a :class:`sim.tasks.Task` or
+    anything :func:`sim.tasks.get_task` resolves (default: localisation).
     """
 
     def __init__(self, cfg: WorldConfig, n_envs: int, n_robots: int, seed: Any = None, *,
                  randomise: Randomisation | None = None, fast_observe: bool = True,
-                 neighbour_method: str = "auto") -> None:
+                 neighbour_method: str = "auto", task: "Task | str | None" = None) -> None:
         if not isinstance(cfg, WorldConfig):
             raise ValueError(f"cfg must be a WorldConfig (e.g. sim.config.preset('thesis')), got {type(cfg).__name__}")
         for name, v in (("n_envs", n_envs), ("n_robots", n_robots)):
@@ -170,6 +172,8 @@ class SwarmEnv:
                 raise ValueError(f"randomise must be a sim.variants.Randomisation, got {type(randomise).__name__}")
             randomise.check(cfg)
         self.cfg = cfg
+        self.task = get_task(task)
+        self.task.check_world(cfg)
         self.randomise = randomise
         self.world_draw = WorldDraw()  #: this episode's drawn parameters (all None without randomise)
         self.n_envs, self.n_robots = int(n_envs), int(n_robots)
@@ -183,6 +187,7 @@ class SwarmEnv:
         self.heading: np.ndarray | None = None
         self.target: np.ndarray | None = None
         self.sensing: np.ndarray | None = None
+        self.target_dist: np.ndarray | None = None  # (B, M) true robot-beacon distance after the last move
         self.phase: np.ndarray | None = None  # (B, M + 1) transmit phases (tick-level radio)
         self.t = 0
         self._started = False
@@ -194,7 +199,7 @@ class SwarmEnv:
 
     @property
     def state_dim(self) -> int:
-        return self.cfg.state_dim(self.n_robots)
+        return self.task.state_dim(self.cfg, self.n_robots)
 
     @property
     def _pushable(self) -> bool:
@@ -213,35 +218,33 @@ class SwarmEnv:
         streams = [[np.random.default_rng(_child(ss, k)) for ss in seqs] for k in range(len(_STREAMS))]
         self._rng_init, self._rng_radio, self._rng_light = streams
 
-    def _spawn_box(self) -> float:
+    @property
+    def init_streams(self) -> list[np.random.Generator]:
+        """Each env's init generator (spawn and domain randomisation draw from it, in that order)."""
+        return self._rng_init
+
+    def spawn_box(self) -> float:
+        """Half side of the square robots and bodies spawn in."""
         return self.cfg.arena_half_mm - max(self.cfg.spawn_margin_mm, self.cfg.robot_radius_mm)
 
     def _check_spawn_room(self) -> None:
         cfg = self.cfg
-        if self._spawn_box() <= 0:
+        if self.spawn_box() <= 0:
             raise ValueError(f"no room to spawn: arena_half_mm {cfg.arena_half_mm} <= spawn margin / robot radius")
         if cfg.collisions and cfg.robot_radius_mm > 0:
-            frac = (self.n_robots + 1) * math.pi * cfg.robot_radius_mm ** 2 / (2 * self._spawn_box()) ** 2
+            discs = self.n_robots + self.task.extra_discs
+            frac = discs * math.pi * cfg.robot_radius_mm ** 2 / (2 * self.spawn_box()) ** 2
             if frac > MAX_PACKING:
-                side = math.sqrt((self.n_robots + 1) * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
+                side = math.sqrt(discs * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
                 raise ValueError(
                     f"{self.n_robots} robots of radius {cfg.robot_radius_mm} mm cover {frac:.0%} of the "
                     f"spawn area (max {MAX_PACKING:.0%}); use arena_half_mm >= {side / 2 + cfg.robot_radius_mm:.0f}")
 
     def _spawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Target (B, 2), positions (B, M, 2), headings (B, M) from each env's init stream."""
-        B, M, cfg = self.n_envs, self.n_robots, self.cfg
-        h = self._spawn_box()
-        target = np.empty((B, 2))
-        pos = np.empty((B, M, 2))
-        heading = np.empty((B, M))
-        for e, rng in enumerate(self._rng_init):  # loop over envs: each owns its generator
-            target[e] = rng.uniform(-h, h, 2)
-            pos[e] = rng.uniform(-h, h, (M, 2))
-            heading[e] = rng.uniform(-math.pi, math.pi, M)
-        heading = wrap_angle(heading)
-        if cfg.collisions and cfg.robot_radius_mm > 0:
-            self._separate_spawn(pos, target, h)
+        """Bodies (B, 2), positions (B, M, 2), headings (B, M): the task's draw, then no overlaps."""
+        target, pos, heading = self.task.spawn(self)
+        if self.cfg.collisions and self.cfg.robot_radius_mm > 0:
+            self._separate_spawn(pos, target, self.spawn_box())
         return target, pos, heading
 
     def _separate_spawn(self, pos: np.ndarray, target: np.ndarray, h: float) -> None:
@@ -284,8 +287,8 @@ class SwarmEnv:
             self.phase = draw_phases(self._rng_radio, M, self.cfg, w.msg_period)
         P = self.cfg.period_ticks
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
-        dt = target_distance(self.pos, self.target)
-        obs, info = self._sense(self._hear(still, dt), dt)
+        self.target_dist = target_distance(self.pos, self.target)
+        obs, info = self._sense(self._hear(still, self.target_dist))
         self._started = True
         return obs, info
 
@@ -348,11 +351,9 @@ class SwarmEnv:
                 self._collider.resolve(self.pos, self.target, beacon_mobility=self._mobility)
             if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
                 record = np.broadcast_to(self.pos, (P, B, M, 2))
-        dt = target_distance(self.pos, self.target)  # (B, M) true distance after the move
-        obs, info = self._sense(self._hear(record, dt, beacon), dt)
-        cover = info["coverage"]  # (B,) Σ δ_i / M
-        effort = np.sum(u * u, axis=(1, 2)) / M  # (B,) (1/M) Σ_i ||a_i||²
-        reward = (cfg.reward_scale * (cover * cover - cfg.action_penalty * effort)).astype(np.float32)
+        self.target_dist = target_distance(self.pos, self.target)  # (B, M) true distance after the move
+        obs, info = self._sense(self._hear(record, self.target_dist, beacon))
+        reward = self.task.reward(self, u, info)
         self.t += 1
         self._tick0 += cfg.period_ticks
         truncated = np.full(B, self.t >= cfg.episode_steps)
@@ -368,20 +369,16 @@ class SwarmEnv:
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 
-    def _sense(self, period: RadioPeriod, dt: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+    def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
         self.sensing = flags
         self._prev_wall = obs[..., OBS_WALL].copy()
-        in_range = dt <= self.cfg.comm_radius_mm
-        info = StepInfo({"events": period.events}, in_range=in_range, light=light,
-                        coverage=in_range.sum(axis=1) / self.n_robots)
+        info = StepInfo({"events": period.events}, light=light, **self.task.step_info(self))
         return obs, info
 
     def state(self) -> np.ndarray:
-        """Critic state (B, 2 + 3M) float32: target xy, then each robot's x, y, φ, normalised."""
+        """The task's critic state (B, state_dim) float32 (localisation: beacon xy, then each robot's x, y, φ)."""
         if not self._started:
             raise RuntimeError("call reset() before state()")
-        a, B, M = self.cfg.arena_half_mm, self.n_envs, self.n_robots
-        robots = np.concatenate([self.pos / a, self.heading[..., None] / math.pi], axis=-1)  # (B, M, 3)
-        return np.concatenate([self.target / a, robots.reshape(B, 3 * M)], axis=1).astype(np.float32)
+        return self.task.state(self)

@@ -92,7 +92,7 @@ class RolloutResult:
     n_robots: int
     seed: int | None
     rewards: np.ndarray  # (E, T) float64 team reward per step
-    coverage: np.ndarray  # (E, T) float64 fraction of robots in range after each step
+    coverage: np.ndarray  # (E, T) float64 the task's success after each step (localisation: coverage)
     trajectories: Trajectories | None = None
     extra: dict = field(default_factory=dict)
     beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode
@@ -178,7 +178,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                 assert a.shape == (B, M, ACTION_DIM), f"policy returned {a.shape}, expected {(B, M, ACTION_DIM)}"
                 obs, r, terminated, truncated, info = env.step(a)
                 rewards[rows, t] = r
-                coverage[rows, t] = info["coverage"]
+                coverage[rows, t] = info["success"]
                 if rec:
                     pos[rows, t + 1] = env.pos
                     head[rows, t + 1] = env.heading

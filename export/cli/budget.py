@@ -14,10 +14,11 @@ from typing import Sequence
 from kiloforge.actors.registry import KINDS
 from kiloforge.cliparse import deprecated_alias
 from sim.config import preset
+from sim.tasks import get_task
 
 from ..codegen import budget as bud
 from ..errors import ExportError
-from .common import EXIT_FAIL, EXIT_OK, Parser, positive
+from .common import EXIT_FAIL, EXIT_OK, Parser, add_task, positive
 
 
 def budget_parser() -> argparse.ArgumentParser:
@@ -30,6 +31,7 @@ def budget_parser() -> argparse.ArgumentParser:
             ap.add_argument(o.flag, dest=o.dest, type=positive if o.positive else str, nargs=o.nargs,
                             default=o.default, metavar=o.metavar, choices=o.choices, help=o.help)
     deprecated_alias(ap, "--preset", ap.add_argument("--world", default="kilobot", help="world preset (default kilobot)"))
+    add_task(ap)
     return ap
 
 
@@ -38,6 +40,7 @@ def run_budget(argv: Sequence[str]) -> int:
     values = vars(args)
     try:
         world = preset(args.world)
+        get_task(args.task).check_world(world)
     except ValueError as e:
         raise ExportError(str(e)) from None
     chosen = [k for k in KINDS.values()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
@@ -13,6 +14,7 @@ from kiloforge.errors import printable
 from kiloforge.policies import load_policy
 from kiloforge.validate import float_arg, int_arg
 from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, WorldConfig
+from sim.tasks import TASK_HELP, Task, check_policy_task, get_task
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
@@ -21,10 +23,12 @@ EXIT_OK = 0
 EXIT_FAIL = 1  #: does not fit, or a verification failed
 EXIT_USER_ERROR = 2
 DEFAULT_POLICY = ("data", "default_policy.npz")  #: the shipped reference policy, inside the export package
-#: ``--policy NAME`` for a shipped policy (when no file of that name exists)
-SHIPPED_POLICIES = {"default": DEFAULT_POLICY,
-                    "searcher": ("data", "searcher_policy.npz"),  #: sim.baselines' searcher, TUNED["kilobot"]
-                    "pusher": ("data", "pusher_policy.npz")}  #: the same with sim.baselines.PUSHER
+#: ``--policy NAME`` for a shipped policy of each task (when no file of that name exists)
+SHIPPED_POLICIES = {"localisation": {
+    "default": DEFAULT_POLICY,
+    "searcher": ("data", "searcher_policy.npz"),  #: sim.baselines' searcher, TUNED["kilobot"]
+    "pusher": ("data", "pusher_policy.npz"),  #: the same with sim.baselines.PUSHER
+}}
 
 
 class Parser(ArgumentParser):
@@ -59,18 +63,35 @@ def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:
         raise ExportError(f"{flag} {max(counts)}: {e}") from None
 
 
-def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None = None) -> FloatPolicy:
-    """The policy of ``--policy`` (a file, or the name of a shipped policy: ``searcher``, ``default``), ``--onnx``
-    (with ``--world-json``), or the shipped default policy."""
+def add_task(ap: argparse.ArgumentParser) -> None:
+    """``--task`` (default localisation): the task the policy must have been trained for."""
+    ap.add_argument("--task", default=None, metavar="TASK", help=TASK_HELP)
+
+
+def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None = None,
+         task: Task | None = None) -> FloatPolicy:
+    """The policy of ``--policy`` (a file, or the name of one of the task's shipped policies: ``default``,
+    ``searcher``, ...), ``--onnx`` (with ``--world-json``; it is taken as a policy of ``task``), or the task's
+    shipped default policy. A policy trained for another task than ``task`` (default localisation) is refused."""
+    task = get_task(task)
     if onnx is not None:
-        return load_onnx_policy(onnx, world_json=world_json)
+        return dataclasses.replace(load_onnx_policy(onnx, world_json=world_json), task=task.ref)
     if world_json is not None:
         raise ExportError("--world-json only goes with --onnx")
-    if policy is not None and (policy.exists() or str(policy) not in SHIPPED_POLICIES):
-        return load_policy(policy)
-    ref = resources.files("export").joinpath(*SHIPPED_POLICIES[str(policy or "default")])
+    shipped = SHIPPED_POLICIES.get(task.name, {})
+    if policy is not None and (policy.exists() or str(policy) not in shipped):
+        loaded = load_policy(policy)
+        check_policy_task(loaded.task_ref, task, f"policy file {printable(policy)}")
+        return loaded
+    name = str(policy or "default")
+    if name not in shipped:
+        raise ExportError(f"task '{task.name}' ships no policy '{name}'; give --policy FILE.npz "
+                          f"(shipped policies: {', '.join(f'{t}: {sorted(n)}' for t, n in SHIPPED_POLICIES.items())})")
+    ref = resources.files("export").joinpath(*shipped[name])
     with ExitStack() as stack:
-        return load_policy(stack.enter_context(resources.as_file(ref)))
+        loaded = load_policy(stack.enter_context(resources.as_file(ref)))
+    check_policy_task(loaded.task_ref, task, f"shipped policy '{name}'")
+    return loaded
 
 
 def describe(policy: FloatPolicy) -> str:

@@ -32,7 +32,7 @@ from ..errors import BudgetError, ExportError, VerifyError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import (EXIT_OK, Parser, add_quiet, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
+from .common import (EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
                      steps_arg)
 
 
@@ -58,6 +58,7 @@ def export_parser() -> argparse.ArgumentParser:
                      help="policy artifact .npz, or 'searcher': the hand-written searcher of sim/baselines.py "
                           "(default: the shipped reference policy, trained by evolution strategies in the kilobot world)")
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
+    add_task(ap)
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
     ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
                     help="robot counts of the calibration rollouts (default 4 16)")
@@ -136,7 +137,7 @@ def run_export(argv: Sequence[str]) -> int:
     manifest_path = out.with_name(out.name + ".manifest.json")
     check_writable([out, target_path, manifest_path])  # fail before the slow part
 
-    policy = load(args.policy, args.onnx, args.world_json)
+    policy = load(args.policy, args.onnx, args.world_json, args.task)
     if policy.world.name != KILOBOT.name:
         print(f"warning: this policy was trained in the '{policy.world.name}' world, not the Kilobot's "
               f"('{KILOBOT.name}': 33 mm bodies, collisions, leg-pivot motion, the Kilobot radio); on robots it "

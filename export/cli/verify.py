@@ -30,7 +30,7 @@ from kiloforge.validate import float_arg, seed_arg
 
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
-from .common import (EXIT_FAIL, EXIT_OK, Parser, add_quiet, check_robots, describe, episodes_arg, load, percentile_arg,
+from .common import (EXIT_FAIL, EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg,
                      robots_arg, steps_arg)
 
 COVERAGE_PNG = "coverage.png"
@@ -45,6 +45,7 @@ def verify_parser() -> argparse.ArgumentParser:
     ap.add_argument("--closed-loop", action="store_true",
                     help="optional: the closed-loop comparison is the only verification this command does")
     ap.add_argument("--policy", type=Path, help="policy artifact .npz, or 'searcher' (the hand-written searcher; default: the shipped default policy)")
+    add_task(ap)
     ap.add_argument("--robots", type=robots_arg, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")
     ap.add_argument("--episodes", type=episodes_arg, default=200, help="episodes per robot count (default 200)")
@@ -136,7 +137,7 @@ def run_verify(argv: Sequence[str]) -> int:
         if not base.is_dir():
             raise OutputError(f"cannot create '{out}': '{base}' is not a directory")
         check_writable([base / RESULT_JSON])
-    policy = load(args.policy)
+    policy = load(args.policy, task=args.task)
     print(describe(policy))
     check_robots(policy.world, args.robots, "--robots")
     check_robots(policy.world, args.robots_calib, "--robots-calib")

@@ -225,7 +225,7 @@ def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, 
             (obs, r, _term, trunc, info), c = controller.step(env, obs, info)
             controller.heard(info, t + 1)
             rewards[rows, t] = r
-            coverage[rows, t] = info["coverage"]
+            coverage[rows, t] = info["success"]
             if record:
                 pos[rows, t + 1], head[rows, t + 1] = env.pos, env.heading
                 if cmds is None:

@@ -33,6 +33,7 @@ from typing import Any, Callable, ClassVar, Mapping, NoReturn, Sequence
 import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
+from sim.tasks.base import TaskRef
 
 from .. import artifact, numfmt
 from ..errors import PolicyError
@@ -48,6 +49,14 @@ class FloatPolicy(ABC):
     kind: ClassVar[str]  #: the registered kind name (the artifact's "kind")
     world: WorldConfig
     provenance: dict[str, Any]
+    #: the task it was trained for (sim.tasks.TaskRef); None only when read from a file written
+    #: before tasks existed, which records none (:attr:`task_ref` is then localisation v1)
+    task: Any
+
+    @property
+    def task_ref(self) -> Any:
+        """The task this policy was trained for (a :class:`sim.tasks.TaskRef`)."""
+        return artifact.task_or_legacy(self.task)
 
     @abstractmethod
     def arrays(self) -> dict[str, np.ndarray]:
@@ -80,7 +89,7 @@ class FloatPolicy(ABC):
 
     def meta(self) -> dict[str, Any]:
         """The JSON metadata (without ``policy_hash``)."""
-        return dict(artifact.base_meta(self.kind, self.world, self.provenance), **self.kind_meta())
+        return dict(artifact.base_meta(self.kind, self.world, self.provenance, self.task), **self.kind_meta())
 
     def canonical_bytes(self) -> bytes:
         """What :attr:`hash` covers (:func:`kiloforge.artifact.canonical_bytes`)."""
@@ -110,10 +119,12 @@ def invalid(msg: str) -> NoReturn:
     raise PolicyError(f"policy: {msg}")
 
 
-def check_world(world: Any) -> None:
-    """Every float policy carries a WorldConfig."""
+def check_world_and_task(world: Any, task: Any) -> None:
+    """Every float policy carries a WorldConfig, and a TaskRef or None (a file from before tasks)."""
     if not isinstance(world, WorldConfig):
         invalid(f"world must be a WorldConfig, got {type(world).__name__}")
+    if task is not None and not isinstance(task, TaskRef):
+        invalid(f"task must be a sim.tasks.TaskRef or None, got {type(task).__name__}")
 
 
 def float_arrays(obj: Any, names: Sequence[str], bad: Callable[[str], None] = invalid) -> dict[str, np.ndarray]:

@@ -25,6 +25,7 @@ from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
+from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, WorldConfig
 from sim.motion import action_to_u8
 from sim.rollout import HistoryActor
@@ -35,7 +36,7 @@ from ..errors import PolicyError, QuantizeError
 from ..validate import show
 from ..numfmt import ACTIVATIONS, INT8_MAX, INT8_MIN, OUTPUT_ACTIVATIONS, TABLE_ACTIVATIONS, QuantLayer, act_float
 from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CDense, CTable, FloatPolicy,
-                   QuantizedActor, RenderSpec, Resize, check_world, dense_summary, invalid, sensing_tables)
+                   QuantizedActor, RenderSpec, Resize, check_world_and_task, dense_summary, invalid, sensing_tables)
 from .dense import (check_range_options, dense_weights, input_exponent, is_output_layer, output_layer,
                     saturated_fraction, value_range)
 
@@ -59,10 +60,11 @@ class MLPPolicy(FloatPolicy):
     t_prev: int
     world: WorldConfig
     provenance: dict[str, Any] = field(default_factory=dict)
+    task: TaskRef | None = None  #: the task it was trained for (None: a file from before tasks)
 
     def __post_init__(self) -> None:
         bad = invalid
-        check_world(self.world)
+        check_world_and_task(self.world, self.task)
         if isinstance(self.t_prev, bool) or not isinstance(self.t_prev, (int, np.integer)) or self.t_prev < 1:
             bad(f"t_prev must be an integer >= 1, got {self.t_prev!r}")
         n = len(self.weights)

@@ -18,13 +18,14 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
+from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, WorldConfig
 
 from ..artifact import plain_provenance
 from ..errors import PolicyError
 from ..numfmt import HIDDEN_EXP, QuantLayer
 from ..validate import show
-from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world, float_arrays, invalid
+from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world_and_task, float_arrays, invalid
 from .dense import is_output_layer
 
 ARRAYS = ("w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
@@ -48,9 +49,10 @@ class RecurrentPolicy(FloatPolicy):
     b_out: np.ndarray  #: (2,)
     world: WorldConfig
     provenance: dict[str, Any] = field(default_factory=dict)
+    task: TaskRef | None = None  #: the task it was trained for (None: a file from before tasks)
 
     def __post_init__(self) -> None:
-        check_world(self.world)
+        check_world_and_task(self.world, self.task)
         arrs = float_arrays(self, ARRAYS)
         G, w_hh = self.GATE_COUNT, arrs["w_hh"]
         if w_hh.ndim != 2 or w_hh.shape[0] != G * w_hh.shape[1] or w_hh.shape[1] < 1:

@@ -53,6 +53,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 
 from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
+from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 from sim.motion import action_to_u8
 
@@ -61,7 +62,7 @@ from ..artifact import plain_provenance
 from ..errors import PolicyError, QuantizeError
 from ..validate import show
 from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor,
-                   RenderSpec, Resize, check_world, invalid, sensing_tables)
+                   RenderSpec, Resize, check_world_and_task, invalid, sensing_tables)
 
 BIG = 1 << 20  #: "run until something happens" (periods), as in sim.baselines
 RUN_TABLE_SIZE = 256  #: one entry per value of the run-length draw byte
@@ -161,9 +162,10 @@ class SearcherPolicy(FloatPolicy):
     params: SearcherParams
     world: WorldConfig
     provenance: dict[str, Any] = field(default_factory=dict)
+    task: TaskRef | None = None  #: the task it was trained for (None: a file from before tasks)
 
     def __post_init__(self) -> None:
-        check_world(self.world)
+        check_world_and_task(self.world, self.task)
         if not isinstance(self.params, SearcherParams):
             invalid(f"params must be SearcherParams, got {type(self.params).__name__}")
         object.__setattr__(self, "provenance", plain_provenance(self.provenance))

@@ -1,0 +1,125 @@
+"""The task interface: what a swarm task owns, apart from the world core (motion, contacts, radio).
+
+A task is one class (one module per built-in task, or one file of a user's: docs/tasks.md). The
+simulator's :class:`sim.env.SwarmEnv` asks its task, every episode and step, for
+
+* the spawn: where robots (and the task's own bodies, e.g. localisation's beacon) start;
+* the per-step information: the *success* signal, (B,) in [0, 1], that every table, plot and
+  fitness aggregates (localisation: the fraction of robots within range of the beacon), and
+  whatever else the task reports (``info`` entries);
+* the team reward of the learners (MAGDDPG / MAGRDPG) and the centralised critic's state;
+
+and the tools ask it for its metrics (names, labels, units, the primary one), its hand-written and
+random baselines, and an optional upper bound on success (localisation's packing ceiling).
+
+A task is identified by ``name`` and ``version`` (:class:`TaskRef`); a policy artifact records the
+task it was trained for, and the tools refuse a policy of another task.
+"""
+from __future__ import annotations
+
+import re
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from kiloforge.errors import InputError
+
+from ..config import WorldConfig
+
+TASK_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")  #: task names: short, lowercase, safe in C comments and file names
+MAX_TASK_VERSION = 0xFFFF
+
+
+@dataclass(frozen=True)
+class TaskRef:
+    """A task's identity as a policy artifact records it: ``{"name": ..., "version": ...}``."""
+
+    name: str
+    version: int
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.name, str) and TASK_NAME.fullmatch(self.name)):
+            raise InputError(f"task name must match {TASK_NAME.pattern} (lowercase letters, digits, _), "
+                             f"got {self.name!r}")
+        if not (isinstance(self.version, int) and not isinstance(self.version, bool)
+                and 1 <= self.version <= MAX_TASK_VERSION):
+            raise InputError(f"task version must be an integer in 1..{MAX_TASK_VERSION}, got {self.version!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version}
+
+    def __str__(self) -> str:
+        return f"{self.name} v{self.version}"
+
+
+#: what a policy file written before tasks existed was trained for
+LEGACY_TASK = TaskRef("localisation", 1)
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One scalar metric per episode, as tables, JSON and plots name it."""
+
+    key: str  #: JSON key (evaluation.json, metrics.json)
+    label: str  #: short column label in tables and plots
+    unit: str = ""  #: "" for fractions and counts, e.g. "steps"
+    higher_is_better: bool = True
+
+
+class Task(ABC):
+    """Base class of every task. Subclasses set the class attributes and implement the methods; ``env``
+    is the :class:`sim.env.SwarmEnv` asking (its arrays, ``cfg``, ``n_envs``, ``n_robots``, ``init_streams``)."""
+
+    name: ClassVar[str]  #: registry name, e.g. "localisation"
+    version: ClassVar[int] = 1  #: bump when episodes of the same seed would differ
+    description: ClassVar[str] = ""  #: one line for --help and docs
+    success_label: ClassVar[str] = "success"  #: what the per-step success signal is called in plots
+    primary_metric: ClassVar[str] = "final_success"  #: the metric key that ranks policies
+    metrics: ClassVar[tuple[Metric, ...]] = ()  #: every scalar metric, primary first
+    #: baseline label -> name for :meth:`make_baseline`; labels start with "hand-written" or "random"
+    baselines: ClassVar[dict[str, str]] = {}
+    extra_discs: ClassVar[int] = 0  #: bodies beside the robots that occupy spawn area (collision worlds)
+
+    @property
+    def ref(self) -> TaskRef:
+        return TaskRef(self.name, self.version)
+
+    def check_world(self, cfg: WorldConfig) -> None:
+        """Raise InputError when the task cannot run in ``cfg`` (default: every world)."""
+
+    @abstractmethod
+    def spawn(self, env: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Start positions from the env's init streams: bodies (B, 2), robots (B, M, 2), headings (B, M)."""
+
+    @abstractmethod
+    def step_info(self, env: Any) -> dict[str, np.ndarray]:
+        """The step's ``info`` entries after the move; must hold ``success`` (B,) in [0, 1]."""
+
+    @abstractmethod
+    def reward(self, env: Any, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        """Team reward (B,) float32 of the step: ``u`` the applied commands (B, M, 2) in [0, 1]."""
+
+    @abstractmethod
+    def state_dim(self, cfg: WorldConfig, n_robots: int) -> int:
+        """Width of :meth:`state`."""
+
+    @abstractmethod
+    def state(self, env: Any) -> np.ndarray:
+        """The centralised critic's state (B, state_dim) float32."""
+
+    def make_baseline(self, name: str, cfg: WorldConfig) -> Any:
+        """The baseline ``name`` (a value of :attr:`baselines`) as a :class:`sim.rollout.SwarmPolicy`."""
+        raise InputError(f"task '{self.name}' has no baseline '{name}'")
+
+    def episode_ceiling(self, cfg: WorldConfig, n_robots: int, bodies: np.ndarray) -> np.ndarray | None:
+        """Optional upper bound on final success per episode (E,), from the bodies at each episode's end;
+        None when the task has none for this world."""
+        return None
+
+    def metric(self, key: str) -> Metric:
+        for m in self.metrics:
+            if m.key == key:
+                return m
+        raise KeyError(key)
