@@ -205,22 +205,97 @@ def _as_bias(c: np.ndarray, n_out: int, label: str, err: Any) -> np.ndarray:
     return np.broadcast_to(c.reshape(-1), (n_out,)).astype(np.float64)
 
 
+#: TensorProto element types a weight or constant may have (others: strings, complex, bfloat16, float8,
+#: int4 ... are refused by name before their data is read)
+_READABLE_TYPES = {1: np.float32, 10: np.float16, 11: np.float64, 2: np.uint8, 3: np.int8, 4: np.uint16,
+                   5: np.int16, 6: np.int32, 7: np.int64, 12: np.uint32, 13: np.uint64, 9: np.bool_}
+
+
+def _tensor_where(t: Any, what: str) -> str:
+    return f"{what} '{t.name}'" if t.name else what
+
+
+def _model_tensors(model: Any) -> Any:
+    """Every TensorProto of ``model`` that a reader could load, with where it is: initializers, sparse
+    initializers, node attributes (``Constant`` values, any tensor / sparse tensor attribute) and the
+    same inside nested subgraphs, functions and training graphs. Yields (where, TensorProto, sparse)."""
+    def graph(g: Any, where: str) -> Any:
+        for t in g.initializer:
+            yield _tensor_where(t, f"{where}initializer"), t, False
+        for sp in g.sparse_initializer:
+            yield _tensor_where(sp.values, f"{where}sparse initializer"), sp.values, True
+            yield _tensor_where(sp.indices, f"{where}sparse initializer indices"), sp.indices, True
+        yield from nodes(g.node, where)
+
+    def nodes(ns: Any, where: str) -> Any:
+        for idx, node in enumerate(ns):
+            label = f"{where}{_node_label(node, idx)} attribute"
+            for at in node.attribute:
+                if at.HasField("t"):
+                    yield f"{label} '{at.name}'", at.t, False
+                for t in at.tensors:
+                    yield f"{label} '{at.name}'", t, False
+                for sp in ([at.sparse_tensor] if at.HasField("sparse_tensor") else []) + list(at.sparse_tensors):
+                    yield f"{label} '{at.name}' (sparse)", sp.values, True
+                    yield f"{label} '{at.name}' (sparse indices)", sp.indices, True
+                for sub in ([at.g] if at.HasField("g") else []) + list(at.graphs):
+                    yield from graph(sub, f"{label} '{at.name}' subgraph: ")
+
+    if model.HasField("graph"):
+        yield from graph(model.graph, "")
+    for f in model.functions:
+        yield from nodes(f.node, f"function '{f.name}' ")
+    for ti in model.training_info:
+        for g, what in ((ti.initialization, "initialization"), (ti.algorithm, "algorithm")):
+            yield from graph(g, f"training {what} graph: ")
+
+
+def _check_tensors(model: Any, err: Any) -> None:
+    """Refuse, before any tensor data is read: external data anywhere in the model, sparse tensors,
+    and element types other than :data:`_READABLE_TYPES`."""
+    from onnx import TensorProto
+
+    for where, t, sparse in _model_tensors(model):
+        if t.data_location == TensorProto.EXTERNAL or len(t.external_data) > 0:
+            raise err(f"{where} is stored in an external data file, which is never read; re-save the model with "
+                      "all weights inside the .onnx (onnx.save(model, path, save_as_external_data=False))")
+        if sparse:
+            raise err(f"{where} is a sparse tensor: not supported (store it dense)")
+        if int(t.data_type) not in _READABLE_TYPES:
+            name = _TYPE_NAMES.get(int(t.data_type), f"type {int(t.data_type)}")
+            raise err(f"{where} has element type {name}: not supported (only numeric real types)")
+
+
+def _tensor_array(t: Any, where: str, err: Any) -> np.ndarray:
+    """The contents of TensorProto ``t`` (already passed :func:`_check_tensors`): its declared size
+    bounded by :data:`MAX_PARAMS` before anything is materialised, the data checked against its dims."""
+    from onnx import TensorProto, numpy_helper
+
+    if t.data_location == TensorProto.EXTERNAL or len(t.external_data) > 0 or int(t.data_type) not in _READABLE_TYPES:
+        raise err(f"{where}: external data or an unsupported element type")  # _check_tensors said which
+    if any(int(d) < 0 for d in t.dims):
+        raise err(f"{where} has negative dims {list(t.dims)}")
+    n = math.prod(int(d) for d in t.dims) if len(t.dims) else 1
+    if n > MAX_PARAMS:
+        raise err(f"{where}: {n:,} values: the Kilobot (32 KB flash) cannot hold it")
+    try:
+        val = numpy_helper.to_array(t)
+    except Exception:
+        raise err(f"{where} is corrupt (its data does not match dims {list(t.dims)})") from None
+    return np.asarray(val, dtype=_READABLE_TYPES[int(t.data_type)])
+
+
 def _constant_value(node: Any, label: str, err: Any) -> np.ndarray:
-    from onnx import helper, numpy_helper
+    from onnx import helper
 
     for at in node.attribute:
-        try:
-            if at.name == "value":
-                val = numpy_helper.to_array(at.t)
-            elif at.name in ("value_float", "value_floats", "value_int", "value_ints"):
-                val = np.asarray(helper.get_attribute_value(at))
-            else:
-                continue
-        except Exception:
-            raise err(f"{label}: corrupt Constant value") from None
-        if val.size > MAX_PARAMS:
-            raise err(f"{label}: {val.size:,} values: the Kilobot (32 KB flash) cannot hold it")
-        return val
+        if at.name == "value":
+            return _tensor_array(at.t, f"{label} value", err)
+        if at.name in ("value_float", "value_floats", "value_int", "value_ints"):
+            val = np.asarray(helper.get_attribute_value(at))
+            if val.size > MAX_PARAMS:
+                raise err(f"{label}: {val.size:,} values: the Kilobot (32 KB flash) cannot hold it")
+            return val
     raise err(f"{label}: unsupported Constant (only tensor / float / int values)")
 
 
@@ -288,7 +363,6 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
     without kiloforge metadata. Raises :class:`OnnxImportError` with a one-line message.
     """
     onnx = _need_onnx()
-    from onnx import numpy_helper
 
     path = Path(path)
     where = str(path)
@@ -312,11 +386,9 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
         raise err("not a valid ONNX model (no graph; truncated or not an .onnx file?)")
     g = model.graph
 
-    # external data is refused before anything reads tensor contents
-    for t in g.initializer:
-        if t.data_location == onnx.TensorProto.EXTERNAL or len(t.external_data) > 0:
-            raise err(f"initializer '{t.name}' is stored in an external data file; re-save the model with all "
-                      "weights inside the .onnx (onnx.save(model, path, save_as_external_data=False))")
+    # external data (anywhere: initializers, Constant values, subgraphs), sparse tensors and non-numeric
+    # element types are refused before anything reads tensor contents (the checker included)
+    _check_tensors(model, err)
     if len(g.node) > MAX_NODES:
         raise err(f"{len(g.node)} nodes: far more than any Kilobot MLP")
 
@@ -347,10 +419,7 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
     # ---- constants --------------------------------------------------------------------------
     const: dict[str, np.ndarray] = {}
     for t in g.initializer:
-        try:
-            const[t.name] = numpy_helper.to_array(t)
-        except Exception:
-            raise err(f"initializer '{t.name}' is corrupt (its data does not match dims {list(t.dims)})") from None
+        const[t.name] = _tensor_array(t, f"initializer '{t.name}'", err)
     init_names = set(const)
 
     # ---- the single data input ----------------------------------------------------------------

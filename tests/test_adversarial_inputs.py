@@ -1,0 +1,173 @@
+"""Adversarial inputs of issue 47 (part A): generated variants of each cause, every one ending in one
+clean line with exit 2 (or working as documented), never a traceback, never a file it was not given."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bad_inputs import assert_one_clean_line
+from export.cli.main import main as export_main
+from onnx_models import tiny_model
+
+FAST = ["--robots-calib", "2", "--calib-steps", "4", "--quiet", "--no-avr"]
+
+
+def _export_refused(argv, capsys) -> str:
+    rc = export_main(argv)
+    out, err = capsys.readouterr()
+    assert rc == 2, (out, err)
+    return assert_one_clean_line(err)
+
+
+# --- ONNX: tensors anywhere in the model ------------------------------------------------------------
+def _base(tmp_path):
+    onnx = pytest.importorskip("onnx")
+    return onnx.load(str(tiny_model(tmp_path / "base.onnx")))
+
+
+def _external(t, location: str = "secret.bin") -> None:
+    from onnx import TensorProto
+    t.ClearField("raw_data")
+    t.ClearField("float_data")
+    t.data_location = TensorProto.EXTERNAL
+    t.external_data.add(key="location", value=location)
+
+
+def _weight_as_constant(m, location="secret.bin"):
+    """w1 moves from the initializers into a Constant node whose value is external."""
+    from onnx import helper
+    g = m.graph
+    w1 = next(t for t in g.initializer if t.name == "w1")
+    t = type(w1)()
+    t.CopyFrom(w1)
+    g.initializer.remove(w1)
+    _external(t, location)
+    g.node.insert(0, helper.make_node("Constant", [], ["w1"], value=t))
+
+
+def _constant_in_subgraph(m, location="secret.bin"):
+    """An If node whose branches hold a Constant with external data."""
+    from onnx import TensorProto, helper, numpy_helper
+    t = numpy_helper.from_array(np.zeros(2, np.float32), "c")
+    _external(t, location)
+    branch = helper.make_graph([helper.make_node("Constant", [], ["o"], value=t)], "b", [],
+                               [helper.make_tensor_value_info("o", TensorProto.FLOAT, [2])])
+    m.graph.initializer.append(numpy_helper.from_array(np.array(True), "cond"))
+    m.graph.node.append(helper.make_node("If", ["cond"], ["unused"], then_branch=branch, else_branch=branch))
+
+
+def _attribute_tensor(m, location="secret.bin"):
+    """A tensor attribute (not Constant's) on an ordinary node."""
+    from onnx import helper, numpy_helper
+    t = numpy_helper.from_array(np.zeros(4, np.float32), "aux")
+    _external(t, location)
+    m.graph.node[1].attribute.append(helper.make_attribute("aux", t))
+
+
+def _nested_initializer(m, location="secret.bin"):
+    """An initializer of a Loop body subgraph stored externally."""
+    from onnx import TensorProto, helper, numpy_helper
+    t = numpy_helper.from_array(np.zeros(3, np.float32), "inner")
+    _external(t, location)
+    body = helper.make_graph([helper.make_node("Identity", ["inner"], ["o"])], "body", [],
+                             [helper.make_tensor_value_info("o", TensorProto.FLOAT, [3])], initializer=[t])
+    m.graph.node.append(helper.make_node("Loop", ["", ""], ["z"], body=body))
+
+
+def _function_body(m, location="secret.bin"):
+    """A model-local function whose Constant is external."""
+    from onnx import helper, numpy_helper
+    t = numpy_helper.from_array(np.zeros(2, np.float32), "f")
+    _external(t, location)
+    f = helper.make_function("local", "f1", [], ["o"], [helper.make_node("Constant", [], ["o"], value=t)],
+                             [helper.make_opsetid("", 17)])
+    m.functions.append(f)
+
+
+def _sparse_initializer(m, location=None):
+    from onnx import helper, numpy_helper
+    vals = numpy_helper.from_array(np.ones(2, np.float32), "sp")
+    idx = numpy_helper.from_array(np.array([0, 3], np.int64), "")
+    m.graph.sparse_initializer.append(helper.make_sparse_tensor(vals, idx, [8]))
+
+
+def _sparse_constant(m, location=None):
+    from onnx import helper, numpy_helper
+    vals = numpy_helper.from_array(np.ones(2, np.float32), "spc")
+    idx = numpy_helper.from_array(np.array([1, 2], np.int64), "")
+    sp = helper.make_sparse_tensor(vals, idx, [4])
+    m.graph.node.insert(0, helper.make_node("Constant", [], ["spc_out"], sparse_value=sp))
+
+
+EXTERNAL = {"constant value": _weight_as_constant, "If branch constant": _constant_in_subgraph,
+            "node attribute": _attribute_tensor, "Loop body initializer": _nested_initializer,
+            "function constant": _function_body}
+
+
+@pytest.mark.parametrize("location", ["secret.bin", "./secret.bin", "sub/../secret.bin"])
+@pytest.mark.parametrize("where", sorted(EXTERNAL))
+def test_onnx_external_data_anywhere_is_never_read(tmp_path, monkeypatch, capsys, where, location):
+    """External data in a Constant, a subgraph, an attribute or a function: refused by name, the file beside it never becomes weights."""
+    m = _base(tmp_path)
+    EXTERNAL[where](m, location)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "secret.bin").write_bytes(np.full(1 << 16, 0.25, np.float32).tobytes())
+    import onnx.external_data_helper as edh
+
+    def never(*a, **k):
+        raise AssertionError("external data was read")
+    monkeypatch.setattr(edh, "load_external_data_for_tensor", never)
+    p = tmp_path / "m.onnx"
+    p.write_bytes(m.SerializeToString())
+    msg = _export_refused(["--onnx", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
+    assert "external data file" in msg and "never read" in msg
+    assert not (tmp_path / "k.c").exists()
+
+
+@pytest.mark.parametrize("how", [_sparse_initializer, _sparse_constant])
+def test_onnx_sparse_tensors_are_refused(tmp_path, capsys, how):
+    """A sparse initializer or a Constant sparse_value: one line naming the sparse tensor."""
+    m = _base(tmp_path)
+    how(m)
+    p = tmp_path / "m.onnx"
+    p.write_bytes(m.SerializeToString())
+    assert "sparse tensor" in _export_refused(["--onnx", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
+
+
+def _string_tensor(name):
+    from onnx import TensorProto, helper
+    return helper.make_tensor(name, TensorProto.STRING, [2], [b"a", b"b"])
+
+
+def _typed_tensor(name, dtype):
+    from onnx import helper
+    t = helper.make_tensor(name, 1, [2], [0.5, 0.5])
+    t.data_type = dtype
+    return t
+
+
+@pytest.mark.parametrize("dtype", ["STRING", "COMPLEX64", "COMPLEX128", "BFLOAT16", "FLOAT8E4M3FN", "INT4",
+                                   "UNDEFINED", 999])
+@pytest.mark.parametrize("place", ["initializer", "constant"])
+def test_onnx_non_numeric_tensors_are_refused(tmp_path, capsys, dtype, place):
+    """String, complex, bfloat16, float8, int4, undefined or unknown element types: one line naming the type."""
+    from onnx import TensorProto, helper, numpy_helper
+    m = _base(tmp_path)
+    code = dtype if isinstance(dtype, int) else getattr(TensorProto, dtype)
+    if dtype == "STRING":
+        t = _string_tensor("b2")
+    elif str(dtype).startswith("COMPLEX"):
+        t = numpy_helper.from_array(np.array([0.5 + 1j, 0.5], np.complex64 if dtype == "COMPLEX64" else np.complex128), "b2")
+    else:
+        t = _typed_tensor("b2", code)
+    g = m.graph
+    g.initializer.remove(next(x for x in g.initializer if x.name == "b2"))
+    if place == "initializer":
+        g.initializer.append(t)
+    else:
+        g.node.insert(0, helper.make_node("Constant", [], ["b2"], value=t))
+    p = tmp_path / "m.onnx"
+    p.write_bytes(m.SerializeToString())
+    msg = _export_refused(["--onnx", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
+    assert "element type" in msg
