@@ -11,7 +11,7 @@ before the user's (``kiloforge verify ...`` is ``python -m export verify ...``);
 delegate's own. Unlike ``python -m ...``, the installed ``kiloforge`` script does not put the working
 directory first on ``sys.path``, so a ``sim.py`` or ``learn.py`` there cannot replace the packages;
 where one does (``python -m kiloforge``, ``PYTHONPATH``) :func:`shadowing` says so in one line. A
-missing optional dependency is one line naming the extra to install (:func:`missing_extra`), exit 2.
+missing optional dependency is one line naming the extra to install (:func:`kiloforge.extras.missing_extra`), exit 2.
 """
 from __future__ import annotations
 
@@ -26,14 +26,9 @@ from typing import Callable, Sequence
 from . import __version__
 from .cliparse import EXIT_USAGE, invoked_as
 from .errors import printable
+from .extras import missing_dependency
 
 PACKAGES = ("kiloforge", "sim", "learn", "export", "firmware_templates")  #: the distribution's top-level packages
-
-#: top-level module of an optional dependency -> the extra that installs it (pyproject.toml)
-EXTRAS = {"torch": "learn", "tyro": "learn", "tensorboard": "learn", "onnx": "onnx", "onnxruntime": "onnx",
-          "ray": "sweep", "pettingzoo": "pettingzoo", "gymnasium": "pettingzoo"}
-#: top-level module of a core dependency -> its distribution (a broken install: it is installed with kiloforge)
-CORE = {"numpy": "numpy", "jinja2": "jinja2", "matplotlib": "matplotlib", "PIL": "pillow", "tqdm": "tqdm"}
 
 
 @dataclass(frozen=True)
@@ -92,27 +87,11 @@ def shadowing() -> str | None:
     return None
 
 
-def missing_extra(err: ModuleNotFoundError) -> tuple[str, str] | None:
-    """(module, extra) when ``err`` is a missing optional dependency, else None."""
-    top = (err.name or "").partition(".")[0]
-    return (top, EXTRAS[top]) if top in EXTRAS else None
-
-
-def missing_dependency(prog: str, err: ModuleNotFoundError) -> str | None:
-    """The one line for a missing dependency of kiloforge (``<prog> needs <module>: pip install ...``),
-    None when ``err`` names a module kiloforge does not depend on."""
-    missing = missing_extra(err)
-    if missing is not None:
-        return f"{prog} needs {missing[0]}: pip install 'kiloforge[{missing[1]}]'"
-    top = (err.name or "").partition(".")[0]
-    return f"{prog} needs {top} (a dependency of kiloforge): pip install {CORE[top]}" if top in CORE else None
-
-
 def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None,
                 program: bool = True, held: Sequence[int] = ()) -> int:
     """``load()(argv)`` (``load`` imports the command and returns its ``main``; ``argv`` None: the program's
     own, ``sys.argv``) with the two checks of the module doc: shadowed packages first, then a missing
-    dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`missing_dependency`).
+    dependency, reported as ``<prog> needs <module>: pip install 'kiloforge[<extra>]'`` (:func:`kiloforge.extras.missing_dependency`).
     ``program``: this is the process's own command line (signals are ignored once the command has returned;
     ``held``: what its ``__main__`` module held back, :func:`kiloforge.interrupts.as_program`); a Ctrl-C before
     the command's entry point took over ends in one line (130)."""

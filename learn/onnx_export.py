@@ -287,7 +287,7 @@ def check_with_onnxruntime(path: str | os.PathLike, policy: Any, n: int = 256, s
 
 def main_export_onnx(argv: list[str] | None = None) -> int:
     """``export-onnx --policy P.npz --out actor.onnx [--opset 17]``; returns the exit status."""
-    from kiloforge.cli import missing_dependency
+    from kiloforge.extras import missing_dependency
     from kiloforge.cliparse import ArgumentParser, error_line, program
     from kiloforge.interrupts import exit_status
 

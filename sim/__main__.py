@@ -1,239 +1,34 @@
-"""``python -m sim``: run a policy in the simulator, print task metrics, write plots and a GIF.
+"""``python -m sim`` / ``kiloforge-sim``: see :mod:`kiloforge.sim_cli`.
 
-    python -m sim --world thesis --robots 4 --seed 0 --policy baseline --out runs/demo
-    python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
-    python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
-
-``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the
-path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
-Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
-``coverage.png`` (all episodes) and ``metrics.json``. ``--suite robustness`` instead runs the policy
-in every world variant of :func:`sim.variants.robustness_suite` (default world: the kilobot
-preset, or the artifact's) at each ``--robots`` count and writes ``robustness.json`` and
-``robustness.md`` (final coverage per variant, and as a fraction of nominal). User errors print
-one line and exit with 2.
+The command plays policy artifacts (:mod:`kiloforge.policies`), which build on the simulator, so it lives on
+the floor above ``sim``; this module, the program, only starts it (docs/design.md, "Dependencies run one way").
 """
 
 from kiloforge.sighold import hold, release  # first: a Ctrl-C or SIGTERM while the imports below load is held
 
 _held, _previous = hold()
 try:
-    import argparse
-    import dataclasses
-    import json
-    import os
     import sys
-    from pathlib import Path
+    from typing import Sequence
 
-    from kiloforge import io
     from kiloforge.cli import run_guarded
-    from kiloforge.cliparse import ArgumentParser, deprecated_alias, error_line, program
-    from kiloforge.errors import KiloforgeError, PolicyError, printable
-    from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
-    from kiloforge.io import staged_files
-    from kiloforge.policies import load_policy, swarm_policy
-    from kiloforge.validate import int_arg, seed_arg
-
-    from .config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset
+    from kiloforge.interrupts import run_entry_point
 finally:
     release(_previous, program=__name__ == "__main__")
 
-EXIT_USAGE = 2
-MAX_EPISODES = 100_000
-OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
-SUITE_FILES = ("robustness.md", "robustness.json")  #: the record (kiloforge.io) last, as in OUTPUT_FILES
-SUITES = ("robustness",)
+
+def _load():
+    from kiloforge.sim_cli import main
+
+    return main
 
 
-class UserError(Exception):
-    """A mistake in the command line or its inputs: reported in one line, exit code 2."""
+def main(argv: Sequence[str] | None = None) -> int:
+    """:func:`kiloforge.sim_cli.main`, with a Ctrl-C or SIGTERM while its modules load ending in one line (130 / 143)."""
+    from kiloforge.cliparse import program
 
-
-class _Parser(ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]  # one line, no usage dump
-        raise UserError(message)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m sim", description="Run a swarm policy in the kiloforge simulator: metrics, "
-                "trajectory plot, coverage plot and an animated GIF.")
-    world = p.add_argument("--world", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: "
-                           "thesis, kilobot with --suite, or the artifact's world)")
-    deprecated_alias(p, "--preset", world)
-    p.add_argument("--robots", type=int_arg(1, MAX_ROBOTS), nargs="+", default=[4],
-                   help="searching robots per env (default 4); with --suite, one or more counts")
-    p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
-    p.add_argument("--policy", default="baseline",
-                   help="'random', 'baseline' (hand-written searcher), 'pusher' (its crowd variant) "
-                        "or a policy artifact file (.npz)")
-    p.add_argument("--out", required=True, help="output folder (created if needed)")
-    p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
-    p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
-                   help="steps per episode (default: the world's episode, thesis 200, kilobot 300, as trained; "
-                        "learn evaluate's 500 is the thesis benchmark's)")
-    n_envs = p.add_argument("--n-envs", type=int_arg(1, MAX_EPISODES), default=None,
-                            help="envs simulated at once (default: min(episodes, 32))")
-    deprecated_alias(p, "--envs", n_envs)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--suite", choices=SUITES, default=None,
-                   help="robustness: final coverage in every world variant (sim.variants) instead of one run")
-    return p
-
-
-def _check_args(a: argparse.Namespace) -> None:
-    if a.world is not None and a.world not in PRESETS:
-        raise UserError(f"unknown world '{a.world}'; choose one of: {', '.join(sorted(PRESETS))}")
-    if a.suite is None and len(a.robots) != 1:
-        raise UserError(f"--robots takes one count without --suite, got {len(a.robots)}")
-
-
-def _load_policy(a: argparse.Namespace):
-    """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy."""
-    from .baselines import BASELINE_NAMES, make_policy
-
-    world = preset(a.world or ("kilobot" if a.suite else "thesis"))
-    if a.steps is not None:
-        world = dataclasses.replace(world, episode_steps=a.steps)
-    if a.policy in BASELINE_NAMES:
-        desc: dict = {"kind": a.policy}
-        if a.policy != "random":
-            desc["params"] = dataclasses.asdict(make_policy(a.policy, world).p)
-        return world, lambda w: make_policy(a.policy, w), desc, None
-    path = Path(a.policy)
-    if not os.path.lexists(path):
-        raise UserError(f"--policy must be one of {', '.join(BASELINE_NAMES)} or a policy file; '{a.policy}' is neither")
-    try:
-        art = load_policy(path)
-    except PolicyError as e:
-        raise UserError(str(e)) from None
-    art_world = art.world
-    if a.steps is not None:
-        art_world = dataclasses.replace(art_world, episode_steps=a.steps)
-    note = None
-    if a.world is not None and art_world != world:
-        note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from --world "
-                f"'{a.world}'; using the policy's world")
-    desc = {"kind": "artifact", "path": str(path), "actor": art.kind, "architecture": art.describe(),
-            "hash": art.hash, "layer_sizes": art.layer_sizes}
-    return art_world, lambda w: swarm_policy(art, w), desc, note
-
-
-def _staged_output(out: Path, files: tuple[str, ...]):
-    """The ``files`` written into the yielded staging folder appear in ``out`` together, or (on any error)
-    nothing does and a folder this run created is removed (:func:`kiloforge.io.staged_files`; the last
-    file, the set's record, is published last)."""
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out must be a folder; '{out}' is a file")
-    return staged_files(out, files, create=True)
-
-
-def run(a: argparse.Namespace) -> dict:
-    """Run the command; returns the metrics.json content. Raises :class:`UserError` for user mistakes."""
-    _check_args(a)
-    world, factory, desc, note = _load_policy(a)
-    if note:
-        print(note, file=sys.stderr)
-    if a.suite:
-        return _run_suite(a, world, factory, desc)
-    policy = factory(world)
-    robots = a.robots[0]
-    from . import render
-    from .env import SwarmEnv
-    from .metrics import compare
-    from .rollout import rollout
-
-    n_envs = a.n_envs or min(a.episodes, 32)
-    try:
-        env = SwarmEnv(world, n_envs, robots, seed=a.seed)
-    except ValueError as e:  # e.g. too many discs for the arena
-        raise UserError(str(e)) from None
-    out = Path(a.out)
-    with _staged_output(out, OUTPUT_FILES) as staging:
-        res = rollout(env, policy, a.episodes, seed=a.seed, record=1, progress=a.episodes > 1 and not a.quiet)
-        m = res.metrics()
-        name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
-        report = {
-            "tool": "kiloforge sim",
-            "argv": list(a.argv),
-            "policy": desc,
-            "world": world.to_dict(),
-            "robots": robots,
-            "seed": a.seed,
-            "envs": n_envs,
-            "rendered_episode": 0,
-            "metrics": m.to_dict(),
-        }
-        tr = res.trajectories
-        title = f"{world.name}: {robots} robots, {name}, seed {a.seed}, episode 0"
-        render.plot_trajectories(tr.positions[0], tr.target[0], world, staging / "trajectories.png", title=title)
-        render.animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
-                               staging / "episode.gif", title=title)
-        render.plot_coverage({name: res.coverage}, staging / "coverage.png",
-                             title=f"{world.name}: {robots} robots, {a.episodes} episodes")
-        (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-    print(compare({name: m}))
-    print(f"wrote {out}/: {' '.join(OUTPUT_FILES)}")
-    return report
-
-
-def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
-    """``--suite robustness``: every variant at every robot count; robustness.json and .md."""
-    from .env import SwarmEnv
-    from .robustness import run_suite
-    from .variants import robustness_suite
-
-    try:
-        suite = robustness_suite(world)
-        for M in a.robots:  # every variant has the nominal arena: too many discs fail here, before any output
-            SwarmEnv(world, 1, M, seed=0)
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    out = Path(a.out)
-    with _staged_output(out, SUITE_FILES) as staging:
-        table = run_suite(factory, world, a.robots, a.episodes, world.episode_steps, a.seed, suite, a.n_envs,
-                          progress=not a.quiet)
-        name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
-        report = {"tool": "kiloforge sim", "argv": list(a.argv), "suite": a.suite, "policy": desc,
-                  "world": world.to_dict(), "variants": {v: {"world": w.to_dict(), "randomisation":
-                                                             None if r is None else dataclasses.asdict(r)}
-                                                         for v, (w, r) in suite.items()},
-                  **table.to_dict()}
-        md = (f"# Robustness of {name} ({world.name} world, {a.episodes} episodes x {world.episode_steps} steps, "
-              f"seed {a.seed})\n\n{table.format()}\n")
-        (staging / "robustness.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-        (staging / "robustness.md").write_text(md)
-    print(table.format())
-    print(f"wrote {out}/: {' '.join(SUITE_FILES)}")
-    return report
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m sim`` / ``kiloforge-sim``; returns the exit code (a Ctrl-C or SIGTERM while it
-    starts ends in one line: 130 / 143)."""
-    return run_entry_point(lambda: _main, argv, f"{program('python -m sim')}: interrupted while starting; nothing "
-                           "written", _held if argv is None else ())
-
-
-def _main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    mark = io.published_count()
-    try:
-        with terminate_raises():
-            a = build_parser().parse_args(argv)
-            a.argv = argv
-            run(a)
-    except (UserError, KiloforgeError) as e:
-        print(error_line(program('python -m sim'), printable(e)), file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt as e:
-        written = io.published_since(mark)
-        what = (f"after writing {', '.join(map(str, written))} (complete)" if written
-                else "; nothing written (files from an earlier run are unchanged)")
-        print(f"{program('python -m sim')}: interrupted {what}".replace(" ;", ";"), file=sys.stderr)
-        return exit_status(e)
-    except SystemExit as e:  # --help
-        return int(e.code or 0) if not isinstance(e.code, str) else EXIT_USAGE
-    return 0
+    return run_entry_point(_load, argv, f"{program('python -m sim')}: interrupted while starting; nothing written",
+                           _held if argv is None else ())
 
 
 if __name__ == "__main__":

@@ -738,7 +738,7 @@ def check_cli(which: str, argv: list[str], out_dir: Path, fx: Fixtures) -> tuple
         if problems:
             return "partial_output", f"{problems} {detail}"
     if which == "sim":
-        from sim.__main__ import OUTPUT_FILES, SUITE_FILES
+        from kiloforge.sim_cli import OUTPUT_FILES, SUITE_FILES
 
         suite = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--suite"]
         names = SUITE_FILES if suite and suite[-1] == "robustness" else OUTPUT_FILES

@@ -11,7 +11,7 @@ from export.cli.firmware import export_parser
 from export.cli.rehash import rehash_parser
 from export.cli.verify import verify_parser
 from kiloforge.cliparse import version_line
-from sim.__main__ import build_parser as sim_parser
+from kiloforge.sim_cli import build_parser as sim_parser
 from sim.config import MAX_ROBOTS
 
 

@@ -1,4 +1,5 @@
-"""The import graph of sim/, learn/, export/ and kiloforge/: no cycles, no torch below learn, sim below export."""
+"""The import graph of sim/, learn/, export/ and kiloforge/: no cycles, no torch below learn, every module on its floor
+(docs/design.md, "Dependencies run one way")."""
 from __future__ import annotations
 
 import ast
@@ -113,3 +114,55 @@ def test_layers():
             names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
             names |= {(n.module or "").split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
             assert "torch" not in names, f"{name} imports torch"
+
+
+#: kiloforge's foundation, the floor below sim: what every package uses and nothing of ours but itself
+FOUNDATION = {"kiloforge", "kiloforge.errors", "kiloforge.validate", "kiloforge.io", "kiloforge.progress",
+              "kiloforge.cliparse", "kiloforge.interrupts", "kiloforge.sighold", "kiloforge.extras"}
+#: the programs, the top floor: the ``__main__`` modules, the ``kiloforge`` command, the console scripts and the
+#: command lines that sit above the package they are named after (``python -m sim`` plays policy artifacts)
+PROGRAMS = {"sim.__main__", "learn.__main__", "export.__main__", "kiloforge.__main__", "kiloforge.cli",
+            "kiloforge.scripts", "kiloforge.sim_cli"}
+FLOORS = ("foundation", "sim", "artifact", "export", "learn", "program")
+
+
+def floor(name: str) -> str:
+    """The floor of a module: kiloforge's foundation, the simulator library, kiloforge's artifact and actor floor
+    (artifact, policies, numfmt, actors/), export, learn, or the programs."""
+    if name in PROGRAMS:
+        return "program"
+    if name in FOUNDATION:
+        return "foundation"
+    top = name.split(".")[0]
+    return "artifact" if top == "kiloforge" else top
+
+
+def back_arrows(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a module from a floor above its own, and every import of sim/ into kiloforge beyond the
+    foundation and the programs (``sim/__main__.py`` only starts its command line, :mod:`kiloforge.sim_cli`)."""
+    out = [f"{name} ({floor(name)}) imports {dep} ({floor(dep)})" for name, deps in sorted(graph.items())
+           for dep in sorted(deps) if FLOORS.index(floor(dep)) > FLOORS.index(floor(name))]
+    for name, deps in sorted(graph.items()):
+        if name.split(".")[0] == "sim":
+            allowed = FOUNDATION | (PROGRAMS if name == "sim.__main__" else set())
+            out += [f"{name} imports {dep}" for dep in sorted(deps)
+                    if dep.split(".")[0] == "kiloforge" and dep not in allowed]
+    return out
+
+
+def test_floors():
+    """Every import goes to the module's own floor or one below: foundation < sim < artifact/actor < export < learn
+    < programs; no module of sim/ imports kiloforge's artifact/actor floor."""
+    graph = _graph()
+    assert floor("kiloforge.policies") == floor("kiloforge.actors.gru") == "artifact"
+    assert not FOUNDATION - set(graph) and not PROGRAMS - set(graph), "a listed module does not exist"
+    assert back_arrows(graph) == []
+    assert "kiloforge.sim_cli" in graph["sim.__main__"] and "kiloforge.policies" in graph["kiloforge.sim_cli"]
+
+
+def test_floor_check_sees_back_arrows():
+    """The floor check flags sim (its __main__ too) importing the artifact floor and learn importing a program, and
+    lets the artifact floor import sim and the foundation."""
+    assert back_arrows({"sim.__main__": {"kiloforge.policies"}, "learn.onnx_export": {"kiloforge.cli"},
+                        "kiloforge.artifact": {"sim.config", "kiloforge.io"}, "sim.env": {"kiloforge.progress"}}) == [
+        "learn.onnx_export (learn) imports kiloforge.cli (program)", "sim.__main__ imports kiloforge.policies"]

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 import kiloforge
-from kiloforge.cli import COMMANDS, learn_script, main, missing_dependency
+from kiloforge.cli import COMMANDS, learn_script, main
+from kiloforge.extras import missing_dependency
 from kiloforge.cliparse import invoked_as, program
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -28,7 +28,7 @@ CASES = {
     "kiloforge-export": ("kiloforge.scripts:export", "kiloforge/scripts.py,export/__main__.py,export/cli/main.py:main",
                          ["--out", "kilobot_policy.c", "--seed", "2", "--robots-calib", "2", "--calib-steps", "4",
                           "--no-avr", "--quiet"], 0, 3),
-    "sim": ("sim", "sim/__main__.py:<module>,sim/__main__.py:main,sim/__main__.py:_main", ["--help"], 0, 4),
+    "sim": ("sim", "sim/__main__.py,kiloforge/sim_cli.py:main", ["--help"], 0, 4),
     # learn imports torch for every command (seconds a run): a sample of its lines
     "learn": ("learn", "learn/__main__.py:<module>,learn/__main__.py:main,learn/__main__.py:_main",
               ["plot", "no-such-run"], 2, 25),
