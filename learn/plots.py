@@ -1,4 +1,5 @@
-"""Plots of training and evaluation (matplotlib Agg, no pyplot state; files written atomically).
+"""Plots of training and evaluation (:func:`kiloforge.plotting.figure`: names drawn as plain text; files
+written atomically).
 
 * :func:`plot_learning_curves` — evaluation return and final coverage over transitions, mean ± 2
   standard deviations over runs (seeds), like thesis Figs 5.1–5.8;
@@ -12,17 +13,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
-from kiloforge.io import atomic_path
-
-
-def _save(fig: Figure, path: str | os.PathLike) -> Path:
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    return Path(path)
+from kiloforge.plotting import figure, save_png
 
 
 def align_runs(runs: list[list[dict]], key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -47,8 +39,7 @@ def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path:
     Several runs under one label are drawn as their mean with a ±2 std band (over runs).
     """
     assert groups, "plot_learning_curves needs at least one run"
-    fig = Figure(figsize=(9.0, 3.6))
-    FigureCanvasAgg(fig)
+    fig = figure(9.0, 3.6)
     panels = (("eval_return", "evaluation return"), ("eval_final_coverage", "final coverage"))
     axes = [fig.add_subplot(1, 2, k + 1) for k in range(2)]
     for g, (label, runs) in enumerate(groups.items()):
@@ -74,14 +65,13 @@ def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path:
     axes[0].legend(fontsize=7, loc="lower right")
     if title:
         fig.suptitle(title, fontsize=9)
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def plot_reward_over_time(rewards: dict[str, np.ndarray], path: str | os.PathLike,
                           title: str | None = None) -> Path:
     """Mean reward at each step over episodes; ``rewards`` maps a policy name to (E, T) rewards."""
-    fig = Figure(figsize=(6.4, 3.8))
-    FigureCanvasAgg(fig)
+    fig = figure(6.4, 3.8)
     ax = fig.add_subplot(1, 1, 1)
     for k, (name, r) in enumerate(rewards.items()):
         r = np.atleast_2d(np.asarray(r, np.float64))
@@ -91,13 +81,12 @@ def plot_reward_over_time(rewards: dict[str, np.ndarray], path: str | os.PathLik
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "mean reward over time", fontsize=9)
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def plot_returns_box(returns: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None) -> Path:
     """Box plots of episode returns (median, quartiles, whiskers at 1.5 IQR, outliers), one per policy."""
-    fig = Figure(figsize=(1.6 + 1.3 * len(returns), 3.8))
-    FigureCanvasAgg(fig)
+    fig = figure(1.6 + 1.3 * len(returns), 3.8)
     ax = fig.add_subplot(1, 1, 1)
     names = list(returns)
     ax.boxplot([np.asarray(returns[n], np.float64) for n in names], whis=1.5,
@@ -106,4 +95,4 @@ def plot_returns_box(returns: dict[str, np.ndarray], path: str | os.PathLike, ti
     ax.set_ylabel("return")
     ax.grid(alpha=0.3, axis="y")
     ax.set_title(title or "episode returns", fontsize=9)
-    return _save(fig, path)
+    return save_png(fig, path)

@@ -11,7 +11,8 @@ The target is ``(2,)`` (a fixed beacon) or ``(T+1, 2)`` (its position at every s
 * :func:`plot_coverage` — fraction of robots in range over time, mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
-Every file is written atomically (:func:`kiloforge.io.atomic_path`).
+Every file is written atomically (:func:`kiloforge.io.atomic_path`); every figure is a
+:func:`kiloforge.plotting.figure` (the names in titles are drawn as plain text).
 """
 from __future__ import annotations
 
@@ -19,12 +20,12 @@ import os
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 from PIL import Image, ImageDraw
 
 from kiloforge.io import atomic_path
+from kiloforge.plotting import figure, save_png
 
 from .config import WorldConfig
 from .metrics import summarise
@@ -36,9 +37,7 @@ C_WALL = "0.25"
 
 
 def _figure(size_in: float = 5.0) -> Figure:
-    fig = Figure(figsize=(size_in, size_in))
-    FigureCanvasAgg(fig)
-    return fig
+    return figure(size_in, size_in)
 
 
 def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
@@ -88,17 +87,13 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray, cfg: WorldConfi
     ax.plot([], [], marker="o", mfc="none", color="k", ls="none", label="end")
     ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
     ax.set_title(title or f"{cfg.name}: {M} robots, {positions.shape[0] - 1} steps", fontsize=9)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    return Path(path)
+    return save_png(fig, path)
 
 
 def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None) -> Path:
     """Coverage over time to PNG: per name, ``(E, T)`` fractions → mean line and 95 % CI band."""
     assert curves, "plot_coverage needs at least one curve"
-    fig = Figure(figsize=(6.0, 3.6))
-    FigureCanvasAgg(fig)
+    fig = figure(6.0, 3.6)
     ax = fig.add_subplot(1, 1, 1)
     for k, (name, c) in enumerate(curves.items()):
         c = np.atleast_2d(np.asarray(c, np.float64))  # (E, T)
@@ -116,10 +111,7 @@ def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title(title or "coverage of the target", fontsize=9)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    return Path(path)
+    return save_png(fig, path)
 
 
 class _FramePainter:

@@ -18,7 +18,6 @@ Exit status: 0 every robot count passes; 1 some robot count fails the goal; 2 ba
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 from pathlib import Path
@@ -70,15 +69,15 @@ def verify_parser() -> argparse.ArgumentParser:
 
 def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
     """(coverage.png, returns_box.png) as bytes."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.patches import Rectangle
+
+    from kiloforge.plotting import figure, png_bytes
 
     colours = {"float": "tab:blue", "int8": "tab:orange"}
     n = len(comps)
-    fig, axes = plt.subplots(1, n, figsize=(5.0 * n, 3.6), squeeze=False, sharey=True)
+    fig = figure(5.0 * n, 3.6)
+    axes = fig.subplots(1, n, squeeze=False, sharey=True)
     for ax, c in zip(axes[0], comps):
         for label, (mean, half) in c.curves().items():
             t = np.arange(1, mean.size + 1)
@@ -94,12 +93,10 @@ def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
     axes[0][0].set_ylabel("coverage (fraction within comm radius)")
     axes[0][0].legend(loc="lower right", fontsize=8)
     fig.suptitle(f"{title}: mean and 95% CI over {comps[0].episodes} episodes", fontsize=10)
-    fig.tight_layout()
-    cov = io.BytesIO()
-    fig.savefig(cov, format="png", dpi=110)
-    plt.close(fig)
+    cov = png_bytes(fig)
 
-    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * n), 3.6))
+    fig = figure(max(4.0, 2.2 * n), 3.6)
+    ax = fig.add_subplot(1, 1, 1)
     data, pos, cols = [], [], []
     for i, c in enumerate(comps):
         for j, run in enumerate((c.float_run, c.int8_run)):
@@ -113,15 +110,11 @@ def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
         patch.set_alpha(0.6)
     ax.set_xticks([3 * i + 1.5 for i in range(n)], [f"{c.n_robots} robots" for c in comps])
     ax.set_ylabel("episode return")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=colours[k], alpha=0.6) for k in ("float", "int8")]
+    handles = [Rectangle((0, 0), 1, 1, color=colours[k], alpha=0.6) for k in ("float", "int8")]
     ax.legend(handles, ["float actor", "int8 firmware"], fontsize=8)
     ax.set_title(f"{title}: returns over {comps[0].episodes} episodes", fontsize=10)
     ax.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    box = io.BytesIO()
-    fig.savefig(box, format="png", dpi=110)
-    plt.close(fig)
-    return cov.getvalue(), box.getvalue()
+    return cov, png_bytes(fig)
 
 
 def run_verify(argv: Sequence[str]) -> int:
