@@ -15,6 +15,7 @@ missing optional dependency is one line naming the extra to install (:func:`kilo
 """
 from __future__ import annotations
 
+import difflib
 import importlib
 import importlib.util
 import sys
@@ -151,7 +152,9 @@ def _main(argv: Sequence[str] | None, held: Sequence[int]) -> int:
     name, rest = argv[0], argv[1:]
     cmd = COMMANDS.get(name)
     if cmd is None:
-        print(f"kiloforge: error: unknown command '{printable(name, 60)}'; commands: {', '.join(COMMANDS)} "
+        close = difflib.get_close_matches(name, COMMANDS, n=1)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+        print(f"kiloforge: error: unknown command '{printable(name, 60)}'; {hint}commands: {', '.join(COMMANDS)} "
               "(kiloforge --help)", file=sys.stderr)
         return EXIT_USAGE
     prog = f"kiloforge {name}"

@@ -44,7 +44,7 @@ class UserError(Exception):
 
 class _Parser(ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]  # one line, no usage dump
-        raise UserError(message)
+        raise UserError(self.explain(message))
 
 
 def build_parser() -> argparse.ArgumentParser:

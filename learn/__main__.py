@@ -36,7 +36,7 @@ def build_parser() -> ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=ArgumentParser)
 
     sub.add_parser("train", add_help=False,
-                   help="train an MLP policy with MAGDDPG (python -m learn train --help)")
+                   help=f"train an MLP policy with MAGDDPG ({p.prog} train --help)")
 
     e = sub.add_parser("evaluate", help="evaluate policies against the baselines",
                        description="Evaluate policy artifacts and the random / hand-written baselines.")
@@ -57,14 +57,14 @@ def build_parser() -> ArgumentParser:
     e.add_argument("--quiet", action="store_true", help="no progress bars")
 
     sub.add_parser("train-recurrent", add_help=False,
-                   help="train a recurrent (GRU) policy with MAGRDPG (python -m learn train-recurrent --help)")
+                   help=f"train a recurrent (GRU) policy with MAGRDPG ({p.prog} train-recurrent --help)")
     sub.add_parser("train-es", add_help=False,
                    help="train an MLP policy with evolution strategies from a clone of the searcher "
-                        "(python -m learn train-es --help)")
+                        f"({p.prog} train-es --help)")
     sub.add_parser("export-onnx", add_help=False,
-                   help="write a policy artifact's float actor as ONNX (python -m learn export-onnx --help)")
+                   help=f"write a policy artifact's float actor as ONNX ({p.prog} export-onnx --help)")
     sub.add_parser("sweep", add_help=False,
-                   help="a grid of trainings x seeds on Ray Tune, aggregated (python -m learn sweep --help)")
+                   help=f"a grid of trainings x seeds on Ray Tune, aggregated ({p.prog} sweep --help)")
 
     pl = sub.add_parser("plot", help="learning curves of runs (mean ± 2 std over seeds)",
                         description="Plot learning curves; runs that differ only in seed are averaged.")

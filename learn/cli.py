@@ -23,16 +23,17 @@ import os
 import re
 import shlex
 import sys
+import typing
 from pathlib import Path
-from typing import Annotated, Any, Callable, Optional
+from typing import Annotated, Any, Callable, Literal, Optional
 
 import tyro
 
-from kiloforge.cliparse import version_line
+from kiloforge.cliparse import first_unknown_option, unknown_option, version_line
 
 from sim.config import PRESETS as WORLD_PRESETS
 
-from .config import PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig, flag_name
+from .config import FLAG_ALIASES, PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig, flag_name
 from .runfiles import read_json
 
 _BOX = re.compile(r"[╭╮╰╯│]")
@@ -43,14 +44,20 @@ RUN_OPTIONS = (("preset", Optional[str], None, "training preset (the world is --
                ("config", Optional[str], None, "JSON file of config fields"),
                ("out", Optional[str], None, "run directory (default runs/<task>__<exp>__<seed>__<time>)"),
                ("resume", bool, False, "continue the run in --out from its checkpoint (one without a checkpoint restarts)"),
-               ("quiet", bool, False, "no progress bar; one line per evaluation"))
+               ("quiet", bool, False, "no progress bar; one line per evaluation"),
+               ("version", tyro.conf.FlagCreatePairsOff[bool], False, "print the version and exit"))
+RUN_METAVARS = {"config": "FILE", "out": "DIR"}  #: what --help shows for a run option's value
 
 
-def _args_class(cls: type[ConfigBase]) -> type:
-    """The CLI of one config class: its fields (no prefix), then the run options."""
+def _args_class(cls: type[ConfigBase], default_preset: str) -> type:
+    """The CLI of one config class: its fields (no prefix), then the run options (``--preset``: one of the
+    algorithm's training presets, listed by ``--help``)."""
+    preset = (Literal[tuple(PRESETS[cls.algorithm])], default_preset)  # type: ignore[valid-type]
     fields = [("cfg", Annotated[cls, tyro.conf.arg(name="")])]
-    fields += [(name, Annotated[typ, tyro.conf.arg(help=doc)], dataclasses.field(default=default))
-               for name, typ, default, doc in RUN_OPTIONS]
+    for name, typ, default, doc in RUN_OPTIONS:
+        typ, default = preset if name == "preset" else (typ, default)
+        fields.append((name, Annotated[typ, tyro.conf.arg(help=doc, metavar=RUN_METAVARS.get(name))],
+                       dataclasses.field(default=default)))
     Args = dataclasses.make_dataclass("Args", fields)
     Args.__doc__ = cls.__doc__
     return Args
@@ -95,8 +102,24 @@ def _tyro_error(text: str) -> str:
     return msg
 
 
+def train_flags(cls: type[ConfigBase]) -> set[str]:
+    """Every option of a trainer's command line: its config fields' flags (with their aliases and the
+    ``--no-`` form of booleans), the run options, ``--help``."""
+    hints = {**typing.get_type_hints(cls), **{name: typ for name, typ, _, _ in RUN_OPTIONS}}
+    names = [f.name for f in dataclasses.fields(cls)] + [name for name, *_ in RUN_OPTIONS]
+    flags = {"-h", "--help"} | {FLAG_ALIASES[n] for n in names if n in FLAG_ALIASES}
+    for name in names:
+        flags.add("--" + name.replace("_", "-"))
+        if hints[name] is bool:
+            flags.add("--no-" + name.replace("_", "-"))
+    return flags
+
+
 def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_preset: str):
     """(config, run directory, resume, quiet) from the command line; ConfigError (one line) on bad input."""
+    unknown = first_unknown_option(argv, train_flags(cls))
+    if unknown is not None:
+        raise ConfigError(unknown_option(unknown, train_flags(cls) - {"-h"}))
     meta = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     for flag in ("--preset", "--config", "--out"):
         meta.add_argument(flag, default=None)
@@ -104,8 +127,8 @@ def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_
     meta.add_argument("--version", action="version", version=version_line())
     known, _ = meta.parse_known_args(argv)
     base = base_config(cls, known.preset, known.config, known.resume, known.out, default_preset)
-    Args = _args_class(cls)
-    default = Args(cfg=base, preset=known.preset, config=known.config, out=known.out, resume=known.resume)
+    Args = _args_class(cls, default_preset)
+    default = Args(cfg=base, preset=known.preset or default_preset, config=known.config, out=known.out, resume=known.resume)
     err = io.StringIO()
     columns = os.environ.get("COLUMNS")
     if not {"-h", "--help"} & set(argv):

@@ -50,6 +50,7 @@ import tyro
 from sim.config import BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
+from sim.variants import RANDOMISATIONS
 from sim.config import preset as world_preset
 
 
@@ -72,6 +73,18 @@ CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recur
 FLAG_ALIASES = {"n_robots": "--robots", "t_prev": "--history"}
 Robots = Annotated[tuple[int, ...], tyro.conf.arg(aliases=(FLAG_ALIASES["n_robots"],))]
 HistoryLength = Annotated[int, tyro.conf.arg(aliases=(FLAG_ALIASES["t_prev"],))]
+
+
+
+
+def choice(values: typing.Iterable[str]) -> Any:
+    """A str field taking one of ``values``, which its ``--help`` lists (``--world {kilobot,thesis}``)."""
+    return Annotated[str, tyro.conf.arg(metavar="{" + ",".join(values) + "}")]
+
+
+World = choice(sorted(WORLD_PRESETS))
+Randomise = choice(dict.fromkeys(["none", *RANDOMISATIONS]))
+DemoPolicy = choice(DEMO_POLICIES)
 
 
 def flag_name(field: str) -> str:
@@ -140,18 +153,18 @@ class ExperimentConfig(ConfigBase):
     algorithm: ClassVar[str] = ""
 
     # --- task --------------------------------------------------------------------------------
-    world: str = "thesis"  #: world preset (sim.config.PRESETS): thesis or kilobot
+    world: World = "thesis"  #: world preset (sim.config.PRESETS): thesis or kilobot
     n_robots: Robots = (4,)  #: swarm sizes trained together (one env group and replay per size; > 1 needs --critic mean)
     episode_steps: int = 0  #: control steps per episode; 0 = the world's (thesis: 200)
-    randomise: str = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
+    randomise: Randomise = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
     randomise_eval: bool = False  #: also randomise the evaluation envs
-    reward: str = "team"  #: learning reward: team (the world's), linear (coverage, not squared), potential (team + shaping)
+    reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (coverage, not squared), potential (team + shaping)
     shaping_weight: float = 1.0  #: weight of the potential-based shaping term (reward potential)
     # --- critic ------------------------------------------------------------------------------
-    critic: str = "concat"  #: centralised critic: concat (thesis: full state + joint action) or mean (mean embedding, any swarm size)
+    critic: choice(CRITICS) = "concat"  #: centralised critic: concat (thesis: full state + joint action) or mean (mean embedding, any swarm size)
     critic_hidden: tuple[int, ...] = (256, 128, 64)  #: critic hidden widths (ELU); the mean critic's head after pooling
     critic_embed: tuple[int, ...] = (64, 64)  #: mean critic: per-robot encoder widths (ELU)
-    critic_pool: str = "mean"  #: mean critic pooling over robots: mean or meanmax
+    critic_pool: choice(CRITIC_POOLS) = "mean"  #: mean critic pooling over robots: mean or meanmax
     critic_obs: bool = False  #: mean critic: also encode each robot's observation
     # --- actor-critic updates ----------------------------------------------------------------
     gamma: float = 0.99  #: discount factor (not given in the thesis; 0.99 as in DDPG)
@@ -161,11 +174,11 @@ class ExperimentConfig(ConfigBase):
     grad_clip: float = 0.0  #: clip the actor's gradient norm to this (0 = no clipping)
     #: how ∇_a Q reaches a bounded action: invert (inverting gradients, thesis §4.3.1) or clip (the
     #: gradient of Q(s, clip(a)): zero beyond the bounds, so commands at 0 or 1 are not ratcheted inwards)
-    action_gradient: str = "invert"
+    action_gradient: choice(ACTION_GRADIENTS) = "invert"
     actor_robots: int = 0  #: actor objective on this many random robots per sample, scaled to all (0 = every robot)
     #: with actor_robots: the other robots' actions in Q come from the current actor without gradient (policy:
     #: an unbiased estimate of the full gradient) or from the replay (replay: as MADDPG; cheaper, a different objective)
-    actor_others: str = "policy"
+    actor_others: choice(ACTOR_OTHERS) = "policy"
     replay_size: int = 500_000  #: replay capacity in transitions per swarm size (whole episodes)
     warmup_episodes: int = 500  #: episodes (summed over envs) run with the initial policy before learning
     episodes: int = 10_000  #: learning episodes (summed over envs and sizes) after the warm-up
@@ -174,7 +187,7 @@ class ExperimentConfig(ConfigBase):
     #: the actor and its target step on every this many-th update, the critic on every one (TD3's delayed
     #: policy updates, Fujimoto et al. 2018; 1 = every update): fewer actor and actor-objective passes
     policy_every: int = 1
-    size_mix: str = "equal"  #: share of a minibatch per swarm size: equal, or robots (proportional to robot count)
+    size_mix: choice(SIZE_MIXES) = "equal"  #: share of a minibatch per swarm size: equal, or robots (proportional to robot count)
     reward_scale: float = 1.0  #: multiplies the learning reward (metrics stay raw)
     extra_action_penalty: float = 0.0  #: learning only: added to the world's action penalty (thesis 0.01)
     # --- exploration (Ornstein-Uhlenbeck, per robot and motor) -------------------------------
@@ -183,7 +196,7 @@ class ExperimentConfig(ConfigBase):
     noise_mu: float = 0.0  #: OU mean (added to the actor's action)
     phantom_neighbours: float = 0.0  #: training only: up to this many phantom neighbours per robot and step (learn/augment.py; 0 = off)
     # --- guidance by demonstrations (learn.demos) --------------------------------------------
-    demo_policy: str = "none"  #: demonstrator: none, searcher or pusher (hand-written, learn.demos)
+    demo_policy: DemoPolicy = "none"  #: demonstrator: none, searcher or pusher (hand-written, learn.demos)
     demo_episodes: int = 1024  #: demonstrator episodes per swarm size, collected before training
     bc_updates: int = 1500  #: behaviour-cloning steps of the actor on the demonstrations before RL
     bc_lr: float = 3e-3  #: Adam learning rate of behaviour cloning
@@ -195,10 +208,10 @@ class ExperimentConfig(ConfigBase):
     #: torch CPU threads; 0 = auto: 1, and for the update blocks 1 or every core (at most 4), whichever is measured
     #: faster, only where that gives the same bits (learn.speed); N = N threads everywhere
     threads: int = 0
-    device: str = "auto"  #: networks and replay on cpu or cuda; auto = cuda when available (the env stays NumPy)
+    device: choice(DEVICES) = "auto"  #: networks and replay on cpu or cuda; auto = cuda when available (the env stays NumPy)
     #: arithmetic of the updates: fp32, or bf16 (hidden layers in a bfloat16 autocast, outputs, losses and weights
     #: float32; 1.2-1.3x faster updates at 32 robots on a CPU with AVX-512 bf16, none at 4; changes what is learned)
-    precision: str = "fp32"
+    precision: choice(PRECISIONS) = "fp32"
     # --- evaluation and bookkeeping ----------------------------------------------------------
     eval_every: int = 20_000  #: evaluate every this many transitions (at the next episode end)
     eval_episodes: int = 20  #: deterministic evaluation episodes per swarm size
@@ -342,7 +355,7 @@ class RecurrentConfig(ExperimentConfig):
     eval_every: int = 25_600  #: evaluate every this many transitions (at the next episode end)
     exp_name: str = "gru"  #: experiment name used in the default run directory name
 
-    cell: str = "gru"  #: the actor's recurrent cell: gru or lstm (the thesis's MAGRDPG used an LSTM)
+    cell: choice(CELLS) = "gru"  #: the actor's recurrent cell: gru or lstm (the thesis's MAGRDPG used an LSTM)
     hidden: int = 32  #: recurrent units of the actor (the firmware keeps them as int8 in SRAM)
     unroll: int = 8  #: T_unroll: steps per window with loss and gradient (truncated BPTT length)
     burn_in: int = 8  #: steps before them that only warm up the hidden state from zero
@@ -387,11 +400,11 @@ class ESConfig(ConfigBase):
     algorithm: ClassVar[str] = "es"
 
     # --- task --------------------------------------------------------------------------------
-    world: str = "kilobot"  #: world preset (sim.config.PRESETS): thesis or kilobot
+    world: World = "kilobot"  #: world preset (sim.config.PRESETS): thesis or kilobot
     n_robots: Robots = (4, 16, 32)  #: swarm sizes; every generation plays each of them
     size_weights: tuple[int, ...] = ()  #: relative weight of each swarm size in the fitness (empty = equal)
     episode_steps: int = 0  #: control steps of a training episode; 0 = the world's (kilobot: 300)
-    randomise: str = "none"  #: domain randomisation of the training episodes (a name in sim.variants.RANDOMISATIONS)
+    randomise: Randomise = "none"  #: domain randomisation of the training episodes (a name in sim.variants.RANDOMISATIONS)
     #: per swarm size, the randomisation of its training episodes (one name per --robots entry, e.g. table table
     #: table-free-beacon); empty = --randomise for every size
     size_randomise: tuple[str, ...] = ()
@@ -399,7 +412,7 @@ class ESConfig(ConfigBase):
     t_prev: HistoryLength = 20  #: history length T_prev in (previous action, observation) tuples
     actor_hidden: tuple[int, ...] = (32, 32)  #: actor hidden widths (ELU); must fit the Kilobot to export
     # --- start: behaviour cloning of the demonstrator ------------------------------------------
-    demo_policy: str = "searcher"  #: demonstrator: searcher or pusher (learn.demos), or none (random init)
+    demo_policy: DemoPolicy = "searcher"  #: demonstrator: searcher or pusher (learn.demos), or none (random init)
     #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
     init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
@@ -523,8 +536,6 @@ def randomisation(name: str) -> Any:
     """``sim.variants.RANDOMISATIONS[name]`` (None for ``none``); one-line ConfigError otherwise."""
     if name == "none":
         return None
-    from sim.variants import RANDOMISATIONS
-
     if name not in RANDOMISATIONS:
         raise ConfigError(f"unknown randomise '{name}'; choose one of: {', '.join(dict.fromkeys(['none', *RANDOMISATIONS]))}")
     return RANDOMISATIONS[name]

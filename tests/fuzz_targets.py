@@ -627,11 +627,11 @@ def export_argv(draw, fx: Fixtures, out: str) -> list[str]:
                  "--activation": ["elu", "relu", "x"]}
         head = ["budget"]
     elif sub == "verify":
-        flags = {"--closed-loop": [], "--policy": fx.paths(), "--robots": ["2", "0", "x", "2000"], "--episodes":
+        flags = {"--policy": fx.paths(), "--robots": ["2", "0", "x", "2000"], "--episodes":
                  ["1", "2", "0", "-4", "x"], "--steps": ["2", "0", "x"], "--seed": INTS, "--goal": FLOATS,
                  "--percentile": FLOATS, "--out": [str(Path(out).parent / "vout"), str(fx.policy), out],
                  "--calib-seed": INTS}
-        head = ["verify"] + CHEAP_VERIFY + ["--closed-loop"]
+        head = ["verify"] + CHEAP_VERIFY
     elif sub == "rehash":  # never in place: the fixtures stay as they are
         return ["rehash", draw(st.sampled_from(fx.paths())),
                 *draw(st.sampled_from([["--out", str(Path(out).parent / "re.npz")], ["--out", str(fx.dir)],

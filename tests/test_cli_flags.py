@@ -137,10 +137,79 @@ def test_abbreviation_refused_with_one_error_line(argv, prog, tmp_path, monkeypa
     assert list(tmp_path.iterdir()) == []
 
 
-def test_verify_runs_without_closed_loop_flag():
-    """`export verify` no longer requires --closed-loop (its only mode), and still accepts it."""
+def test_closed_loop_flag_is_a_deprecated_no_op(capsys):
+    """`export verify --closed-loop` (its only mode) is accepted with one note on stderr, hidden from --help,
+    and changes nothing that is parsed."""
     p = verify_parser()
-    assert p.parse_args([]).closed_loop is False and p.parse_args(["--closed-loop"]).closed_loop is True
+    assert vars(p.parse_args(["--closed-loop"])) == vars(p.parse_args([]))
+    note = capsys.readouterr().err.strip().splitlines()
+    assert note == ["python -m export verify: note: --closed-loop does nothing (the closed-loop comparison is the only "
+                    "thing verify does) and will be removed; leave it out"]
+    assert "--closed-loop" not in visible(p)
+
+
+LEARN = ["learn", "evaluate", "--policy", "p.npz"]
+
+
+@pytest.mark.parametrize("argv,prog,line", [
+    (["sim", "--robot", "8"], "python -m sim", "unrecognized option --robot; did you mean --robots?"),
+    (["sim", "--out", "o", "--stepz=3"], "python -m sim", "unrecognized option --stepz; did you mean --steps?"),
+    (["export", "--polcy", "x.npz"], "python -m export", "unrecognized option --polcy; did you mean --policy?"),
+    (["export", "verify", "--robot", "8"], "python -m export verify", "unrecognized option --robot; did you mean --robots?"),
+    (["export", "budget", "--hiden", "8"], "python -m export budget", "unrecognized option --hiden; did you mean --hidden?"),
+    ([*LEARN, "--robot", "8"], "python -m learn evaluate", "unrecognized option --robot; did you mean --robots?"),
+    (["learn", "plot", "r", "--titel", "t"], "python -m learn plot", "unrecognized option --titel; did you mean --title?"),
+    (["learn", "train", "--robot", "8"], "python -m learn train", "unrecognized option --robot; did you mean --robots?"),
+    (["learn", "train-recurrent", "--cel", "gru"], "python -m learn train-recurrent",
+     "unrecognized option --cel; did you mean --cell?"),
+    (["learn", "train-es", "--robot", "8"], "python -m learn train-es", "unrecognized option --robot; did you mean --robots?"),
+    (["learn", "train-es", "--xyzzy"], "python -m learn train-es", "unrecognized option --xyzzy (--help lists the options)"),
+])
+def test_misspelled_option_names_the_closest(argv, prog, line, tmp_path, monkeypatch, capsys):
+    """A misspelled option is answered in one line with the closest valid one, exit 2, nothing written."""
+    if "train" in argv[1]:
+        pytest.importorskip("torch")
+    monkeypatch.chdir(tmp_path)
+    assert call(argv) == 2
+    assert capsys.readouterr().err == f"{prog}: error: {line}\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command,shown", [
+    ("train", ["--preset {default,thesis,fast,quick,guided}", "--world {kilobot,thesis}", "--version"]),
+    ("train-recurrent", ["--preset {fast,quick,guided}", "--cell {gru,lstm}", "--version"]),
+    ("train-es", ["--preset {default,quick}", "--randomise {none,", "--demo-policy {none,searcher,pusher}", "--version"]),
+])
+def test_trainer_help_lists_choices_and_version(command, shown, capsys, monkeypatch):
+    """A trainer's --help lists the choices of --preset and of the other named values, and --version."""
+    pytest.importorskip("torch")
+    monkeypatch.setenv("COLUMNS", "200")
+    assert call(["learn", command, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "{None}" not in out and all(s in out for s in shown), out
+
+
+def test_export_policy_help_names_every_shipped_policy():
+    """`--policy` of export and verify names every shipped policy (default, searcher, pusher)."""
+    from export.cli.common import SHIPPED_POLICIES
+
+    names = [n for shipped in SHIPPED_POLICIES.values() for n in shipped]
+    assert set(names) >= {"default", "searcher", "pusher"}
+    for name in ("export", "export verify"):
+        assert all(n in visible(parsers()[name])["--policy"].help for n in names)
+
+
+def test_kiloforge_learn_help_names_itself(capsys):
+    """`kiloforge learn --help` shows learn's own help, pointing to `kiloforge learn <command> --help`."""
+    from kiloforge.cli import main as kiloforge_main
+
+    try:
+        kiloforge_main(["learn", "--help"])
+    except SystemExit as e:
+        assert e.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: kiloforge learn") and "kiloforge learn train-es --help" in " ".join(out.split())
+    assert "python -m learn" not in out
 
 
 def test_steps_defaults_say_why_they_differ():

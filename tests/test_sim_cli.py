@@ -63,7 +63,7 @@ def test_cli_same_seed_same_metrics(tmp_path):
     (["--episodes", "0"], "--episodes"),
     (["--steps", "-1"], "--steps"),
     (["--policy", "no/such/policy.npz"], "no/such/policy.npz"),
-    (["--bogus"], "unrecognized arguments"),
+    (["--bogus"], "unrecognized option --bogus"),
     (["--world", "kilobot", "--robots", "400"], "400 robots"),
 ])
 def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, args, needle):

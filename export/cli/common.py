@@ -31,11 +31,20 @@ SHIPPED_POLICIES = {"localisation": {
 }}
 
 
+def policy_help() -> str:
+    """``--policy``'s help, naming every shipped policy of every task."""
+    shipped = "; ".join(f"{', '.join(names)} ({task})" for task, names in SHIPPED_POLICIES.items())
+    return (f"policy artifact .npz, or the name of a shipped policy: {shipped} (default: default, the task's reference "
+            "policy; for localisation trained by evolution strategies in the kilobot world, and searcher and pusher "
+            "are the hand-written rules of sim/baselines.py)")
+
+
 class Parser(ArgumentParser):
     """argparse (no abbreviations) that raises instead of exiting, so main() keeps the one-line error contract."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        raise ExportError(f"{message} (see --help)")
+        explained = self.explain(message)
+        raise ExportError(explained if explained != message else f"{message} (see --help)")
 
 
 MAX_EPISODES = 100_000

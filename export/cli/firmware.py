@@ -32,8 +32,8 @@ from ..errors import BudgetError, ExportError, VerifyError
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import (EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg, robots_arg,
-                     steps_arg)
+from .common import (EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg,
+                     policy_help, robots_arg, steps_arg)
 
 
 def _uids(text: str) -> tuple[int, ...]:
@@ -54,9 +54,7 @@ def export_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
                     help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
     src = ap.add_mutually_exclusive_group()
-    src.add_argument("--policy", type=Path,
-                     help="policy artifact .npz, or 'searcher': the hand-written searcher of sim/baselines.py "
-                          "(default: the shipped reference policy, trained by evolution strategies in the kilobot world)")
+    src.add_argument("--policy", type=Path, help=policy_help())
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     add_task(ap)
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")

@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from kiloforge.cliparse import deprecated_noop
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import float_arg, seed_arg
@@ -30,7 +31,7 @@ from kiloforge.validate import float_arg, seed_arg
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
 from .common import (EXIT_FAIL, EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg,
-                     robots_arg, steps_arg)
+                     policy_help, robots_arg, steps_arg)
 
 COVERAGE_PNG = "coverage.png"
 RETURNS_PNG = "returns_box.png"
@@ -41,9 +42,8 @@ def verify_parser() -> argparse.ArgumentParser:
     ap = Parser(prog="python -m export verify",
                  description="Closed-loop verification: the simulator driven by the int8 firmware emulator "
                              "vs by the float actor, same episodes. Exit 0 pass, 1 fail, 2 bad input.")
-    ap.add_argument("--closed-loop", action="store_true",
-                    help="optional: the closed-loop comparison is the only verification this command does")
-    ap.add_argument("--policy", type=Path, help="policy artifact .npz, or 'searcher' (the hand-written searcher; default: the shipped default policy)")
+    deprecated_noop(ap, "--closed-loop", "the closed-loop comparison is the only thing verify does")
+    ap.add_argument("--policy", type=Path, help=policy_help())
     add_task(ap)
     ap.add_argument("--robots", type=robots_arg, nargs="+", default=[16, 32], metavar="M",
                     help="robot counts to compare at (default 16 32)")

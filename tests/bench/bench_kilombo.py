@@ -16,7 +16,7 @@ What it does:
    ``tests/bench/kilombo/kilombo_adapter.c`` (walls, wall light, position log, options); also the
    random walk ``tests/bench/kilombo/random_walk.c``.
 2. Takes episode e's start (target, robots, headings) from our ``kilobot`` world exactly as
-   ``python -m export verify --closed-loop`` does for the same ``--episodes`` and ``--seed``, and
+   ``python -m export verify`` does for the same ``--episodes`` and ``--seed``, and
    places robot uid 0 (the beacon, running the same program) at the target and searcher i at uid
    i + 1. Kilombo's frame is our mirror image (its heading is a compass angle and its left motor
    turns the robot the other way round), so positions go in as (x, -y) with heading pi/2 + phi:
@@ -358,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots", type=int, default=16, help="searchers (the beacon is one more robot; default 16)")
     ap.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     ap.add_argument("--steps", type=int, default=300, help="control periods per episode (default 300)")
-    ap.add_argument("--seed", type=int, default=0, help="episode seed, as verify --closed-loop (default 0)")
+    ap.add_argument("--seed", type=int, default=0, help="episode seed, as export verify (default 0)")
     ap.add_argument("--rows", choices=("all", "core", "kilombo", "ours"), default="all")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Kilombo parameter in every Kilombo row (JSON value)")
@@ -428,7 +428,7 @@ def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, An
                     policy_bin, world, eps, T, seed, {**sets, **ov}, label, nominal, note))
         ours = "ours: closed loop (int8)"
         runs += [
-            lambda: run_ours_firmware(qp, world, M, E, seed, T, ours, None, "verify --closed-loop"),
+            lambda: run_ours_firmware(qp, world, M, E, seed, T, ours, None, "export verify"),
             lambda: run_ours_baseline("baseline", world, M, E, seed, T, "ours: hand-written searcher"),
             lambda: run_ours_baseline("random", world, M, E, seed, T, "ours: random"),
         ]

@@ -205,7 +205,7 @@ def evaluate(args) -> None:
 def closed_loop(args) -> None:
     """Float vs int8 in the closed loop: shipped kilobot policy and the 4-robot thesis policy."""
     for policy, name in ((REFERENCE, "closed_loop_kilobot"), (RUNS / "goal4_s1" / "policy_best.npz", "closed_loop_thesis")):
-        sh([PY, "-m", "export", "verify", "--closed-loop", "--policy", str(policy), "--robots", "16", "32",
+        sh([PY, "-m", "export", "verify", "--policy", str(policy), "--robots", "16", "32",
             "--episodes", str(args.verify_episodes), "--out", str(OUT / name), "--quiet"], args.dry_run)
 
 
