@@ -37,6 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kiloforge.errors import InputError
+
 from .config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 
 
@@ -52,6 +54,18 @@ class RandomPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         assert self.rng is not None, "RandomPolicy.act before reset"
         return self.rng.random(obs.shape[:2] + (ACTION_DIM,))
+
+
+COUNTER_MAX = 255  #: the firmware's searcher counters are uint8
+RUN_MAX = 0xFFFF  #: run lengths are uint16 in the firmware's run table
+#: the closed range of each numeric SearcherParams field (speed excludes 0); what a robot can hold
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "speed": (0.0, 1.0), "run_min_steps": (1.0, float(RUN_MAX)), "run_alpha": (0.0, 1000.0),
+    "run_max_steps": (1, RUN_MAX), "tumble_max_steps": (1, COUNTER_MAX), "wall_turn_min": (1, COUNTER_MAX),
+    "wall_turn_max": (1, COUNTER_MAX), "wall_cooldown": (0, COUNTER_MAX), "uturn_steps": (0, COUNTER_MAX),
+    "stop_dist": (0.0, 1.0), "settle_patience": (1, COUNTER_MAX - 1), "settle_hold": (1, COUNTER_MAX - 1),
+    "turn_sign": (-1, 2), "push_margin": (0.0, 1.0)}
+_KIND_NAMES = {"bool": "true or false", "int": "an integer", "float": "a number"}
 
 
 @dataclass(frozen=True)
@@ -83,17 +97,33 @@ class SearcherParams:
     hold_within: bool = False
 
     def __post_init__(self) -> None:
-        assert 0.0 < self.speed <= 1.0, f"speed must be in (0, 1], got {self.speed}"
-        assert self.run_min_steps >= 1, f"run_min_steps must be >= 1, got {self.run_min_steps}"
-        assert self.run_alpha >= 0, f"run_alpha must be >= 0, got {self.run_alpha}"
-        assert self.run_max_steps >= self.run_min_steps, "run_max_steps must be >= run_min_steps"
-        assert self.tumble_max_steps >= 1, "tumble_max_steps must be >= 1"
-        assert 1 <= self.wall_turn_min <= self.wall_turn_max, "need 1 <= wall_turn_min <= wall_turn_max"
-        assert self.wall_cooldown >= 0 and self.uturn_steps >= 0, "wall_cooldown, uturn_steps must be >= 0"
-        assert 0.0 <= self.stop_dist <= 1.0, f"stop_dist must be in [0, 1], got {self.stop_dist}"
-        assert self.settle_patience >= 1 and self.settle_hold >= 1, "settle_patience, settle_hold must be >= 1"
-        assert self.turn_sign in (-1, 0, 1, 2), f"turn_sign must be -1, 0, 1 or 2, got {self.turn_sign}"
-        assert 0.0 <= self.push_margin <= 1.0, f"push_margin must be in [0, 1], got {self.push_margin}"
+        """Every field of its type and in its range (:data:`PARAM_RANGES`; the firmware holds the counters in a
+        byte, run lengths in 16 bits, so the simulator and the export accept the same parameters);
+        raises :class:`kiloforge.errors.InputError` naming the field and its range."""
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            kind = f.type if isinstance(f.type, str) else f.type.__name__
+            ok = isinstance(v, bool) if kind == "bool" else \
+                isinstance(v, int) and not isinstance(v, bool) if kind == "int" else \
+                isinstance(v, (int, float)) and not isinstance(v, bool)
+            if not ok:
+                raise InputError(f"searcher parameter {f.name} must be {_KIND_NAMES[kind]}, got {v!r}")
+            if f.name in PARAM_RANGES:
+                lo, hi = PARAM_RANGES[f.name]
+                if not (lo <= v <= hi) or (f.name == "speed" and v == 0):
+                    shown = "(0, 1]" if f.name == "speed" else f"[{lo}, {hi}]"
+                    raise InputError(f"searcher parameter {f.name} must be in {shown}, got {v!r}")
+        if self.turn_sign not in (-1, 0, 1, 2):
+            raise InputError(f"searcher parameter turn_sign must be -1, 0, 1 or 2, got {self.turn_sign}")
+        if self.run_min_steps > self.run_max_steps:
+            raise InputError(f"searcher parameters need run_min_steps <= run_max_steps, got "
+                             f"{self.run_min_steps} > {self.run_max_steps}")
+        if self.wall_turn_min > self.wall_turn_max:
+            raise InputError(f"searcher parameters need wall_turn_min <= wall_turn_max, got "
+                             f"{self.wall_turn_min} > {self.wall_turn_max}")
+        if self.wall_turn_max + self.wall_cooldown > COUNTER_MAX:
+            raise InputError(f"searcher parameters need wall_turn_max + wall_cooldown <= {COUNTER_MAX} (one uint8 "
+                             f"counter), got {self.wall_turn_max + self.wall_cooldown}")
 
 
 #: tuned parameters per world preset (the dataclass defaults are the thesis values). Kilobot discs
@@ -117,7 +147,8 @@ def run_lengths(p: SearcherParams, u: np.ndarray) -> np.ndarray:
     ``run_min_steps`` (exponential with mean ``run_min_steps`` when α = 0), rounded up, cut at ``run_max_steps``."""
     u = np.asarray(u, np.float64)
     if p.run_alpha > 0:
-        r = p.run_min_steps * (1.0 - u) ** (-1.0 / p.run_alpha)  # Pareto(α), ≥ run_min
+        with np.errstate(over="ignore"):  # a small α overflows to inf for u near 1: cut at run_max below
+            r = p.run_min_steps * (1.0 - u) ** (-1.0 / p.run_alpha)  # Pareto(α), ≥ run_min
     else:
         r = -p.run_min_steps * np.log1p(-u)  # exponential, mean run_min
     return np.minimum(np.ceil(r), p.run_max_steps).astype(np.int32)

@@ -171,3 +171,77 @@ def test_onnx_non_numeric_tensors_are_refused(tmp_path, capsys, dtype, place):
     p.write_bytes(m.SerializeToString())
     msg = _export_refused(["--onnx", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
     assert "element type" in msg
+
+
+# --- searcher parameters: bounded by explicit checks (item 9) ---------------------------------------
+def _searcher_parts():
+    from kiloforge.actors.searcher import searcher_policy
+    from sim.config import preset
+    return {}, searcher_policy(preset("kilobot")).meta()
+
+
+def _bad_params(rng: np.random.Generator) -> list[tuple[str, object]]:
+    """Generated out-of-range values for each bounded field: beyond the byte / uint16 limit, negative, huge, non-finite."""
+    from sim.baselines import PARAM_RANGES
+    out = []
+    for name, (lo, hi) in sorted(PARAM_RANGES.items()):
+        is_int = isinstance(hi, int)
+        big = int(hi) + 1 + int(rng.integers(0, 10 ** 6)) if is_int else float(hi) * (1 + rng.random() * 1e6) + 1e-3
+        out += [(name, big), (name, -1 - int(rng.integers(0, 1000)) if is_int else -rng.random() - 1e-9)]
+        out += [(name, 10 ** 30)] if is_int else [(name, -1e308), (name, 1e308)]  # files hold no NaN / inf (strict JSON)
+    return out + [("speed", 0.0), ("turn_sign", 3), ("uturn_steps", True), ("run_max_steps", 300.5)]
+
+
+BAD_PARAMS = _bad_params(np.random.default_rng(np.random.SeedSequence(4711)))
+
+
+@pytest.mark.parametrize("name,value", BAD_PARAMS, ids=[f"{n}={v!r}" for n, v in BAD_PARAMS])
+def test_searcher_parameter_out_of_range_is_one_line(tmp_path, capsys, name, value):
+    """A searcher policy file with a parameter out of its range: export refuses it in one line naming the parameter."""
+    import json
+    from bad_inputs import crafted
+    arrays, meta = _searcher_parts()
+    meta = json.loads(json.dumps(meta))
+    meta["params"][name] = value
+    p = tmp_path / "s.npz"
+    p.write_bytes(crafted(arrays, meta))
+    msg = _export_refused(["--policy", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
+    assert name in msg, msg
+    assert not (tmp_path / "k.c").exists()
+
+
+def test_searcher_checks_survive_python_O():
+    """Under python -O (asserts stripped) a negative speed, a huge U-turn or run, a NaN alpha is still refused, naming the range."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    code = ("from sim.baselines import SearcherParams\n"
+            "for kw in ({'speed': -0.5}, {'uturn_steps': 10**9}, {'run_max_steps': 2**40}, {'run_alpha': float('nan')},\n"
+            "           {'run_min_steps': float('inf')}):\n"
+            "    try:\n        SearcherParams(**kw)\n    except ValueError as e:\n        print(e)\n")
+    res = subprocess.run([sys.executable, "-O", "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert len(lines) == 5 and "speed must be in (0, 1]" in lines[0] and "uturn_steps must be in [0, 255]" in lines[1] \
+        and "run_max_steps must be in [1, 65535]" in lines[2] and "run_alpha must be in [0.0, 1000.0]" in lines[3] \
+        and "run_min_steps must be in [1.0, 65535.0]" in lines[4], res.stdout
+
+
+def test_searcher_at_its_limits_runs_in_sim_and_export(tmp_path, capsys):
+    """The largest parameters allowed (uint16 runs, 255-period turns, a tiny Pareto alpha) simulate and export without warnings."""
+    import warnings
+    from kiloforge.actors.searcher import quantize_searcher, searcher_policy
+    from sim.baselines import HandWrittenSearcher, SearcherParams
+    from sim.config import preset
+    from sim.env import SwarmEnv
+    from sim.rollout import rollout
+    p = SearcherParams(run_min_steps=65535.0, run_max_steps=65535, run_alpha=1e-3, tumble_max_steps=255,
+                       wall_turn_min=200, wall_turn_max=250, wall_cooldown=5, uturn_steps=255, settle_patience=254,
+                       settle_hold=254)
+    world = preset("kilobot")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rollout(SwarmEnv(world, 2, 3, seed=0), HandWrittenSearcher(world, p), 5, seed=1)
+        q = quantize_searcher(searcher_policy(world, p))
+    assert int(q.run_table.max()) == 65535

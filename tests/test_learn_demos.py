@@ -38,7 +38,7 @@ def test_turn_sign_fixes_the_turn_direction_and_keeps_the_random_stream():
     q.reset(2, 3, rng_b)
     p.act(obs), q.act(obs)
     assert rng_a.random() == rng_b.random()
-    with pytest.raises(AssertionError, match="turn_sign"):
+    with pytest.raises(ValueError, match="turn_sign"):
         SearcherParams(turn_sign=3)
 
 

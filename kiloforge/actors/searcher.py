@@ -52,14 +52,14 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from sim.baselines import TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
+from sim.baselines import COUNTER_MAX, TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
 from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 from sim.motion import action_to_u8
 
 from .. import numfmt
 from ..artifact import plain_provenance
-from ..errors import PolicyError, QuantizeError
+from ..errors import InputError, PolicyError, QuantizeError
 from ..validate import show
 from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor,
                    RenderSpec, Resize, check_world_and_task, invalid, sensing_tables)
@@ -68,14 +68,10 @@ BIG = 1 << 20  #: "run until something happens" (periods), as in sim.baselines
 RUN_TABLE_SIZE = 256  #: one entry per value of the run-length draw byte
 SEED_MUL = 0x9E3779B1  #: kilo_uid -> xorshift32 seed: uid * SEED_MUL + SEED_ADD (mod 2**32)
 SEED_ADD = 0x7F4A7C15
-COUNT_MAX = 255  #: fails and miss saturate here (uint8)
-BYTE_LIMITS = {"tumble_max_steps": 255, "wall_turn_max": 255, "uturn_steps": 255, "settle_patience": COUNT_MAX - 1,
-               "settle_hold": COUNT_MAX - 1, "run_max_steps": 0xFFFF}  #: what the firmware's fields hold
+COUNT_MAX = COUNTER_MAX  #: fails and miss saturate here (uint8)
 STATE_BYTES = 4 + 4 + 4 + 4 + 7  #: rng, run_left, prev_score, best (uint32/int32) + seven uint8 counters and flags
 #: SearcherParams fields newer than the first searcher artifacts, with the values that keep those files' rules
 LATER_FIELDS = {"push_margin": 0.0, "hold_within": False}
-_INT_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("int", int)}
-_BOOL_FIELDS = {f.name for f in dataclasses.fields(SearcherParams) if f.type in ("bool", bool)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -201,8 +197,9 @@ class SearcherPolicy(FloatPolicy):
 
 
 def params_of(meta_params: Any) -> SearcherParams:
-    """SearcherParams of an artifact's ``params`` (every field, of its type; a field added after the file was
-    written, :data:`LATER_FIELDS`, reads as its default); raises PolicyError."""
+    """SearcherParams of an artifact's ``params`` (every field, of its type and in its range, checked by
+    SearcherParams; a field added after the file was written, :data:`LATER_FIELDS`, reads as its default);
+    raises PolicyError."""
     names = [f.name for f in dataclasses.fields(SearcherParams)]
     if not isinstance(meta_params, dict):
         raise PolicyError(f"policy: 'params' must be an object, got {show(meta_params)}")
@@ -212,20 +209,10 @@ def params_of(meta_params: Any) -> SearcherParams:
         raise PolicyError(f"policy: 'params' lacks {missing} / has unknown {extra}" if missing and extra else
                           f"policy: 'params' lacks {', '.join(missing)}" if missing else
                           f"policy: 'params' has unknown field(s) {', '.join(extra)}")
-    for n in names:
-        v = meta_params[n]
-        if n in _BOOL_FIELDS:
-            ok = isinstance(v, bool)
-        elif n in _INT_FIELDS:
-            ok = isinstance(v, int) and not isinstance(v, bool)
-        else:
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if not ok:
-            raise PolicyError(f"policy: params field '{n}' has the wrong type: {show(v)}")
     try:
         return SearcherParams(**meta_params)
-    except AssertionError as e:
-        raise PolicyError(f"policy: params: {e}") from None
+    except InputError as e:
+        raise PolicyError(f"policy: {e}") from None
 
 
 def pusher_policy(world: WorldConfig) -> SearcherPolicy:
@@ -385,13 +372,9 @@ class QuantizedSearcher(QuantizedActor):
 
 
 def quantize_searcher(policy: SearcherPolicy, e_in: int | None = None) -> QuantizedSearcher:
-    """The integer searcher of ``policy`` (raises QuantizeError when a parameter does not fit its field)."""
+    """The integer searcher of ``policy`` (every parameter fits its firmware field: SearcherParams checks
+    :data:`sim.baselines.PARAM_RANGES`)."""
     p = policy.params
-    for name, limit in BYTE_LIMITS.items():
-        if getattr(p, name) > limit:
-            raise QuantizeError(f"searcher parameter {name} = {getattr(p, name)} does not fit the firmware (<= {limit})")
-    if p.wall_turn_max + p.wall_cooldown > 255:
-        raise QuantizeError("searcher parameters wall_turn_max + wall_cooldown must be <= 255 (a uint8 counter)")
     e = numfmt.DEFAULT_INPUT_EXP if e_in is None else int(e_in)
     if not 0 <= e <= numfmt.DEFAULT_INPUT_EXP:
         raise QuantizeError(f"e_in must be in 0..{numfmt.DEFAULT_INPUT_EXP}, got {e}")
