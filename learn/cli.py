@@ -216,7 +216,7 @@ def main_train(argv: list[str] | None = None, cls: type[ConfigBase] = TrainConfi
         if note:
             print(f"note: {note}; it trains, but the exporter will refuse it", file=sys.stderr)
         res = train(cfg, out, resume=resume, progress=not quiet)
-        _report(res, report, prog)
+        _report(res, report, prog, cfg)
     except (ConfigError, KiloforgeError, ValueError) as e:
         print(f"{prog}: error: {as_flags(str(e), cls)}", file=sys.stderr)
         return 2
@@ -242,17 +242,23 @@ def as_flags(msg: str, cls: type[ConfigBase]) -> str:
     return flag + sep + rest
 
 
-def _report(res: Any, report: Callable[[Any], None], prog: str) -> None:
-    """What a finished run prints: where it is, its numbers, its policies and the export command for them."""
+def _report(res: Any, report: Callable[[Any], None], prog: str, cfg: ConfigBase) -> None:
+    """What a finished run prints: where it is, its numbers, its policies and, last, the export command of its
+    result (:func:`learn.rundir.result_policy`)."""
+    from .rundir import result_policy
+
     print(f"run: {res.run_dir}  ({res.stopped})")
     report(res)
-    pols = [str(res.run_dir / n) for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
+    pols = [res.run_dir / n for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
             if (res.run_dir / n).is_file()]
-    print(f"  policies: {', '.join(pols) if pols else 'none (no evaluation ran)'}")
+    print(f"  policies: {', '.join(map(str, pols)) if pols else 'none (no evaluation ran)'}")
     if pols:
+        result = res.run_dir / result_policy(cfg)
+        result = result if result.is_file() else pols[0]
         exporter = "kiloforge export" if prog.startswith("kiloforge") else "python -m export"
-        print(f"  next: {exporter} --policy {shlex.quote(pols[0])} --out kilobot_policy.c   (the firmware C of the "
-              f"{Path(pols[0]).stem.removeprefix('policy_')} policy)")
+        print(f"  result: {result}")
+        print(f"  next: {exporter} --policy {shlex.quote(str(result))} --out kilobot_policy.c   (the firmware C of "
+              f"the run's result)")
 
 
 def main_train_recurrent(argv: list[str] | None = None, prog: str = "python -m learn train-recurrent") -> int:

@@ -7,6 +7,7 @@
     checkpoint.pt        everything needed to resume exactly, with the replay in replay/ (learn.checkpoint)
     policy_best.npz      the actor with the best evaluation return (the exporter's format)
     policy_last.npz      the latest actor
+                         (which of the two is the run's result: :func:`result_policy`)
     policy_bc.npz        with a demonstrator: the behaviour-cloned actor before reinforcement learning
     demos.json           with a demonstrator: the demonstrator's and the clone's evaluation
     summary.json         final numbers: best and last evaluation, wall time, updates/s, env steps/s
@@ -44,6 +45,14 @@ RUN_DIRS = ("replay", "tensorboard", KEPT_DIR)
 #: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
 RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
                      "keep_evaluated")
+
+
+def result_policy(cfg: object) -> str:
+    """The file that is a run's result: ``policy_best.npz`` (its best evaluation), except for a run started from a
+    policy (``train-es --init-policy``, a fine-tune), whose result is its last, ``policy_last.npz``: its evaluations
+    in the nominal world cannot see what it is tuned for (robustness), and its best is often a generation before
+    the tuning took hold (docs/training.md, "Which file is a run's result")."""
+    return "policy_last.npz" if getattr(cfg, "init_policy", "") else "policy_best.npz"
 
 
 def run_name(cfg: ExperimentConfig) -> str:

@@ -152,8 +152,8 @@ def test_cli_smoke_train_plot_evaluate(tmp_path, capsys):
         assert main(["train", *TINY_ARGS, "--seed", str(seed), "--out", str(run)]) == 0
         runs.append(run)
     run = runs[0]
-    assert f"  next: python -m export --policy {runs[1] / 'policy_best.npz'} --out kilobot_policy.c" in \
-        capsys.readouterr().out  # the end summary names the best policy and the export command
+    assert capsys.readouterr().out.splitlines()[-1].startswith(  # the last line exports the run's result
+        f"  next: python -m export --policy {runs[1] / 'policy_best.npz'} --out kilobot_policy.c")
     for name in ("metrics.csv", "learning_curve.png", "policy_best.npz", "policy_last.npz", "checkpoint.pt",
                  "config.json", "world.json", "summary.json"):
         assert (run / name).is_file(), name
@@ -218,3 +218,21 @@ def test_time_budget_bar_in_a_log(tmp_path, capsys):
     lines = [l for l in err.splitlines() if l.startswith("run:") or l.startswith("run ")]
     assert lines and all("<" in l for l in lines)  # elapsed<remaining of the budget bar
     assert re.search(r"\b120/\d[\d,]* step", lines[-1]), lines[-1]
+
+
+@pytest.mark.parametrize("init,result", [("", "policy_best.npz"), ("runs/a/policy_best.npz", "policy_last.npz")])
+def test_last_line_exports_the_runs_result(init, result, tmp_path, capsys):
+    """The trainer's last line exports the run's result: policy_best.npz, or a fine-tune's (--init-policy) policy_last.npz."""
+    from learn.cli import _report, report_es
+    from learn.config import ESConfig
+    from learn.rundir import Counters, RunResult, result_policy
+
+    for name in ("policy_best.npz", "policy_last.npz"):
+        (tmp_path / name).write_bytes(b"")
+    cfg = ESConfig(init_policy=init)
+    assert result_policy(cfg) == result
+    _report(RunResult(tmp_path, Counters(), "done"), report_es, "python -m learn train-es", cfg)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[-2:] == [f"  result: {tmp_path / result}",
+                          f"  next: python -m export --policy {tmp_path / result} --out kilobot_policy.c   "
+                          "(the firmware C of the run's result)"]
