@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from kiloforge import numfmt
 from kiloforge.errors import InputError
 from kiloforge.validate import check_keys, check_str, check_typed, show
 
@@ -68,6 +69,11 @@ KILO_TICK_HZ = 30.52  #: kilo_ticks per second, measured (platform notes: 305 ti
 MAX_ARENA_HALF_MM = 100_000.0  #: a 200 m arena; larger ones only serve to exhaust memory
 MAX_EPISODE_STEPS = 1_000_000  #: control periods per episode (about 11 days of Kilobot time)
 MAX_ROBOTS = 1024  #: robots per simulated swarm, in every command (--robots) and config
+#: RBF width and normaliser: outside these the features (exp(-(d - c)^2 / 2 sigma^2) / norm) underflow to 0 / 0 or
+#: overflow; inside them every feature is finite and the firmware's table can be computed
+RBF_SIGMA_RANGE_MM = (1e-3, 1e4)
+RBF_NORM_RANGE = (1e-3, 1e6)
+MAX_RBF_CENTRE_MM = 1000.0  #: distances are reported in whole mm up to 255: a centre beyond this is never reached
 #: control periods of an evaluation episode in the thesis's benchmark (500 episodes x 500 steps), used
 #: where policies are compared (learn evaluate, sweeps, ES evaluation); sim and export verify run the
 #: world's own episode (WorldConfig.episode_steps: thesis 200, kilobot 300), as the policy was trained
@@ -165,8 +171,19 @@ class WorldConfig:
         need(0 <= self.target_uid <= 0xFFFF, f"target_uid must be a uint16, got {self.target_uid}")
         need(1 <= self.n_rbf <= 32, f"n_rbf must be in 1..32, got {self.n_rbf}")
         need(self.rbf_hi_mm >= self.rbf_lo_mm >= 0, "need 0 <= rbf_lo_mm <= rbf_hi_mm")
-        need(self.rbf_sigma_mm > 0, f"rbf_sigma_mm must be > 0, got {self.rbf_sigma_mm}")
-        need(self.rbf_norm > 0, f"rbf_norm must be > 0, got {self.rbf_norm}")
+        need(self.rbf_hi_mm <= MAX_RBF_CENTRE_MM, f"rbf_hi_mm must be <= {MAX_RBF_CENTRE_MM:g}, got {self.rbf_hi_mm}")
+        lo, hi = RBF_SIGMA_RANGE_MM
+        need(lo <= self.rbf_sigma_mm <= hi, f"rbf_sigma_mm must be in [{lo:g}, {hi:g}], got {self.rbf_sigma_mm}")
+        lo, hi = RBF_NORM_RANGE
+        need(lo <= self.rbf_norm <= hi, f"rbf_norm must be in [{lo:g}, {hi:g}], got {self.rbf_norm}")
+        # the firmware's RBF table at the finest input resolution must see something: an all-zero table
+        # would give the robot no neighbour histogram while the float policy has one
+        table = numfmt.rbf_table(self.rbf_centres_mm, self.rbf_sigma_mm, self.rbf_norm, self.comm_radius_mm,
+                                 numfmt.DEFAULT_INPUT_EXP)
+        need(bool(table.any()), f"the RBF features (centres {self.rbf_lo_mm:g}..{self.rbf_hi_mm:g} mm, "
+             f"rbf_sigma_mm {self.rbf_sigma_mm:g}, rbf_norm {self.rbf_norm:g}) are below "
+             f"1/{2 << numfmt.DEFAULT_INPUT_EXP} at every distance up to comm_radius_mm {self.comm_radius_mm:g}: "
+             "the firmware's RBF table would be all zero (lower rbf_norm or move the centres within the radius)")
         need(0 <= self.light_floor <= 1023 and 0 <= self.light_wall <= 1023
              and 0 <= self.light_threshold <= 1023, "light readings and threshold must be in 0..1023")
         need(0.0 <= self.light_dropout < 1.0, f"light_dropout must be in [0, 1), got {self.light_dropout}")

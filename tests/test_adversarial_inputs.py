@@ -245,3 +245,47 @@ def test_searcher_at_its_limits_runs_in_sim_and_export(tmp_path, capsys):
         rollout(SwarmEnv(world, 2, 3, seed=0), HandWrittenSearcher(world, p), 5, seed=1)
         q = quantize_searcher(searcher_policy(world, p))
     assert int(q.run_table.max()) == 65535
+
+
+# --- world constants that would blind the RBF table (item 10) ----------------------------------------
+def _bad_worlds(rng: np.random.Generator) -> list[dict]:
+    """Generated RBF constants: widths and normalisers that underflow or overflow, normalisers that zero
+    every feature, centres beyond the radius."""
+    out = []
+    for _ in range(3):
+        out.append({"rbf_sigma_mm": float(10.0 ** -rng.uniform(4, 300))})  # 2 sigma^2 underflows, 0/0
+        out.append({"rbf_norm": float(10.0 ** -rng.uniform(4, 300))})  # features overflow
+        out.append({"rbf_norm": float(rng.uniform(129, 1e6))})  # every feature < 1/128: an all-zero table
+        lo = float(rng.uniform(120, 250))
+        out.append({"rbf_lo_mm": lo, "rbf_hi_mm": lo + float(rng.uniform(0, 50))})  # centres beyond the radius
+    return out + [{"rbf_sigma_mm": 1e5}, {"rbf_hi_mm": 1e300}, {"rbf_norm": 1e300}]
+
+
+BAD_WORLDS = _bad_worlds(np.random.default_rng(np.random.SeedSequence(4712)))
+
+
+@pytest.mark.parametrize("change", BAD_WORLDS, ids=[",".join(f"{k}={v:.3g}" for k, v in c.items()) for c in BAD_WORLDS])
+def test_world_that_blinds_the_rbf_table_is_refused(tmp_path, capsys, change):
+    """A policy file whose world makes the RBF features NaN, infinite or all-zero in the firmware: one line, exit 2."""
+    from bad_inputs import crafted, parts, small_policy
+    arrays, meta = parts(small_policy())
+    meta["world"] = {**meta["world"], **change}
+    p = tmp_path / "p.npz"
+    p.write_bytes(crafted(arrays, meta))
+    msg = _export_refused(["--policy", str(p), "--out", str(tmp_path / "k.c"), *FAST], capsys)
+    assert "rbf" in msg.lower() and next(iter(change)) in msg or "RBF table would be all zero" in msg, msg
+    assert not (tmp_path / "k.c").exists()
+
+
+@pytest.mark.parametrize("change", BAD_WORLDS[:6], ids=[",".join(f"{k}={v:.3g}" for k, v in c.items())
+                                                        for c in BAD_WORLDS[:6]])
+def test_onnx_world_json_that_blinds_the_rbf_table_is_refused(tmp_path, capsys, change):
+    """The same worlds given to the ONNX importer as --world-json: one line, exit 2."""
+    import json
+    from sim.config import preset
+    model = tiny_model(tmp_path / "m.onnx", metadata=False)
+    wj = tmp_path / "w.json"
+    wj.write_text(json.dumps({"world": {**json.loads(preset("thesis").to_json()), **change}, "t_prev": 1}))
+    msg = _export_refused(["--onnx", str(model), "--world-json", str(wj), "--out", str(tmp_path / "k.c"), *FAST],
+                          capsys)
+    assert "rbf" in msg.lower() or "RBF" in msg, msg
