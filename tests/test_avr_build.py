@@ -1,7 +1,10 @@
 """Exact AVR budgets (export.verify.avr.exact_budget) and robot builds against a kilolib checkout."""
 from __future__ import annotations
 
+import json
+import os
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -77,12 +80,40 @@ def test_robot_images_are_the_built_files(tmp_path):
     """robot_images returns the .elf and .hex bytes of both programs (for an atomic write by the CLI)."""
     require_avr()
     files = render_firmware(synthetic_qpolicy(WORLD, 2, (8,), seed=4))
-    images = avr.robot_images(files, _fake_kilolib(tmp_path / "kilolib"))
+    images, sizes = avr.robot_images(files, _fake_kilolib(tmp_path / "kilolib"))
     assert set(images) == {"kilobot_policy.elf", "kilobot_policy.hex", "kilobot_target.elf", "kilobot_target.hex"}
     assert images["kilobot_policy.elf"][:4] == b"\x7fELF" and images["kilobot_policy.hex"].startswith(b":")
+    (tmp_path / "kp.elf").write_bytes(images["kilobot_policy.elf"])
+    assert sizes[POLICY_FILE] == avr.sizes(tmp_path / "kp.elf") and set(sizes) == {POLICY_FILE, TARGET_FILE}
 
 
 def test_find_kilolib_explains_an_unbuilt_checkout(tmp_path):
     """A directory without kilolib.h / build/kilolib.a gets a message that says what to do."""
     with pytest.raises(avr.AvrError, match="make"):
         avr.find_kilolib(tmp_path)
+
+
+def _kilolibs() -> list:
+    """The kilolib checkouts to export against: our stand-in built as one, and a real one in $KILOLIB_DIR."""
+    real = os.environ.get("KILOLIB_DIR")
+    return ["stand-in", pytest.param(real, marks=pytest.mark.skipif(
+        not real, reason="KILOLIB_DIR unset (a kilolib checkout built with make: github.com/acornejo/kilolib)"))]
+
+
+@pytest.mark.parametrize("kilolib", _kilolibs())
+def test_export_with_kilolib_prints_the_elf_flash_and_lists_images(kilolib, tmp_path, capsys):
+    """export --kilolib: the printed flash is the built ELF's text + data (avr-size), and the manifest lists the
+    .hex/.elf files with their sha256 (verify_manifest checks them)."""
+    require_avr()
+    from export.cli.main import main
+    from export.codegen.manifest import verify_manifest
+
+    kdir = _fake_kilolib(tmp_path / "kilolib") if kilolib == "stand-in" else Path(kilolib)
+    out = tmp_path / "kp.c"
+    assert main(["--out", str(out), "--kilolib", str(kdir), "--robots-calib", "2", "--calib-steps", "5", "--quiet"]) == 0
+    stdout = capsys.readouterr().out
+    flash = avr.sizes(tmp_path / "kp.elf").flash
+    assert f"FITS: flash {flash:,d} / " in stdout and "flash_source kilolib build" in stdout
+    files = json.loads((tmp_path / "kp.c.manifest.json").read_text())["files"]
+    assert set(files) == {"kp.c", "kp.elf", "kp.hex", "kilobot_target.c", "kilobot_target.elf", "kilobot_target.hex"}
+    assert verify_manifest(tmp_path / "kp.c.manifest.json") == []

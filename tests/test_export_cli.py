@@ -194,6 +194,23 @@ def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     assert "kilo_uid 0, 5 is the beacon" in last[1] and last[1].endswith("docs/flashing.md")
 
 
+@pytest.mark.parametrize("layout", ["missing", "empty", "unbuilt"])
+def test_bad_kilolib_refused_before_any_work(layout, tmp_path, capsys):
+    """A --kilolib that is no built kilolib checkout is one line (exit 2) before the policy is even loaded."""
+    kilolib = tmp_path / "kilolib"
+    if layout != "missing":
+        kilolib.mkdir()
+    if layout == "unbuilt":
+        (kilolib / "Makefile").write_text("all:\n")
+        (kilolib / "kilolib.h").write_text("")
+    out = tmp_path / "o" / "kp.c"
+    out.parent.mkdir()
+    rc, stdout, err = run(["--out", str(out), "--kilolib", str(kilolib), *FAST], capsys)
+    assert rc == 2 and stdout == ""  # nothing printed: neither the policy line nor the calibration
+    assert "--kilolib" in one_error_line(err) or "AVR toolchain" in err
+    assert list(out.parent.iterdir()) == []
+
+
 def test_next_steps_name_the_images_and_the_command():
     """After an export with --kilolib the hint names the .hex to flash; without, the kiloforge command to rerun."""
     from export.cli.firmware import next_steps

@@ -92,6 +92,18 @@ def _exact_budget(budget: bud.Budget, qp: QuantizedActor, files: dict[str, str],
     return budget
 
 
+def _kilolib_flash(budget: bud.Budget, sizes: dict[str, avr.Sizes]) -> bud.Budget:
+    """The budget with each program's flash measured on its real kilolib build (the ELF's text + data, what
+    KiloGUI uploads) in place of the stand-in estimate."""
+    exact = {**(budget.exact or {}), "flash": sizes[POLICY_FILE].flash, "flash_source": "kilolib build"}
+    exact.update({f"{Path(name).stem}_flash": s.flash for name, s in sizes.items() if name != POLICY_FILE})
+    budget = budget.with_exact(exact)
+    if not budget.ok:
+        print(budget.table())
+        raise BudgetError(f"the kilolib build does not fit ({budget.summary()}); would fit: " + "; ".join(budget.suggest()))
+    return budget
+
+
 def _verify_host(qp: QuantizedActor, files: dict[str, str]) -> str:
     """Build the rendered C on the host and compare with the emulator (rung 2)."""
     result = verify_host(qp, files)
@@ -133,7 +145,10 @@ def run_export(argv: Sequence[str]) -> int:
     if target_path == out:
         raise OutputError(f"--out must not be named {TARGET_FILE} (that name is the beacon program's)")
     manifest_path = out.with_name(out.name + ".manifest.json")
-    check_writable([out, target_path, manifest_path])  # fail before the slow part
+    image_paths = [p.with_suffix(x) for p in (out, target_path) for x in (".hex", ".elf")] if args.kilolib else []
+    check_writable([out, target_path, manifest_path, *image_paths])  # fail before the slow part
+    if args.kilolib is not None:
+        avr.find_kilolib(args.kilolib)  # a bad --kilolib (or no AVR toolchain) too
 
     policy = load(args.policy, args.onnx, args.world_json, args.task)
     if policy.world.name != KILOBOT.name:
@@ -161,6 +176,12 @@ def run_export(argv: Sequence[str]) -> int:
     target_uids = args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
     files = render_firmware(qp, target_uids=target_uids, generator_version=generator_version())
     budget = _exact_budget(budget, qp, files, skip=args.no_avr)
+    built: dict[Path, bytes] = {}
+    if args.kilolib is not None:
+        images, sizes = avr.robot_images(files, args.kilolib)  # {"kilobot_policy.hex": bytes, ...}
+        budget = _kilolib_flash(budget, sizes)
+        stems = {Path(POLICY_FILE).stem: out, Path(TARGET_FILE).stem: target_path}
+        built = {stems[Path(name).stem].with_suffix(Path(name).suffix): data for name, data in images.items()}
     print(budget.table())
     if args.verify == "host":
         print(_verify_host(qp, files))
@@ -170,17 +191,12 @@ def run_export(argv: Sequence[str]) -> int:
                "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
                "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
                "source": str(args.onnx or args.policy or "default reference policy")}
-    contents: dict[Path, Any] = {out: files[POLICY_FILE], target_path: files[TARGET_FILE]}
-    if args.kilolib is not None:
-        images = avr.robot_images(files, args.kilolib)  # {"kilobot_policy.hex": bytes, ...}
-        stems = {Path(POLICY_FILE).stem: out, Path(TARGET_FILE).stem: target_path}
-        for name, data in images.items():
-            contents[stems[Path(name).stem].with_suffix(Path(name).suffix)] = data
-    manifest = build_manifest(policy, qp, budget, report, calib,
-                              {out.name: files[POLICY_FILE], TARGET_FILE: files[TARGET_FILE]}, options)
+    contents: dict[Path, Any] = {out: files[POLICY_FILE], target_path: files[TARGET_FILE], **built}
+    manifest = build_manifest(policy, qp, budget, report, calib, {p.name: data for p, data in contents.items()},
+                              options)
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
-    print(f"wrote {out}, {target_path}, {manifest_path}")
+    print(f"wrote {', '.join(map(str, contents))}")
     if not args.quiet:
         print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
     return EXIT_OK

@@ -489,27 +489,40 @@ def exact_budget(rendered_files: dict[str, str], qpolicy: QuantizedActor | None 
     return result
 
 
+KILOLIB_URL = "https://github.com/acornejo/kilolib"  #: where kilolib comes from (it has no licence: never shipped)
+
+
 def find_kilolib(kilolib_dir: Path) -> tuple[Path, Path]:
-    """(include dir holding kilolib.h, kilolib.a) of a kilolib checkout (built with its Makefile)."""
+    """(include dir holding kilolib.h, kilolib.a) of a kilolib checkout built with its Makefile; an
+    :class:`AvrError` saying what to do for anything else (checked before an export starts its work)."""
     d = Path(kilolib_dir)
+    why = missing_tools()
+    if why:
+        raise AvrError(f"--kilolib needs the AVR toolchain to build the .hex images: {why}")
+    if not d.is_dir():
+        raise AvrError(f"--kilolib {d}: no such directory (get kilolib: git clone {KILOLIB_URL}, then run `make` in it)")
     heads = [p.parent for p in (d / "kilolib.h", d / "include" / "kilolib.h") if p.exists()]
     libs = [p for p in (d / "build" / "kilolib.a", d / "kilolib.a", d / "lib" / "kilolib.a") if p.exists()]
+    if not heads and not (d / "Makefile").exists():
+        raise AvrError(f"--kilolib {d}: not a kilolib checkout (no kilolib.h or Makefile; get it: git clone "
+                       f"{KILOLIB_URL}, then run `make` in it)")
     if not heads or not libs:
-        raise AvrError(f"{d}: not a built kilolib checkout (need kilolib.h and build/kilolib.a; run `make` there)")
+        raise AvrError(f"--kilolib {d}: not a built kilolib checkout (need kilolib.h and build/kilolib.a; run `make` there)")
     return heads[0], libs[0]
 
 
-def robot_images(rendered_files: dict[str, str], kilolib_dir: Path) -> dict[str, bytes]:
-    """``{"kilobot_policy.hex": ..., "kilobot_policy.elf": ..., ...}``: every rendered program built
-    against a real kilolib checkout, as bytes (the CLI writes them atomically beside the C files).
-    Upload the ``.hex`` with KiloGUI."""
+def robot_images(rendered_files: dict[str, str], kilolib_dir: Path) -> tuple[dict[str, bytes], dict[str, Sizes]]:
+    """Every rendered program built against a real kilolib checkout: the files as bytes
+    (``{"kilobot_policy.hex": ..., "kilobot_policy.elf": ..., ...}``; the CLI writes them atomically beside the
+    C files; upload the ``.hex`` with KiloGUI) and each program's ELF sizes (``{"kilobot_policy.c": Sizes}``:
+    the real flash figure)."""
     with tempfile.TemporaryDirectory(prefix="kf_robot_") as td:
         builds = build_for_robot(rendered_files, kilolib_dir, Path(td))
         out = {}
         for b in builds.values():
             out[b.elf.name] = b.elf.read_bytes()
             out[b.hex.name] = b.hex.read_bytes()
-    return out
+    return out, {name: b.sizes for name, b in builds.items()}
 
 
 def build_for_robot(rendered_files: dict[str, str], kilolib_dir: Path, out_dir: Path) -> dict[str, Build]:
