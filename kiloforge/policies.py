@@ -123,3 +123,15 @@ def policy_labels(entries: list[str], short: bool = False) -> list[str]:
             raise ValueError(f"'{sorted(dup)[0]}' is given twice; give each policy once")
         for i in grow:
             depth[i] += 1
+
+
+def policy_paths(entries: list[str]) -> dict[str, Path]:
+    """label → artifact for run directories (their ``policy_best.npz``) and ``.npz`` files, the policies a
+    benchmark or an experiment compares: labels are :func:`policy_labels` ``short`` (a run directory's name, a
+    file's stem, longer only where two would collide). The same entry twice: ValueError.
+
+    >>> policy_paths(["runs/s1", "x/default_policy.npz"])
+    {'s1': PosixPath('runs/s1/policy_best.npz'), 'default_policy': PosixPath('x/default_policy.npz')}
+    """
+    labels = policy_labels(entries, short=True)
+    return {lab: Path(e) if Path(e).suffix == ".npz" else Path(e) / "policy_best.npz" for lab, e in zip(labels, entries)}

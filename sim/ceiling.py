@@ -15,7 +15,7 @@ and penalty relaxation from deterministic random starts) and returns the configu
 by :func:`is_valid`. The count is a **lower bound** on the true maximum: the ceiling is the best
 packing we found, and a policy's fraction of it can exceed 1 only if its robots pack better.
 
-The shipped table (``sim/data/packing_ceiling.npz``, written by ``tests/bench/packing_table.py``)
+The shipped table (``sim/data/packing_ceiling.npz``, written by ``tools/packing_table.py``)
 holds the search's count and configuration at every (dx, dy) on a 5 mm grid from 0 to
 min(R, L) (at dx >= R the wall no longer cuts the range disc), together with the world
 parameters it was computed for. The lookup uses the **monotone envelope** of the table, the best
@@ -249,7 +249,7 @@ def _table_for(world: WorldConfig) -> CeilingTable:
         raise InputError(
             f"no packing table for robot_radius_mm {world.robot_radius_mm}, comm_radius_mm "
             f"{world.comm_radius_mm}, arena_half_mm {world.arena_half_mm} (the shipped one is for "
-            f"{t.prob.d / 2}, {t.prob.R}, {t.prob.L + t.prob.d / 2}); write one with tests/bench/packing_table.py")
+            f"{t.prob.d / 2}, {t.prob.R}, {t.prob.L + t.prob.d / 2}); write one with tools/packing_table.py")
     return load_table()
 
 

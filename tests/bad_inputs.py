@@ -1,4 +1,4 @@
-"""Hostile inputs for the hardening tests, the fuzzing suite and tests/bench/fuzz_all.py: crafted policy
+"""Hostile inputs for the hardening tests, the fuzzing suite and tests/soak/fuzz_all.py: crafted policy
 files (with or without a valid hash), zip bombs, deep JSON, and a check that output is one clean line."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fixtures import init_policy
+from tests.fixtures import init_policy
 from kiloforge.artifact import META, artifact_bytes, npz_bytes
 from sim.config import preset
 

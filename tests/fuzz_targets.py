@@ -1,4 +1,4 @@
-"""Fuzzing targets shared by tests/test_fuzz.py (a CI-sized slice) and tests/bench/fuzz_all.py (the full run).
+"""Fuzzing targets shared by tests/test_fuzz.py (a CI-sized slice) and tests/soak/fuzz_all.py (the full run).
 
 Each target turns one generated input into an :data:`OUTCOMES` verdict. The property every input must
 have: it works (``accepted``) or is refused with one printable line naming what is wrong
@@ -38,7 +38,7 @@ import numpy as np
 from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 
-from bad_inputs import crafted, nested_json, small_policy
+from tests.bad_inputs import crafted, nested_json, small_policy
 from kiloforge.artifact import META, canonical_json, npz_bytes, policy_hash
 from kiloforge.errors import KiloforgeError, PolicyError
 from kiloforge.validate import read_npz
@@ -518,7 +518,7 @@ def onnx_mutation(draw) -> bytes:
 def _base_onnx_bytes() -> bytes:
     import tempfile
 
-    from onnx_models import tiny_model
+    from tests.onnx_models import tiny_model
 
     with tempfile.TemporaryDirectory() as d:
         return tiny_model(Path(d) / "base.onnx").read_bytes()
@@ -560,7 +560,7 @@ class Fixtures:
 
     def __init__(self, root: Path) -> None:
         from kiloforge.policies import save_policy
-        from onnx_models import tiny_model
+        from tests.onnx_models import tiny_model
 
         self.root = root
         root.mkdir(parents=True, exist_ok=True)

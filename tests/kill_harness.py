@@ -1,4 +1,4 @@
-"""Kill a command at a random moment and check what it left (tests/test_kill.py runs a few, tests/bench/kill_test.py
+"""Kill a command at a random moment and check what it left (tests/test_kill.py runs a few, tests/soak/kill_test.py
 hundreds). An export must leave the old complete set or the new complete set; a present manifest always
 describes the files beside it; after the next run's recovery no temporary is left; the message of an
 interrupted run says what was written. A killed training run must resume (or restart) and finish."""

@@ -1,4 +1,4 @@
-"""The golden-file policies (one per actor kind) and their regeneration: ``python tests/regen_golden.py``.
+"""The golden-file policies (one per actor kind) and their regeneration: ``python -m tests.regen_golden``.
 
 tests/test_render.py renders :func:`golden_policies` and compares the generated part of each program
 with the committed ``tests/golden/<kind>.c`` (and the beacon program with ``target.c``) byte for
@@ -10,26 +10,23 @@ layout or the number format, and review the diff of the golden files.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, TARGET_FILE, render_firmware  # noqa: E402
-from export.codegen.templates import inline_sources  # noqa: E402
-from kiloforge import numfmt  # noqa: E402
-from kiloforge.actors.base import QuantizedActor, sensing_tables  # noqa: E402
-from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU  # noqa: E402
-from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell  # noqa: E402
-from kiloforge.actors.mlp import QuantizedMLP  # noqa: E402
-from kiloforge.actors.registry import kind_of  # noqa: E402
-from kiloforge.actors.searcher import RUN_TABLE_SIZE, QuantizedSearcher  # noqa: E402
-from kiloforge.io import write_atomic  # noqa: E402
-from kiloforge.numfmt import HIDDEN_EXP, QuantLayer  # noqa: E402
-from sim.baselines import SearcherParams  # noqa: E402
-from sim.config import preset  # noqa: E402
+from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, TARGET_FILE, render_firmware
+from export.codegen.templates import inline_sources
+from kiloforge import numfmt
+from kiloforge.actors.base import QuantizedActor, sensing_tables
+from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU
+from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell
+from kiloforge.actors.mlp import QuantizedMLP
+from kiloforge.actors.registry import kind_of
+from kiloforge.actors.searcher import RUN_TABLE_SIZE, QuantizedSearcher
+from kiloforge.io import write_atomic
+from kiloforge.numfmt import HIDDEN_EXP, QuantLayer
+from sim.baselines import SearcherParams
+from sim.config import preset
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN_VERSION = "golden"  #: generator version written into the golden banner

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bad_inputs import assert_one_clean_line
+from tests.bad_inputs import assert_one_clean_line
 from export.cli.main import main as export_main
-from onnx_models import tiny_model
+from tests.onnx_models import tiny_model
 
 FAST = ["--robots-calib", "2", "--calib-steps", "4", "--quiet", "--no-avr"]
 

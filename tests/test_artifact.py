@@ -11,7 +11,7 @@ from kiloforge.actors.mlp import MLPPolicy
 from kiloforge.artifact import FORMAT_VERSION
 from kiloforge.errors import PolicyError
 from kiloforge.policies import load_policy, save_policy
-from fixtures import init_policy
+from tests.fixtures import init_policy
 from sim.config import preset
 
 WORLD = preset("kilobot")

@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from export.codegen import kernel
 from export.verify import avr
 from kiloforge import numfmt

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import doctest
-import importlib.util
 import os
 import subprocess
 import sys
@@ -10,22 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.bench import bench_kilombo
+
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "tests" / "bench" / "bench_kilombo.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("bench_kilombo", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_kilombo"] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "KILOMBO_DIR"}
-    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, env=env,
-                          cwd=ROOT, timeout=120)
+    return subprocess.run([sys.executable, "-m", "tests.bench.bench_kilombo", *args], capture_output=True, text=True,
+                          env=env, cwd=ROOT, timeout=120)
 
 
 def test_refuses_when_kilombo_not_given():
@@ -47,14 +39,14 @@ def test_refuses_when_kilombo_not_found(tmp_path):
 
 def test_helper_doctests():
     """The doctests of the bench's helpers (bot file mirroring, log parsing, coverage) pass."""
-    result = doctest.testmod(_load(), optionflags=doctest.NORMALIZE_WHITESPACE)
+    result = doctest.testmod(bench_kilombo, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted >= 3 and result.failed == 0
 
 
 def test_mirrored_start_keeps_distances_and_turns_the_same_way():
     """Bot file and log round trip: our positions come back unchanged, and a Kilombo left pivot
     (compass heading + d) is a left (counter-clockwise) pivot in our frame."""
-    bk = _load()
+    bk = bench_kilombo
     rng = np.random.default_rng(np.random.SeedSequence(3))
     target, pos, heading = rng.uniform(-200, 200, 2), rng.uniform(-200, 200, (4, 2)), rng.uniform(-3, 3, 4)
     states = bk.kilombo_bots(target, pos, heading)["bot_states"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from export.codegen import budget as bud
-from fixtures import init_policy
+from tests.fixtures import init_policy
 from kiloforge.actors.mlp import MLP, MLPArch
 from kiloforge.policies import load_policy
 from sim.config import preset
@@ -121,7 +121,7 @@ def test_default_policy_fits_with_headroom():
     """The shipped default policy fits with at least the documented flash headroom."""
     from importlib import resources
 
-    from fixtures import FLASH_HEADROOM_B
+    from tests.fixtures import FLASH_HEADROOM_B
     with resources.as_file(resources.files("export").joinpath("data", "default_policy.npz")) as path:
         p = load_policy(path)
     b = bud.for_policy(p)

@@ -222,7 +222,7 @@ def test_steps_defaults_say_why_they_differ():
 
 def test_mixed_worlds_are_named(tmp_path):
     """Evaluating policies of different worlds names each policy with its world (item 9), before any output."""
-    from fixtures import init_policy
+    from tests.fixtures import init_policy
     from learn.evaluate import evaluate_policies
     from sim.config import preset
 

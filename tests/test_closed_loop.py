@@ -13,7 +13,7 @@ from export.verify.closed_loop import (ROBOT_BUDGET, Comparison, batch_env_seeds
                                 run_float, spread_ticks)
 from export.quantize import quantize_policy
 from kiloforge.actors.mlp import calibration_from_inputs
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
 from sim.events import HeardEvents, summarise
 

@@ -8,7 +8,7 @@ from export.contract import firmware as fwspec
 from export.contract.crc import crc16_mcrf4xx
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim, n_control_steps
 from export.contract.firmware import EVENT_DTYPE
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, preset
 from sim.events import HeardEvents
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STRAIGHT, mode_at_tick, schedule

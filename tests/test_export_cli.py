@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from export.cli.main import main
-from fixtures import init_policy
+from tests.fixtures import init_policy
 from kiloforge.errors import OutputError
 from kiloforge.io import write_files_atomic
 from kiloforge.policies import save_policy

@@ -11,7 +11,7 @@ from export.codegen.templates import TEMPLATE_DIR
 from export.contract import crc
 from export.contract import firmware as fw
 from kiloforge import numfmt
-from regen_golden import golden_files, golden_policies, render
+from tests.regen_golden import golden_files, golden_policies, render
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = sorted(golden_policies())

@@ -1,4 +1,4 @@
-"""Fuzzing, a CI-sized slice (tests/bench/fuzz_all.py runs the same targets on >= 10,000 inputs): policy files,
+"""Fuzzing, a CI-sized slice (tests/soak/fuzz_all.py runs the same targets on >= 10,000 inputs): policy files,
 world JSON, ONNX graphs and command lines either work or fail with one clean line; never a traceback, a
 partial output or an accepted corrupt file (the targets and the property: tests/fuzz_targets.py)."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from hypothesis import example, given
 
-import fuzz_targets as ft
+from tests import fuzz_targets as ft
 
 pytest.importorskip("onnx")
 

@@ -17,7 +17,7 @@ from export.contract import firmware as fwspec
 from export.quantize import calibrate, quantize_policy
 from export.verify.emulator import FirmwareEmulator
 from export.verify.hostbuild import HostBuildError, StreamSpec, build_host, compare, compiler, random_inputs, run_host
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from kiloforge.actors.gru import random_gru_policy
 from kiloforge.actors.lstm import random_lstm_policy
 from kiloforge.actors.searcher import quantize_searcher, searcher_policy

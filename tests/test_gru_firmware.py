@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from export.codegen.budget import estimate
 from export.codegen.render import POLICY_FILE, render_firmware
 from export.contract import firmware as fwspec
@@ -18,7 +18,7 @@ from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, r
 from kiloforge import numfmt
 from kiloforge.actors.base import HiddenArch
 from kiloforge.actors.gru import GRU, quantize_gru, random_gru_policy
-from recorded_loop import record_loop
+from tests.recorded_loop import record_loop
 from sim.config import preset
 
 needs_cc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")

@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bad_inputs import (assert_one_clean_line, crafted, huge_shape_member, many_members, nested_json, parts,
+from tests.bad_inputs import (assert_one_clean_line, crafted, huge_shape_member, many_members, nested_json, parts,
                         raw_meta_file, small_policy, zip_bomb)
 from export.cli.main import main as export_main
 from export.codegen.manifest import verify_manifest
 from kiloforge import io as kio
 from kiloforge.errors import InputError, PolicyError
 from kiloforge.policies import load_policy, save_policy
-from signal_delivery import deliver
+from tests.signal_delivery import deliver
 from sim.__main__ import main as sim_main
 from sim.config import WorldConfig, preset
 
@@ -113,7 +113,7 @@ def test_seed_minus_one_as_a_program(tmp_path):
 
 def test_world_json_nested_100000_levels(tmp_path, capsys):
     """A world JSON nested 100,000 levels deep is one line ('nested'), not a RecursionError traceback."""
-    from onnx_models import tiny_model
+    from tests.onnx_models import tiny_model
 
     model = tiny_model(tmp_path / "m.onnx", metadata=False)
     deep = tmp_path / "w.json"
@@ -142,7 +142,7 @@ def test_loose_world_types_refused_on_every_path(tmp_path, field, value, literal
     """Float n_rbf, float target_uid, string booleans, Infinity, NaN...: refused by WorldConfig, from_dict,
     preset overrides, a policy's meta (with a valid hash), an ONNX model's metadata and a --world-json file."""
     from export.interop.onnx_import import load_onnx_policy
-    from onnx_models import tiny_model
+    from tests.onnx_models import tiny_model
 
     with pytest.raises(InputError, match=field):
         WorldConfig(**{field: value})
@@ -171,7 +171,7 @@ def test_loose_world_types_refused_on_every_path(tmp_path, field, value, literal
 def test_world_preset_name_must_be_a_string(tmp_path):
     """{"world": {"preset": 7}} is refused (it was str()-ed into an unknown preset name)."""
     from export.interop.onnx_import import load_onnx_policy
-    from onnx_models import tiny_model
+    from tests.onnx_models import tiny_model
 
     with pytest.raises(PolicyError, match="'preset' must be a preset name"):
         load_onnx_policy(tiny_model(tmp_path / "m.onnx", metadata=False), {"world": {"preset": 7}, "t_prev": 1})
@@ -199,7 +199,7 @@ def test_fifo_and_directory_are_refused(tmp_path, capsys):
 
 def test_world_json_that_is_a_device(tmp_path, capsys):
     """--world-json /dev/zero is refused as a device, not read."""
-    from onnx_models import tiny_model
+    from tests.onnx_models import tiny_model
 
     model = tiny_model(tmp_path / "m.onnx", metadata=False)
     line = export_error(["--onnx", str(model), "--world-json", "/dev/zero", "--out", str(tmp_path / "k.c")] + FAST,

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from avr_tools import require_avr
-from bad_inputs import assert_one_clean_line
+from tests.avr_tools import require_avr
+from tests.bad_inputs import assert_one_clean_line
 from export.verify import avr, buildcache
 from export.verify.buildcache import CACHE_ENV, CacheError, cached_program
 

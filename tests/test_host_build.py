@@ -17,9 +17,9 @@ from export.contract import firmware as fwspec
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
                                      random_inputs, rendered_params, run_host, runtime_flags, verify_host)
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from kiloforge import numfmt
-from recorded_loop import record_loop
+from tests.recorded_loop import record_loop
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")

@@ -1,4 +1,4 @@
-"""Killed at random moments (a few, CI-sized; tests/bench/kill_test.py runs 200 exports and 50 trainings):
+"""Killed at random moments (a few, CI-sized; tests/soak/kill_test.py runs 200 exports and 50 trainings):
 an export leaves the old complete set or the new one, a training resumes or restarts and ends with the
 uninterrupted run's outputs (tests/kill_harness.py)."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ import signal
 import numpy as np
 import pytest
 
-import kill_harness as kh
+from tests import kill_harness as kh
 
 
 @pytest.fixture(scope="module")

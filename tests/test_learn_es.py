@@ -11,7 +11,7 @@ from learn.config import ConfigError, ESConfig, from_preset  # noqa: E402
 from learn.es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population  # noqa: E402
 from learn.es_train import train_es  # noqa: E402
 from learn.networks import Actor  # noqa: E402
-from signal_delivery import deliver  # noqa: E402
+from tests.signal_delivery import deliver  # noqa: E402
 from sim.config import preset  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.history import History  # noqa: E402

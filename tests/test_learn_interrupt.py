@@ -15,8 +15,8 @@ torch = pytest.importorskip("torch")
 from learn.__main__ import main  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 
-import kill_harness as kh  # noqa: E402
-from signal_delivery import deliver  # noqa: E402
+from tests import kill_harness as kh  # noqa: E402
+from tests.signal_delivery import deliver  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden", "16",

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from export.codegen.budget import estimate
 from export.codegen.render import POLICY_FILE, render_firmware
 from export.quantize import calibrate

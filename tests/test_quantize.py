@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from export.quantize import calibrate, error_report, quantize_policy
-from fixtures import init_policy
+from tests.fixtures import init_policy
 from kiloforge import numfmt
 from kiloforge.actors.mlp import MLPPolicy, calibration_from_inputs
 from kiloforge.errors import KiloforgeError, QuantizeError

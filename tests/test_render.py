@@ -12,11 +12,11 @@ from export.codegen.render import POLICY_FILE, render_firmware
 from export.codegen.templates import TEMPLATE_DIR, templates_loaded
 from export.contract import firmware as fwspec
 from export.errors import ExportError
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from kiloforge import numfmt
 from kiloforge.actors.gru import quantize_gru, random_gru_policy
 from kiloforge.actors.recurrent import calibration_from_sequences
-from regen_golden import GOLDEN_DIR, GOLDEN_VERSION, TARGET_GOLDEN, golden_files, golden_mlp, golden_policies, render
+from tests.regen_golden import GOLDEN_DIR, GOLDEN_VERSION, TARGET_GOLDEN, golden_files, golden_mlp, golden_policies, render
 from sim.config import preset
 from sim.motion import schedule_constants
 
@@ -44,7 +44,7 @@ def test_golden_files_match_byte_for_byte():
     for name, text in files.items():
         want = (GOLDEN_DIR / name).read_text(encoding="utf-8")
         assert text == want, (f"{name} differs from tests/golden/{name}; if the change is intended run "
-                              f"`python tests/regen_golden.py` and review the diff")
+                              f"`python -m tests.regen_golden` and review the diff")
 
 
 def test_every_template_is_rendered():

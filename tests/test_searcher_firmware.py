@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from export.cli.common import load
 from export.codegen.budget import FLASH_LIMIT_B, SRAM_LIMIT_B, estimate
 from export.codegen.render import POLICY_FILE, render_firmware
@@ -20,7 +20,7 @@ from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, r
 from kiloforge.actors.searcher import (SEARCHER, FirmwareDrawSearcher, SearcherArch, SearcherState,
                                        draw_bytes, firmware_draws, pusher_policy, quantize_searcher, rng_seed,
                                        run_table, searcher_policy, xorshift32)
-from recorded_loop import record_loop
+from tests.recorded_loop import record_loop
 from sim.baselines import PUSHER, TUNED, SearcherParams
 from sim.config import preset
 from sim.motion import action_to_u8

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from export.contract import firmware as fwspec
 from export.verify import avr
 from export.verify.hostbuild import StreamSpec, random_inputs
 from export.codegen.render import render_firmware
-from fixtures import synthetic_qpolicy
+from tests.fixtures import synthetic_qpolicy
 from sim.config import preset
 
 pytestmark = pytest.mark.avr

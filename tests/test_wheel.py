@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from avr_tools import require_avr
+from tests.avr_tools import require_avr
 from kiloforge import __version__
 
 pytestmark = pytest.mark.wheel

@@ -1,6 +1,6 @@
 """AVR benchmark: exact flash / SRAM / peak stack and cycles of real avr-gcc builds run in simavr.
 
-    python tests/bench/bench_avr.py [--steps N]
+    python -m tests.bench.bench_avr [--steps N]
 
 For the shipped default policy and two random (initialised, calibrated, quantised) networks,
 320-64-32-2 and 32-32-32-2, in the ``kilobot`` world: the generated firmware's exact budget
@@ -12,23 +12,21 @@ Needs avr-gcc, avr-libc, simavr and libsimavr-dev.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from export.codegen import kernel  # noqa: E402
-from export.codegen.budget import FLASH_LIMIT_B  # noqa: E402
-from export.codegen.render import render_firmware  # noqa: E402
-from export.quantize import calibrate, quantize_policy  # noqa: E402
-from export.verify import avr  # noqa: E402
-from fixtures import init_policy  # noqa: E402
-from kiloforge import numfmt  # noqa: E402
-from kiloforge.policies import load_policy  # noqa: E402
-from sim.config import preset  # noqa: E402
+from export.codegen import kernel
+from export.codegen.budget import FLASH_LIMIT_B
+from export.codegen.render import render_firmware
+from export.quantize import calibrate, quantize_policy
+from export.verify import avr
+from tests.fixtures import init_policy
+from kiloforge import numfmt
+from kiloforge.policies import load_policy
+from sim.config import preset
 
 
 def networks():

@@ -1,6 +1,6 @@
 """Closed loop: float actor vs int8 firmware emulator in the simulator, and its speed (prints tables).
 
-    python tests/bench/bench_closed_loop.py [--policy P] [--robots 4 16 32] [--episodes 200]
+    python -m tests.bench.bench_closed_loop [--policy P] [--robots 4 16 32] [--episodes 200]
                                             [--steps N] [--scaling]
 
 Not a test: numbers depend on the machine and on the policy. Default policy: the shipped
@@ -14,16 +14,13 @@ showing how the per-period Python overhead is amortised.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from importlib import resources
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from export.quantize import calibrate, error_report, quantize_policy  # noqa: E402
-from export.verify.closed_loop import compare, run_firmware  # noqa: E402
-from kiloforge.policies import load_policy  # noqa: E402
+from export.quantize import calibrate, error_report, quantize_policy
+from export.verify.closed_loop import compare, run_firmware
+from kiloforge.policies import load_policy
 
 
 def main() -> int:

@@ -1,7 +1,7 @@
 """What is learned at equal updates: this tree (optionally with extra flags) against a revision, over seeds.
 
-    python tests/bench/bench_equal_updates.py --against 81d913c --seeds 1 2 3
-    python tests/bench/bench_equal_updates.py --against HEAD --robots 16 --new-args --actor-robots 4
+    python -m tests.bench.bench_equal_updates --against 81d913c --seeds 1 2 3
+    python -m tests.bench.bench_equal_updates --against HEAD --robots 16 --new-args --actor-robots 4
 
 Both trees train ``python -m learn train --preset fast --world W --robots M --episodes E --seed S``
 (a fixed episode budget, so both make the same number of updates), then each run's last actor is
@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench_train_speed import ROOT, checkout
+from tests.bench.bench_train_speed import ROOT, checkout
 
 EVAL = """
 import json, sys

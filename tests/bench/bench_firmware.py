@@ -1,27 +1,22 @@
 """Throughput of the firmware emulator and the host build on random event streams (prints a table).
 
-    python tests/bench/bench_firmware.py
+    python -m tests.bench.bench_firmware
 
 Not a test: numbers depend on the machine. Each row replays the same stream through
 export.emulator.FirmwareEmulator and the host build of the rendered C, and checks they agree.
 """
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
-
-from export.codegen.render import POLICY_FILE, render_firmware  # noqa: E402
-from export.verify.emulator import FirmwareEmulator  # noqa: E402
-from export.verify.hostbuild import StreamSpec, build_host, compare, random_inputs, run_host  # noqa: E402
-from fixtures import synthetic_qpolicy  # noqa: E402
-from sim.config import preset  # noqa: E402
+from export.codegen.render import POLICY_FILE, render_firmware
+from export.verify.emulator import FirmwareEmulator
+from export.verify.hostbuild import StreamSpec, build_host, compare, random_inputs, run_host
+from tests.fixtures import synthetic_qpolicy
+from sim.config import preset
 
 ROWS = [  # (world, t_prev, hidden, activations, robots, control steps)
     (preset("kilobot"), 10, (32, 32), ("elu", "elu"), 256, 200),

@@ -1,6 +1,6 @@
 """Our exported firmware in Kilombo (an independent Kilobot simulator that runs kilolib C) vs our simulator.
 
-    python tests/bench/bench_kilombo.py --kilombo-dir DIR [--policy P] [--robots 16] [--episodes 100]
+    python -m tests.bench.bench_kilombo --kilombo-dir DIR [--policy P] [--robots 16] [--episodes 100]
         [--steps 300] [--seed 0] [--rows all|core|kilombo|ours] [--set KEY=VALUE ...]
         [--extra-kilombo LABEL=DIR ...] [--ours-beacon-pushed] [--json FILE]
 
@@ -58,12 +58,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from export.errors import ExportError  # noqa: E402
-from kiloforge.errors import KiloforgeError, one_line  # noqa: E402
-from sim.config import KILO_TICK_HZ, WorldConfig  # noqa: E402
-from sim.metrics import episode_metrics, summarise, time_to_find  # noqa: E402
+from export.errors import ExportError
+from kiloforge.errors import KiloforgeError, one_line
+from sim.config import KILO_TICK_HZ, WorldConfig
+from sim.metrics import episode_metrics, summarise, time_to_find
 
 HERE = Path(__file__).resolve().parent / "kilombo"
 ADAPTER_C = HERE / "kilombo_adapter.c"

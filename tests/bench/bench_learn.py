@@ -1,8 +1,8 @@
 """Trainer benchmarks: throughput, and the learning goals. Prints tables; asserts nothing about time.
 
-    python tests/bench/bench_learn.py                       # throughput table (about a minute)
-    python tests/bench/bench_learn.py --goals               # train the goal runs, then report (~1 h)
-    python tests/bench/bench_learn.py --report RUN [RUN ...]  # report on existing runs only
+    python -m tests.bench.bench_learn                       # throughput table (about a minute)
+    python -m tests.bench.bench_learn --goals               # train the goal runs, then report (~1 h)
+    python -m tests.bench.bench_learn --report RUN [RUN ...]  # report on existing runs only
 
 Goals (2-core CPU): the 2-robot thesis task reaches final coverage >= 0.8 within 15 minutes of wall
 clock; the 4-robot task within 45 minutes; a policy trained with 4 robots beats the hand-written
@@ -14,14 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
 
 GOAL_COVERAGE = 0.8
 GOALS = {2: 15.0, 4: 45.0}  # robots -> wall-clock minutes

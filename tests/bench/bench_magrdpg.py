@@ -1,9 +1,9 @@
 """MAGRDPG (GRU actor) vs MAGDDPG (MLP actor), and the recurrent firmware. Prints tables; asserts nothing.
 
-    python tests/bench/bench_magrdpg.py --train [--minutes 15] [--seed 1]      # both runs at once, then report
-    python tests/bench/bench_magrdpg.py --gru RUN --mlp RUN [--episodes 100]   # report on existing runs
-    python tests/bench/bench_magrdpg.py --gru RUN --mlp RUN --guided RUN       # ... plus a guided MAGRDPG run
-    python tests/bench/bench_magrdpg.py --train-guided [--minutes 15] [--seed 1]   # train one guided run first
+    python -m tests.bench.bench_magrdpg --train [--minutes 15] [--seed 1]      # both runs at once, then report
+    python -m tests.bench.bench_magrdpg --gru RUN --mlp RUN [--episodes 100]   # report on existing runs
+    python -m tests.bench.bench_magrdpg --gru RUN --mlp RUN --guided RUN       # ... plus a guided MAGRDPG run
+    python -m tests.bench.bench_magrdpg --train-guided [--minutes 15] [--seed 1]   # train one guided run first
 
 The comparison is at a matched parameter count and the same wall-clock budget: a GRU of 32 units
 (4,866 parameters) against MAGDDPG's MLP with T_prev 10 and hidden (26, 26) (4,942 parameters),
@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
 
 FRESH_SEED = 12345  #: evaluation episodes the trainers never saw
 

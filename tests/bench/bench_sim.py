@@ -1,12 +1,12 @@
 """Simulator throughput benchmark: agent-steps per second and peak memory of SwarmEnv.step.
 
-    python tests/bench/bench_sim.py            # full table (a few minutes)
-    python tests/bench/bench_sim.py --quick    # small sizes only
-    python tests/bench/bench_sim.py --goals    # only the three rows the performance goals name
-    python tests/bench/bench_sim.py --goals --repeat 10   # ... timed in 10 rounds: best and median
-    python tests/bench/bench_sim.py --kilobot --repeat 3  # kilobot world, 500 mm arena (see below)
-    python tests/bench/bench_sim.py --kilobot --against 81d913c --repeat 3   # A/B against a revision
-    python tests/bench/bench_sim.py --kilobot --jit-ab --repeat 3   # compiled contact loop on / off
+    python -m tests.bench.bench_sim            # full table (a few minutes)
+    python -m tests.bench.bench_sim --quick    # small sizes only
+    python -m tests.bench.bench_sim --goals    # only the three rows the performance goals name
+    python -m tests.bench.bench_sim --goals --repeat 10   # ... timed in 10 rounds: best and median
+    python -m tests.bench.bench_sim --kilobot --repeat 3  # kilobot world, 500 mm arena (see below)
+    python -m tests.bench.bench_sim --kilobot --against 81d913c --repeat 3   # A/B against a revision
+    python -m tests.bench.bench_sim --kilobot --jit-ab --repeat 3   # compiled contact loop on / off
 
 Worlds:
   thesis/fixed     thesis preset, arena ±100 mm whatever M (density grows with M)
@@ -48,11 +48,9 @@ import tracemalloc
 
 import numpy as np
 
-sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..")))
-
-from sim.config import preset  # noqa: E402
-from sim.env import SwarmEnv  # noqa: E402
-from sim.grid import choose_method  # noqa: E402
+from sim.config import preset
+from sim.env import SwarmEnv
+from sim.grid import choose_method
 
 
 def world(kind: str, M: int):

@@ -1,8 +1,8 @@
 """Trainer speed of this tree against a git revision: updates/s and env steps/s, alternating runs, ratios.
 
-    python tests/bench/bench_train_speed.py --against 81d913c                 # 4 and 32 robots, 2 rounds of 2 min
-    python tests/bench/bench_train_speed.py --against 81d913c --robots 4 --minutes 1 --rounds 3
-    python tests/bench/bench_train_speed.py --against HEAD --new-args --update-every 8   # a knob against the tree itself
+    python -m tests.bench.bench_train_speed --against 81d913c                 # 4 and 32 robots, 2 rounds of 2 min
+    python -m tests.bench.bench_train_speed --against 81d913c --robots 4 --minutes 1 --rounds 3
+    python -m tests.bench.bench_train_speed --against HEAD --new-args --update-every 8   # a knob against the tree itself
 
 Each case runs ``python -m learn train --preset fast --world kilobot --robots M --history 20 --n-envs 16
 --max-minutes T`` (issue 14's command) in this tree and in the revision (checked out into a temporary

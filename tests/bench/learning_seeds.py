@@ -1,6 +1,6 @@
 """Learned policies of several training seeds against the hand-written searcher, on held-out episodes.
 
-    python tests/bench/learning_seeds.py runs/es_s1 runs/es_s2 runs/es_s3 --robots 4 16 32 \
+    python -m tests.bench.learning_seeds runs/es_s1 runs/es_s2 runs/es_s3 --robots 4 16 32 \
         --episodes 100 --steps 500 --seed 20261202 --out runs/es_eval
 
 Evaluates each run's ``policy_best.npz`` (or the ``.npz`` given) with ``python -m learn evaluate``'s
@@ -19,13 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-from kiloforge.io import write_atomic  # noqa: E402
-from kiloforge.policies import load_policy  # noqa: E402
-from policy_labels import policy_paths  # noqa: E402
-from learn.evaluate import evaluate_policies  # noqa: E402
+from kiloforge.io import write_atomic
+from kiloforge.policies import load_policy, policy_paths
+from learn.evaluate import evaluate_policies
 
 
 def main() -> int:
@@ -39,7 +35,11 @@ def main() -> int:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    policies = {name: load_policy(path) for name, path in policy_paths(args.runs).items()}
+    try:
+        paths = policy_paths(args.runs)
+    except ValueError as e:
+        ap.error(str(e))
+    policies = {name: load_policy(path) for name, path in paths.items()}
     res = evaluate_policies(policies, args.robots, args.episodes, args.steps, out, seed=args.seed, gif=False,
                             progress=False, log=lambda _m: None)
     summary = {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, "robots": {}}

@@ -1,6 +1,6 @@
 """Several policies across the robustness suite in one run, side by side, on the same episodes.
 
-    python tests/bench/robustness_compare.py export/data/default_policy.npz runs/esdr_s2 baseline \
+    python -m tests.bench.robustness_compare export/data/default_policy.npz runs/esdr_s2 baseline \
         --robots 4 16 32 --episodes 30 --steps 300 --seed 20261202 --out runs/robust_cmp
 
 Each entry is a run directory (its ``policy_best.npz``), a ``.npz`` artifact, or ``baseline`` (the
@@ -16,16 +16,12 @@ import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-from kiloforge.io import write_atomic  # noqa: E402
-from policy_labels import policy_paths  # noqa: E402
-from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
-from sim.baselines import make_policy  # noqa: E402
-from sim.config import preset  # noqa: E402
-from sim.robustness import SuiteTable, run_suite  # noqa: E402
-from sim.variants import robustness_suite  # noqa: E402
+from kiloforge.io import write_atomic
+from kiloforge.policies import load_policy, policy_paths, swarm_policy
+from sim.baselines import make_policy
+from sim.config import preset
+from sim.robustness import SuiteTable, run_suite
+from sim.variants import robustness_suite
 
 
 def factories(entries: list[str]):
@@ -66,7 +62,10 @@ def main() -> int:
                     help="only these variants of the suite (nominal is always run; default: all)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
-    makers, world = factories(args.policies)
+    try:
+        makers, world = factories(args.policies)
+    except ValueError as e:  # a policy given twice
+        ap.error(str(e))
     suite = robustness_suite(world)
     if args.variants:
         unknown = [v for v in args.variants if v not in suite]

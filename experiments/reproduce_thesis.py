@@ -1,6 +1,6 @@
 """Re-run the thesis experiments (§5) at this machine's scale; write docs/report plots and tables.
 
-    python tests/bench/reproduce_thesis.py [STAGE ...] [--minutes-scale F] [--episodes N]
+    python -m experiments.reproduce_thesis [STAGE ...] [--minutes-scale F] [--episodes N]
                                            [--verify-episodes N] [--jobs 2] [--dry-run] [--force]
 
 Stages (default: all, in this order):
@@ -41,7 +41,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "runs"
 OUT = ROOT / "docs" / "report"
 PY = sys.executable
@@ -148,7 +148,6 @@ def ship(args) -> None:
     """Pick the kilobot candidate with the best 16-robot final coverage and save it as the default policy."""
     import datetime
 
-    sys.path.insert(0, str(ROOT))
     from kiloforge.policies import load_policy, save_policy
 
     cands = [RUNS / name / f for name, *_ in KILOBOT_RUNS for f in ("policy_best.npz", "policy_last.npz")
@@ -361,7 +360,7 @@ def closed_table(path: Path) -> list[str]:
 def plots(args) -> None:
     """Learning-curve figures and docs/report/tables.md from whatever runs and results exist."""
     OUT.mkdir(parents=True, exist_ok=True)
-    lines = ["# Tables (written by tests/bench/reproduce_thesis.py)", ""]
+    lines = ["# Tables (written by experiments/reproduce_thesis.py)", ""]
     for runs, key, title, png in ((ROBOT_RUNS, "robots", "thesis world, Experiment 1", "learning_curves_robots.png"),
                                   (HISTORY_RUNS, "t_prev", "thesis world, 2 robots, Experiment 2", "learning_curves_history.png"),
                                   (KILOBOT_RUNS, "robots", "kilobot world, 4 robots, T_prev 20", "learning_curves_kilobot.png")):

@@ -1,10 +1,10 @@
 """Does a coin let a learned policy copy the pusher? A scratch world with a random bit in every observation.
 
-    python tests/bench/coin_experiment.py train-es --seed 1 --randomise table --demo-policy pusher --out runs/coin_s1
-    python tests/bench/coin_experiment.py train-es --init-policy runs/coin_s1/policy_best.npz \\
+    python -m experiments.coin_experiment train-es --seed 1 --randomise table --demo-policy pusher --out runs/coin_s1
+    python -m experiments.coin_experiment train-es --init-policy runs/coin_s1/policy_best.npz \\
         --size-randomise table table table-free-beacon --size-weights 2 1 3 --size-episodes 4 1 2 --lr 0.005 \\
         --generations 20 --seed 51 --out runs/coin_ft_s1
-    python tests/bench/coin_experiment.py evaluate runs/coin_ft_s1/policy_last.npz … [--episodes 100 --seed 20261202]
+    python -m experiments.coin_experiment evaluate runs/coin_ft_s1/policy_last.npz … [--episodes 100 --seed 20261202]
 
 Not a product feature: this script patches the simulator in its own process. Every observation's last entry (the
 last RBF bin of the kilobot world) is replaced by a fair random bit per robot and period, and ``--demo-policy pusher``
@@ -19,17 +19,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-import learn.demos as demos  # noqa: E402
-import learn.es_train as es_train  # noqa: E402
-import sim.env  # noqa: E402
-from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, make_policy  # noqa: E402
+import learn.demos as demos
+import learn.es_train as es_train
+import sim.env
+from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, make_policy
 
 
 class CoinPusher(HandWrittenSearcher):

@@ -1,6 +1,6 @@
 """Make a trained policy the shipped default, with the evidence for choosing it in its provenance.
 
-    python tests/bench/ship_default.py runs/es_s2/policy_best.npz --evaluation runs/es_eval/seeds.json \
+    python -m tools.ship_default runs/es_s2/policy_best.npz --evaluation runs/es_eval/seeds.json \
         --notes "..." [--out export/data/default_policy.npz]
 
 Copies the policy (its arrays unchanged) and adds to its provenance: ``notes``, ``selection`` (the
@@ -16,10 +16,9 @@ import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[1]
 
-from kiloforge.policies import load_policy, save_policy  # noqa: E402
+from kiloforge.policies import load_policy, save_policy
 
 
 def main() -> int:

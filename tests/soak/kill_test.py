@@ -1,6 +1,6 @@
 """Kill exports and trainings at random moments (SIGKILL and SIGINT) and check what they leave.
 
-    PYTHONPATH=. nice -n 15 python tests/bench/kill_test.py [--exports 200] [--trainings 50] [--es-trainings 10]
+    nice -n 15 python -m tests.soak.kill_test [--exports 200] [--trainings 50] [--es-trainings 10]
                                                             [--seed 0]
 
 Exports: each publishes a new set over an old complete one and is killed at a random moment: a third
@@ -22,9 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import kill_harness as kh  # noqa: E402
+from tests import kill_harness as kh
 
 
 def main() -> int:

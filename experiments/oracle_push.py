@@ -1,6 +1,6 @@
 """How much of the packing ceiling can driving at the beacon reach? An omniscient controller as a bound.
 
-    python tests/bench/oracle_push.py --robots 32 --episodes 100 --steps 500 --seed 20261202
+    python -m experiments.oracle_push --robots 32 --episodes 100 --steps 500 --seed 20261202
 
 The *oracle* knows every robot's true position, heading and the beacon's (no Kilobot does): a robot out
 of range pivots towards the beacon until it faces it within ``--aim-deg``, then drives straight at it.
@@ -20,21 +20,19 @@ discs pushed apart, a taped-down beacon) jams, and no policy that only gets ther
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[1]
 
-from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
-from sim.baselines import make_policy  # noqa: E402
-from sim.config import WorldConfig  # noqa: E402
-from sim.env import SwarmEnv  # noqa: E402
-from sim.kinematics import wrap_angle  # noqa: E402
-from sim.metrics import compare  # noqa: E402
-from sim.rollout import rollout  # noqa: E402
+from kiloforge.policies import load_policy, swarm_policy
+from sim.baselines import make_policy
+from sim.config import WorldConfig
+from sim.env import SwarmEnv
+from sim.kinematics import wrap_angle
+from sim.metrics import compare
+from sim.rollout import rollout
 
 #: the kilobot world's pivot commands: (1, 0) turns counter-clockwise (heading grows), (0, 1) clockwise
 TURN_CCW, TURN_CW = (1.0, 0.0), (0.0, 1.0)

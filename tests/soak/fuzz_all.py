@@ -1,7 +1,7 @@
 """The whole fuzzing run: >= 10,000 generated bad inputs over policy files, world JSON, ONNX graphs and the
 command lines, with the property of tests/fuzz_targets.py; prints how each target's inputs ended.
 
-    PYTHONPATH=. nice -n 15 python tests/bench/fuzz_all.py [--scale 1.0] [--only policy_bytes,onnx]
+    nice -n 15 python -m tests.soak.fuzz_all [--scale 1.0] [--only policy_bytes,onnx]
 
 Exit status 0 when tracebacks, partial outputs, accepted corrupt files and unclean messages are all 0.
 The test suite runs a slice of the same targets (tests/test_fuzz.py).
@@ -15,11 +15,9 @@ import time
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: fuzz_targets, bad_inputs, fixtures
+from hypothesis import given
 
-from hypothesis import given  # noqa: E402
-
-import fuzz_targets as ft  # noqa: E402
+from tests import fuzz_targets as ft
 
 #: inputs per target at --scale 1 (10,600 in all)
 COUNTS = {"policy_bytes": 2500, "policy_meta": 2500, "policy_arrays": 1500, "world_json": 2000, "onnx": 1200,

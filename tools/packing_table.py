@@ -1,7 +1,7 @@
 """Write the packing-ceiling table of the kilobot world (sim/data/packing_ceiling.npz) and print it.
 
-    python tests/bench/packing_table.py                 # the shipped table (about 10 min on one core)
-    python tests/bench/packing_table.py --out /tmp/t.npz --radius 16.5 --comm 85 --arena 250
+    python -m tools.packing_table                 # the shipped table (about 10 min on one core)
+    python -m tools.packing_table --out /tmp/t.npz --radius 16.5 --comm 85 --arena 250
 
 For every (dx, dy) wall distance on the grid, :func:`sim.ceiling.pack` searches a packing of discs
 within range of the beacon; the table holds the counts and the configurations (see sim/ceiling.py).
@@ -11,17 +11,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-
-from kiloforge.io import write_atomic  # noqa: E402
-from sim import ceiling  # noqa: E402
-from sim.config import KILOBOT  # noqa: E402
+from kiloforge.io import write_atomic
+from sim import ceiling
+from sim.config import KILOBOT
 
 
 def main() -> None:

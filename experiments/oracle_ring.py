@@ -1,6 +1,6 @@
 """Can packing in rings beat the jam at 32 robots? Omniscient ring-packing controllers as a test.
 
-    python tests/bench/oracle_ring.py --robots 32 --episodes 100 --steps 500 --seed 20261202
+    python -m experiments.oracle_ring --robots 32 --episodes 100 --steps 500 --seed 20261202
 
 Around a beacon in the open, two rings hold more robots than the disordered cluster that pushing makes
 (19-20 in range) or a hexagonal lattice through the beacon's site (18): 9 robots at about 50 mm and 15
@@ -24,22 +24,17 @@ sit at the end (by distance from a beacon in the open) and its fraction of the c
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
-from oracle_push import episode_args, touching_ahead  # noqa: E402  (this folder: the shared oracle parts)
-from sim.ceiling import capacity  # noqa: E402
-from sim.config import WorldConfig  # noqa: E402
-from sim.env import SwarmEnv  # noqa: E402
-from sim.kinematics import wrap_angle  # noqa: E402
-from sim.metrics import compare, final_coverage  # noqa: E402
-from sim.rollout import rollout  # noqa: E402
+from experiments.oracle_push import episode_args, touching_ahead
+from kiloforge.policies import load_policy, swarm_policy
+from sim.ceiling import capacity
+from sim.config import WorldConfig
+from sim.env import SwarmEnv
+from sim.kinematics import wrap_angle
+from sim.metrics import compare, final_coverage
+from sim.rollout import rollout
 
 FULL_TURN_RAD = np.deg2rad(45.0)  #: a period of full pivoting turns the kilobot world's robot by about this
 BLOCKED_ORBIT = 5  #: a robot blocked on its way in orbits this many periods before it tries again

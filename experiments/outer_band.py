@@ -1,7 +1,7 @@
 """Where a bearing pays at 32 robots: the outer band of the range, and what distances alone get there.
 
-    python tests/bench/outer_band.py --robots 32 --episodes 100 --steps 500 --seed 20261202
-    python tests/bench/outer_band.py --episodes 100 --entry-error 0 20 --reach 100 120 170 250 --held-aim 120,0 250,0
+    python -m experiments.outer_band --robots 32 --episodes 100 --steps 500 --seed 20261202
+    python -m experiments.outer_band --episodes 100 --entry-error 0 20 --reach 100 120 170 250 --held-aim 120,0 250,0
 
 Every contender here is the hand-written searcher (``sim.baselines``, tuned) outside the beacon's range, and
 differs only inside it, where a robot stops once it hears the beacon within ``--stop-mm`` (the *band*) and,
@@ -36,23 +36,17 @@ collisions cost).
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests" / "bench"))
-
-from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
-from oracle_push import TURN_CCW, TURN_CW, episode_args  # noqa: E402
-from sim.baselines import TUNED, HandWrittenSearcher, make_policy  # noqa: E402
-from sim.config import OBS_TARGET, OBS_WALL, WorldConfig  # noqa: E402
-from sim.env import SwarmEnv  # noqa: E402
-from sim.kinematics import wrap_angle  # noqa: E402
-from sim.metrics import compare  # noqa: E402
-from sim.rollout import rollout  # noqa: E402
+from experiments.oracle_push import TURN_CCW, TURN_CW, episode_args
+from kiloforge.policies import load_policy, swarm_policy
+from sim.baselines import TUNED, HandWrittenSearcher, make_policy
+from sim.config import OBS_TARGET, OBS_WALL, WorldConfig
+from sim.env import SwarmEnv
+from sim.kinematics import wrap_angle
+from sim.metrics import compare
+from sim.rollout import rollout
 
 MEMORY = 3  #: periods a heard distance stays "the latest" (the current one and two missed)
 GRID = np.deg2rad(np.arange(0.0, 360.0, 10.0))

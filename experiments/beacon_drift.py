@@ -1,13 +1,13 @@
 """Where does a pushed beacon go? Final coverage, beacon drift and the packing ceiling, taped vs pushed.
 
-    python tests/bench/beacon_drift.py export/data/default_policy.npz baseline oracle oracle-queue \\
+    python -m experiments.beacon_drift export/data/default_policy.npz baseline oracle oracle-queue \\
         --robots 32 --episodes 30 --steps 300 --seed 20261202
 
 For each controller, the same episodes with the beacon taped down (mobility 0) and pushed like a robot
 (mobility 1): final coverage, the packing ceiling at the beacon's *final* position (sim.ceiling: fewer
 robots fit in range of a beacon at a wall), final coverage as a fraction of it, how far the beacon moved
 and the share of episodes whose beacon ends within 5 mm of a wall. Controllers: policy artifacts (.npz),
-``baseline`` (the hand-written searcher), ``oracle`` (tests/bench/oracle_push.py: every robot driven at
+``baseline`` (the hand-written searcher), ``oracle`` (experiments/oracle_push.py: every robot driven at
 the beacon from the true state, stopping in range) and ``oracle-queue`` (the same, but a robot out of
 range also waits while a robot in range touches it in front: it queues instead of pushing the cluster).
 """
@@ -16,20 +16,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-from kiloforge.policies import load_policy, swarm_policy  # noqa: E402
-from oracle_push import OraclePush  # noqa: E402
-from policy_labels import policy_paths  # noqa: E402
-from sim.baselines import make_policy  # noqa: E402
-from sim.config import preset  # noqa: E402
-from sim.env import SwarmEnv  # noqa: E402
-from sim.rollout import rollout  # noqa: E402
+from experiments.oracle_push import OraclePush
+from kiloforge.policies import load_policy, policy_paths, swarm_policy
+from sim.baselines import make_policy
+from sim.config import preset
+from sim.env import SwarmEnv
+from sim.rollout import rollout
 
 SPECIAL = ("baseline", "oracle", "oracle-queue")
 
@@ -42,7 +37,10 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
     args = ap.parse_args()
-    files = policy_paths([c for c in args.controllers if c not in SPECIAL])
+    try:
+        files = policy_paths([c for c in args.controllers if c not in SPECIAL])
+    except ValueError as e:
+        ap.error(str(e))
     policies = {name: load_policy(path) for name, path in files.items()}
     base = next(iter(policies.values())).world if policies else preset("kilobot")
     base = dataclasses.replace(base, episode_steps=args.steps)

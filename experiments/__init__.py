@@ -1,0 +1,1 @@
+"""Research experiments: what they showed and where it is written up, experiments/README.md."""

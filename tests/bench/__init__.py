@@ -1,0 +1,1 @@
+"""Benchmarks: scripts that measure and print tables (``python -m tests.bench.NAME`` from the repository root)."""
