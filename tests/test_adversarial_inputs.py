@@ -199,7 +199,7 @@ BAD_PARAMS = _bad_params(np.random.default_rng(np.random.SeedSequence(4711)))
 def test_searcher_parameter_out_of_range_is_one_line(tmp_path, capsys, name, value):
     """A searcher policy file with a parameter out of its range: export refuses it in one line naming the parameter."""
     import json
-    from bad_inputs import crafted
+    from tests.bad_inputs import crafted
     arrays, meta = _searcher_parts()
     meta = json.loads(json.dumps(meta))
     meta["params"][name] = value
@@ -267,7 +267,7 @@ BAD_WORLDS = _bad_worlds(np.random.default_rng(np.random.SeedSequence(4712)))
 @pytest.mark.parametrize("change", BAD_WORLDS, ids=[",".join(f"{k}={v:.3g}" for k, v in c.items()) for c in BAD_WORLDS])
 def test_world_that_blinds_the_rbf_table_is_refused(tmp_path, capsys, change):
     """A policy file whose world makes the RBF features NaN, infinite or all-zero in the firmware: one line, exit 2."""
-    from bad_inputs import crafted, parts, small_policy
+    from tests.bad_inputs import crafted, parts, small_policy
     arrays, meta = parts(small_policy())
     meta["world"] = {**meta["world"], **change}
     p = tmp_path / "p.npz"

@@ -118,7 +118,8 @@ def test_layers():
 
 #: kiloforge's foundation, the floor below sim: what every package uses and nothing of ours but itself
 FOUNDATION = {"kiloforge", "kiloforge.errors", "kiloforge.validate", "kiloforge.io", "kiloforge.progress",
-              "kiloforge.cliparse", "kiloforge.interrupts", "kiloforge.sighold", "kiloforge.extras", "kiloforge.plotting"}
+              "kiloforge.cliparse", "kiloforge.interrupts", "kiloforge.sighold", "kiloforge.extras", "kiloforge.plotting",
+              "kiloforge.numfmt"}
 #: the programs, the top floor: the ``__main__`` modules, the ``kiloforge`` command, the console scripts and the
 #: command lines that sit above the package they are named after (``python -m sim`` plays policy artifacts)
 PROGRAMS = {"sim.__main__", "learn.__main__", "export.__main__", "kiloforge.__main__", "kiloforge.cli",
@@ -128,7 +129,7 @@ FLOORS = ("foundation", "sim", "artifact", "export", "learn", "program")
 
 def floor(name: str) -> str:
     """The floor of a module: kiloforge's foundation, the simulator library, kiloforge's artifact and actor floor
-    (artifact, policies, numfmt, actors/), export, learn, or the programs."""
+    (artifact, policies, actors/), export, learn, or the programs."""
     if name in PROGRAMS:
         return "program"
     if name in FOUNDATION:
