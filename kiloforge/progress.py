@@ -2,7 +2,8 @@
 
 :func:`progress_bar` takes tqdm's arguments. When stderr is not a terminal (redirected to a file, a
 CI log) the bar writes whole lines, at most one every :data:`LINE_INTERVAL_S` seconds and a last one
-when a kept bar closes, instead of ``\\r``-redrawn updates and cursor moves. With ``max_seconds``
+when it closes (a transient bar too: a log keeps what was done), instead of ``\\r``-redrawn updates and
+cursor moves. With ``max_seconds``
 (a run with a time budget as well as ``total`` units of work) the bar measures whichever budget runs
 out first (:class:`BudgetBar`), so its percentage and ETA are those of the run that will happen.
 """
@@ -13,7 +14,7 @@ import sys
 import time
 from typing import Any, TextIO
 
-LINE_INTERVAL_S = 30.0  #: the least time between two lines of a bar in a log
+LINE_INTERVAL_S = 10.0  #: the least time between two lines of a bar in a log
 _CONTROL = re.compile(r"\r|\x1b\[[0-9;]*[A-Za-z]")  #: tqdm's redraw: carriage returns, cursor moves
 
 
@@ -85,6 +86,6 @@ def progress_bar(*, max_seconds: float | None = None, elapsed: float = 0.0, **kw
     stream = kwargs.get("file") or sys.stderr
     isatty = getattr(stream, "isatty", None)
     if isatty is None or not isatty():
-        kwargs.update(file=_Lines(stream), dynamic_ncols=False, ncols=kwargs.get("ncols") or 100,
+        kwargs.update(file=_Lines(stream), dynamic_ncols=False, ncols=kwargs.get("ncols") or 100, leave=True,
                       mininterval=max(kwargs.get("mininterval", 0.0), LINE_INTERVAL_S))
     return tqdm(**kwargs)

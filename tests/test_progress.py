@@ -2,8 +2,14 @@
 from __future__ import annotations
 
 import io
+import re
+import subprocess
+import sys
+from pathlib import Path
 
-from kiloforge.progress import progress_bar
+from kiloforge.progress import LINE_INTERVAL_S, progress_bar
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class Terminal(io.StringIO):
@@ -39,6 +45,20 @@ def test_log_transient_and_nested_bars_write_no_redraws():
     assert "\r" not in text and "\x1b" not in text
     assert all(line.strip() for line in text.splitlines())
     assert text.splitlines()[-1].startswith("outer: 100%")
+    assert any(line.startswith("inner: 100%") for line in text.splitlines())  # a log keeps what a transient bar did
+
+
+def test_redirected_short_command_logs_its_progress(tmp_path):
+    """A redirected `python -m learn evaluate` of a second logs lines with nonzero progress (at least one
+    every LINE_INTERVAL_S <= 10 s, and the last at 100 %), not only `0%| 0/N`."""
+    assert LINE_INTERVAL_S <= 10
+    policy = ROOT / "export" / "data" / "default_policy.npz"
+    r = subprocess.run([sys.executable, "-m", "learn", "evaluate", "--policy", str(policy), "--robots", "2",
+                        "--episodes", "2", "--steps", "30", "--no-baselines"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    done = [line for line in r.stderr.splitlines() if re.search(r"\b([1-9]\d*)%\|", line)]
+    assert done and "30/30" in done[-1], r.stderr
 
 
 def test_terminal_keeps_tqdm_redraws():
