@@ -26,6 +26,7 @@ try:
     from kiloforge.interrupts import exit_status, run_entry_point, terminate_raises
     from kiloforge.validate import int_arg, seed_arg
     from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
+    from sim.tasks import TASK_HELP
 finally:
     release(_previous, program=__name__ == "__main__")
 
@@ -40,7 +41,9 @@ def build_parser() -> ArgumentParser:
 
     e = sub.add_parser("evaluate", help="evaluate policies against the baselines",
                        description="Evaluate policy artifacts and the random / hand-written baselines.")
-    e.add_argument("--policy", nargs="+", required=True, help="policy artifact(s) (.npz)")
+    e.add_argument("--policy", nargs="+", required=True,
+                   help="policy artifact(s) (.npz), or the name of a shipped policy of the task (e.g. default)")
+    e.add_argument("--task", default=None, metavar="TASK", help=TASK_HELP)
     e.add_argument("--robots", nargs="+", type=int_arg(1, MAX_ROBOTS), default=[16, 32],
                    help="swarm sizes (default 16 32)")
     e.add_argument("--episodes", type=int_arg(1, 100_000), default=BENCHMARK_EPISODES,
@@ -75,13 +78,16 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from export.shipped import load_task_policy
     from kiloforge.io import staged_files
-    from kiloforge.policies import load_policy, policy_labels
+    from kiloforge.policies import policy_labels
+    from sim.tasks import get_task
 
     from .evaluate import evaluate_policies
 
-    policies = {name: load_policy(path) for name, path in zip(policy_labels(args.policy), args.policy)}
-    run = dict(seed=args.seed, n_envs=args.n_envs, baselines=not args.no_baselines, progress=not args.quiet)
+    task = get_task(args.task)
+    policies = {name: load_task_policy(path, task) for name, path in zip(policy_labels(args.policy), args.policy)}
+    run = dict(seed=args.seed, n_envs=args.n_envs, baselines=not args.no_baselines, progress=not args.quiet, task=task)
     if args.out is None:  # the tables on stdout only
         evaluate_policies(policies, args.robots, args.episodes, args.steps, None, gif=False, **run)
         print("nothing written (--out DIR writes evaluation.json, plots and a GIF)")

@@ -52,6 +52,7 @@ from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
 from sim.variants import RANDOMISATIONS
 from sim.config import preset as world_preset
+from sim.tasks import DEFAULT_TASK, Task, get_task
 
 
 class ConfigError(ValueError):
@@ -109,6 +110,21 @@ class ConfigBase:
     @classmethod
     def _tuple_fields(cls) -> tuple[str, ...]:
         return tuple(f for f, h in _hints(cls).items() if typing.get_origin(h) is tuple)
+
+    def task_spec(self) -> Task:
+        """The task this run trains for (:func:`sim.tasks.get_task` of ``task``)."""
+        return get_task(self.task)
+
+    def check_task(self) -> None:
+        """The task resolves, runs in the world, and demonstrations (localisation's searcher) only go with localisation."""
+        try:
+            task = self.task_spec()
+            task.check_world(self.world_config())
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        need(self.demo_policy == "none" or task.name == DEFAULT_TASK,
+             f"demo_policy '{self.demo_policy}' demonstrates localisation, not task '{task.name}': "
+             "use --demo-policy none (random initial weights)")
 
     def world_config(self) -> WorldConfig:
         """The world this run trains in (world preset, with ``episode_steps`` when set)."""
@@ -220,11 +236,13 @@ class ExperimentConfig(ConfigBase):
     tensorboard: bool = False  #: also log every metrics row as TensorBoard scalars (run_dir/tensorboard)
     seed: int = 1  #: master seed (networks, environments, noise, replay sampling, evaluation)
     exp_name: str = "default"  #: experiment name used in the default run directory name
+    task: str = "localisation"  #: the task (sim.tasks): a built-in or plug-in name, or path/to/file.py:ClassName
 
     # --- validation ----------------------------------------------------------------------------
     def validate(self) -> "ExperimentConfig":
         """Raise :class:`ConfigError` (one line) for a bad value; return self."""
         need(self.world in WORLD_PRESETS, f"world must be one of {', '.join(sorted(WORLD_PRESETS))}, got '{self.world}'")
+        self.check_task()
         need(len(self.n_robots) >= 1 and all(isinstance(m, int) and 1 <= m <= MAX_ROBOTS for m in self.n_robots),
              f"n_robots must be in 1..{MAX_ROBOTS}, got {_show(self.n_robots)}")
         need(len(set(self.n_robots)) == len(self.n_robots), f"n_robots lists a size twice: {_show(self.n_robots)}")
@@ -442,10 +460,12 @@ class ESConfig(ConfigBase):
     threads: int = 0  #: torch CPU threads; 0 = auto (1)
     seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)
     exp_name: str = "es"  #: experiment name used in the default run directory name
+    task: str = "localisation"  #: the task (sim.tasks): a built-in or plug-in name, or path/to/file.py:ClassName
 
     def validate(self) -> "ESConfig":
         """Raise :class:`ConfigError` (one line) for a bad value; return self."""
         need(self.world in WORLD_PRESETS, f"world must be one of {', '.join(sorted(WORLD_PRESETS))}, got '{self.world}'")
+        self.check_task()
         need(len(self.n_robots) >= 1 and all(isinstance(m, int) and 1 <= m <= MAX_ROBOTS for m in self.n_robots),
              f"n_robots must be in 1..{MAX_ROBOTS}, got {_show(self.n_robots)}")
         need(len(set(self.n_robots)) == len(self.n_robots), f"n_robots lists a size twice: {_show(self.n_robots)}")

@@ -95,18 +95,19 @@ class PopulationResult:
 @torch.no_grad()
 def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConfig, n_robots: int,
                        episode_seeds: Sequence[np.random.SeedSequence], t_prev: int,
-                       randomise=None) -> PopulationResult:
+                       randomise=None, task=None) -> PopulationResult:
     """Every member (rows of ``theta``) plays every episode of ``episode_seeds`` (common random numbers).
 
     One SwarmEnv of K·E envs: env (k, e) is member k in episode e, seeded with ``episode_seeds[e]``,
     so all members meet exactly the same episodes (env e of a batch equals the single env with that
-    seed sequence). Episodes last ``world.episode_steps``.
+    seed sequence). Episodes last ``world.episode_steps``; fitness is the final value of the task's success
+    (``task``: a :class:`sim.tasks.Task` or name, default localisation, whose success is coverage).
     """
     K, E, M = theta.shape[0], len(episode_seeds), n_robots
     assert pop.in_dim == world.history_dim(t_prev), \
         f"actor input {pop.in_dim} != history width {world.history_dim(t_prev)} (t_prev {t_prev})"
     seeds = [episode_seeds[e] for _ in range(K) for e in range(E)]  # env index k * E + e
-    env = SwarmEnv(world, n_envs=K * E, n_robots=M, seed=seeds, randomise=randomise)
+    env = SwarmEnv(world, n_envs=K * E, n_robots=M, seed=seeds, randomise=randomise, task=task)
     obs, _ = env.reset()
     history = History(t_prev, world.obs_dim)
     h = history.reset(obs)

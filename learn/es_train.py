@@ -16,6 +16,7 @@ after the current generation with a checkpoint; the CLI exits 130 / 143.
 from __future__ import annotations
 
 import datetime
+import dataclasses
 import json
 import math
 import os
@@ -87,7 +88,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
         init = init_policy_of(cfg, algo, world)
     ckpt = Checkpointer(run_dir)
     pop = PopulationMLP.of(algo.actor.net)
-    evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed) for M in cfg.n_robots]
+    evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed, task=cfg.task_spec()) for M in cfg.n_robots]
     weights = cfg.weights()
     c = Counters()
     result = RunResult(run_dir, c, "done")
@@ -105,7 +106,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 "env_steps": c.env_steps, "wall_s": round(c.wall_s, 1), "eval": finite_or_none(dict(row))}
         if cfg.init_policy:
             prov["init_policy_hash"] = init_hash
-        save_policy(algo.artifact(world, prov), run_dir / name)
+        save_policy(dataclasses.replace(algo.artifact(world, prov), task=cfg.task_spec().ref), run_dir / name)
 
     def evaluate() -> dict:
         set_theta(algo, theta)
@@ -313,7 +314,7 @@ def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss
     episodes = 0
     for i, (M, w, rand, n_ep) in enumerate(zip(cfg.n_robots, weights, randomise, cfg.size_episode_counts())):
         seeds = [_child(ss, 1 + i, e) for e in range(n_ep)]
-        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, rand)
+        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, rand, cfg.task_spec())
         stop.check()
         f = res.final_coverage.mean(axis=1)
         utility += w * centred_ranks(f)

@@ -21,12 +21,12 @@ import numpy as np
 
 from kiloforge.io import write_atomic
 from kiloforge.policies import swarm_policy
-from sim.baselines import make_policy
-from sim.ceiling import has_ceiling, mean_capacity, open_capacity
+from sim.ceiling import mean_capacity, open_capacity
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
 from sim.rollout import RolloutResult, rollout
+from sim.tasks import Task, check_policy_task, get_task
 
 MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache friendly)
 
@@ -34,7 +34,8 @@ MAX_EVAL_ENVS = 50  #: envs stepped together by the evaluator (memory and cache 
 class Evaluator:
     """Deterministic evaluation episodes of a swarm policy, always from the same seeds."""
 
-    def __init__(self, world: WorldConfig, n_robots: int, episodes: int, seed: int, randomise: str = "none") -> None:
+    def __init__(self, world: WorldConfig, n_robots: int, episodes: int, seed: int, randomise: str = "none",
+                 task: "Task | str | None" = None) -> None:
         from .groups import make_env
 
         assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
@@ -43,7 +44,7 @@ class Evaluator:
         b = min(episodes, MAX_EVAL_ENVS)
         while episodes % b:
             b -= 1
-        self.env = make_env(world, b, n_robots, seed, randomise)
+        self.env = make_env(world, b, n_robots, seed, randomise, task)
 
     def __call__(self, policy) -> EpisodeMetrics:
         """Metrics of ``policy`` (a :class:`sim.rollout.SwarmPolicy`, e.g. :class:`LearnerPolicy`)."""
@@ -96,15 +97,20 @@ class Contender:
 
 def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes: int, steps: int,
                       out_dir: Path | None, seed: int = 0, n_envs: int = 50, baselines: bool = True,
-                      gif: bool = True, progress: bool = True, log: Callable[[str], None] = print) -> dict:
-    """Evaluate policy artifacts (name → a float policy of any actor kind) and the baselines.
+                      gif: bool = True, progress: bool = True, log: Callable[[str], None] = print,
+                      task: "Task | str | None" = None) -> dict:
+    """Evaluate policy artifacts (name → a float policy of any actor kind) and the task's baselines.
 
-    All policies must share one world (the first's). Every policy sees the same episode seeds.
+    All policies must share one world (the first's) and have been trained for ``task`` (default
+    localisation; another is a one-line InputError). Every policy sees the same episode seeds.
     Writes to ``out_dir``: ``reward_over_time_{M}.png``, ``returns_box_{M}.png``,
     ``coverage_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``; with ``out_dir``
     None nothing (the tables are only logged). Returns the JSON-ready results.
     """
     assert policies or baselines, "nothing to evaluate"
+    task = get_task(task)
+    for name, p in policies.items():
+        check_policy_task(p.task_ref, task, f"policy {name}")
     worlds: dict[str, list[str]] = {}
     for name, p in policies.items():
         worlds.setdefault(p.world.to_json(), []).append(f"{name} ('{p.world.name}')")
@@ -119,15 +125,14 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
     contenders: list[Contender] = [
         Contender(name, (lambda p=p: swarm_policy(p, world))) for name, p in policies.items()]
     if baselines:
-        contenders += [Contender("hand-written", lambda: make_policy("baseline", world)),
-                       Contender("hand-written pusher", lambda: make_policy("pusher", world)),
-                       Contender("random", lambda: make_policy("random", world))]
+        contenders += [Contender(label, (lambda b=b: task.make_baseline(b, world))) for label, b in task.baselines.items()]
 
-    with_ceiling = has_ceiling(world)
+    with_ceiling = task.has_ceiling(world)
     if not with_ceiling:
         log(f"note: no packing ceiling for the {world.name} world (the shipped table is for the kilobot "
             "world's bodies, range and arena); the 'of ceiling' column is left out")
-    results: dict = {"world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
+    results: dict = {"task": {**task.ref.to_dict(), "primary_metric": task.primary_metric},
+                     "world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
                      "policies": {n: {"hash": p.hash, "t_prev": p.t_prev, "hidden": p.hidden,
                                       "provenance": p.provenance} for n, p in policies.items()},
                      "robots": {}}
@@ -135,7 +140,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         results["packing"] = {"open_capacity": open_capacity(world), "mean_capacity": mean_capacity(world)}
     for M in robots:
         b = max(1, min(n_envs, episodes))
-        env = SwarmEnv(world, n_envs=b, n_robots=M, seed=seed)
+        env = SwarmEnv(world, n_envs=b, n_robots=M, seed=seed, task=task)
         runs: dict[str, RolloutResult] = {}
         for c in contenders:
             if progress:

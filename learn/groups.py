@@ -13,6 +13,7 @@ import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
+from sim.tasks import Task
 
 from .augment import PhantomNeighbours
 from .config import randomisation
@@ -21,12 +22,10 @@ from .replay import EpisodeReplay
 from .rewards import LearningReward
 
 
-def make_env(world: WorldConfig, n_envs: int, n_robots: int, seed: int, randomise: str = "none") -> SwarmEnv:
-    """A SwarmEnv, domain-randomised when ``randomise`` names a randomisation."""
-    r = randomisation(randomise)
-    if r is None:
-        return SwarmEnv(world, n_envs=n_envs, n_robots=n_robots, seed=seed)
-    return SwarmEnv(world, n_envs=n_envs, n_robots=n_robots, seed=seed, randomise=r)
+def make_env(world: WorldConfig, n_envs: int, n_robots: int, seed: int, randomise: str = "none",
+             task: "Task | str | None" = None) -> SwarmEnv:
+    """A SwarmEnv of ``task`` (default localisation), domain-randomised when ``randomise`` names a randomisation."""
+    return SwarmEnv(world, n_envs=n_envs, n_robots=n_robots, seed=seed, randomise=randomisation(randomise), task=task)
 
 
 def size_shares(n: int, robots: tuple[int, ...], mix: str) -> list[int]:
@@ -56,7 +55,7 @@ class EnvGroup:
                  noise_rng: np.random.Generator, aug_rng: np.random.Generator) -> None:
         B, M, T = cfg.n_envs, n_robots, world.episode_steps
         self.n_envs, self.n_robots, self.world = B, M, world
-        self.env = make_env(world, B, M, int(env_rng.integers(2 ** 31)), cfg.randomise)
+        self.env = make_env(world, B, M, int(env_rng.integers(2 ** 31)), cfg.randomise, cfg.task_spec())
         self.replay = EpisodeReplay(cfg.replay_size, T, M, world.tuple_dim, world.state_dim(M), algo.replay_t_prev,
                                     algo.device, with_obs=cfg.critic_obs)
         self.noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)

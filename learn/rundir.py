@@ -33,7 +33,6 @@ from sim import compiled
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, flag_name
 
-TASK = "coop_loc"  #: task name in run names (the thesis's cooperative localisation)
 METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
                   "eval_final_coverage", "eval_mean_coverage", "eval_time_to_find", "eval_found_rate",
                   "train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
@@ -57,7 +56,7 @@ def result_policy(cfg: object) -> str:
 
 def run_name(cfg: ExperimentConfig) -> str:
     """CleanRL-style run name: task__experiment__seed__unixtime."""
-    return f"{TASK}__{cfg.exp_name}__{cfg.seed}__{int(time.time())}"
+    return f"{cfg.task_spec().name}__{cfg.exp_name}__{cfg.seed}__{int(time.time())}"
 
 
 @functools.lru_cache(maxsize=1)

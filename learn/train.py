@@ -25,6 +25,7 @@ The run directory's files are listed in :mod:`learn.rundir`.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -87,7 +88,7 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
     algo = ALGORITHMS[cfg.algorithm].from_config(cfg, world, device)
     groups = [EnvGroup(cfg, world, M, algo, env_rng, noise_rng, aug_rng) for M in cfg.n_robots]
     eval_randomise = cfg.randomise if cfg.randomise_eval else "none"
-    evaluators = [Evaluator(world, M, cfg.eval_episodes, eval_seed, eval_randomise) for M in cfg.n_robots]
+    evaluators = [Evaluator(world, M, cfg.eval_episodes, eval_seed, eval_randomise, cfg.task_spec()) for M in cfg.n_robots]
     shares = size_shares(cfg.batch_samples, cfg.n_robots, cfg.size_mix)
     demo_shares = size_shares(cfg.demo_samples, cfg.n_robots, cfg.size_mix)
     c = Counters()
@@ -114,7 +115,8 @@ def train(cfg: ExperimentConfig, run_dir: str | os.PathLike, resume: bool = Fals
     def export(name: str, metrics: dict) -> None:
         from kiloforge.policies import save_policy
 
-        save_policy(algo.artifact(world, provenance(cfg, algo, c, metrics)), run_dir / name)
+        save_policy(dataclasses.replace(algo.artifact(world, provenance(cfg, algo, c, metrics)), task=cfg.task_spec().ref),
+                    run_dir / name)
 
     stop = StopRequest()
     tb = None

@@ -32,6 +32,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from kiloforge.errors import InputError
+
 from .config import OBS_WALL, WorldConfig
 from .kinematics import Collider, thesis_move, tick_move, wrap_angle
 from .motion import action_to_u8
@@ -289,6 +291,7 @@ class SwarmEnv:
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
         self.target_dist = target_distance(self.pos, self.target)
         obs, info = self._sense(self._hear(still, self.target_dist))
+        self._check_success(info)
         self._started = True
         return obs, info
 
@@ -359,6 +362,13 @@ class SwarmEnv:
         truncated = np.full(B, self.t >= cfg.episode_steps)
         terminated = np.zeros(B, bool)
         return obs, reward, terminated, truncated, info
+
+    def _check_success(self, info: StepInfo) -> None:
+        """A task's success signal must be (B,) values in [0, 1] (checked at every reset)."""
+        s = np.asarray(info.get("success"))
+        if s.shape != (self.n_envs,) or not np.issubdtype(s.dtype, np.number) or not np.all((s >= 0) & (s <= 1)):
+            raise InputError(f"task '{self.task.name}': step_info()['success'] must be (B,) = ({self.n_envs},) "
+                             f"values in [0, 1], got {s.dtype} {s.shape}")
 
     def _hear(self, record: np.ndarray | None, dt: np.ndarray, beacon: np.ndarray | None = None) -> RadioPeriod:
         if self.tick_level_radio:

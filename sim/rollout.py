@@ -80,7 +80,7 @@ class Trajectories:
     positions: np.ndarray  # (E, T+1, M, 2) float32 mm, index 0 = after reset
     headings: np.ndarray  # (E, T+1, M) float32 rad
     target: np.ndarray  # (E, T+1, 2) float32 mm, the target beacon after each step (pushed ones move)
-    in_range: np.ndarray  # (E, T+1, M) bool, true distance <= comm radius (index 0 = at reset)
+    in_range: np.ndarray  # (E, T+1, M) bool, robots counting towards success (localisation: in range; index 0 = at reset)
     actions: np.ndarray  # (E, T, M, 2) float32, the commands sent
 
 
@@ -119,10 +119,11 @@ class RolloutResult:
         return episode_metrics(self.rewards, self.coverage, ceil)
 
 
-def _in_range_now(env) -> np.ndarray:
-    """(B, M) bool: robots whose true distance to the target is within the comm radius."""
-    d = np.linalg.norm(env.pos - env.target[:, None, :], axis=-1)  # (B, M)
-    return d <= env.cfg.comm_radius_mm
+def robot_success(info, n_envs: int, n_robots: int) -> np.ndarray:
+    """(B, M) bool: the robots the task counts as successful this step (its ``robot_success`` info entry,
+    all False when it has none); plots and animations highlight them."""
+    flags = info.get("robot_success")
+    return np.zeros((n_envs, n_robots), bool) if flags is None else flags
 
 
 def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, record: bool | int = False,
@@ -172,7 +173,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                 pos[rows, 0] = env.pos
                 head[rows, 0] = env.heading
                 tgt[rows, 0] = env.target
-                inr[rows, 0] = _in_range_now(env)
+                inr[rows, 0] = robot_success(info, B, M)
             for t in range(T):
                 a = np.asarray(policy.act(obs), np.float64)
                 assert a.shape == (B, M, ACTION_DIM), f"policy returned {a.shape}, expected {(B, M, ACTION_DIM)}"
@@ -183,7 +184,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                     pos[rows, t + 1] = env.pos
                     head[rows, t + 1] = env.heading
                     tgt[rows, t + 1] = env.target
-                    inr[rows, t + 1] = info["in_range"]
+                    inr[rows, t + 1] = robot_success(info, B, M)
                     acts[rows, t] = a
                 if bar is not None:
                     bar.update(1)

@@ -136,9 +136,9 @@ def test_size_randomise_draws_each_sizes_own_randomisation(tmp_path, monkeypatch
 
     seen = []
 
-    def spy(pop, members, world, M, seeds, t_prev, randomise=None):
+    def spy(pop, members, world, M, seeds, t_prev, randomise=None, task=None):
         seen.append((M, randomise))
-        return rollout_population(pop, members, world, M, seeds, t_prev, randomise)
+        return rollout_population(pop, members, world, M, seeds, t_prev, randomise, task)
 
     monkeypatch.setattr(es_train, "rollout_population", spy)
     train_es(ESConfig(**TINY, size_randomise=("none", "table-free-beacon")), tmp_path / "mixed", progress=False,
@@ -157,9 +157,9 @@ def test_size_episodes_give_each_size_its_own_episode_count(tmp_path, monkeypatc
 
     seen = []
 
-    def spy(pop, members, world, M, seeds, t_prev, randomise=None):
+    def spy(pop, members, world, M, seeds, t_prev, randomise=None, task=None):
         seen.append((M, len(seeds)))
-        return rollout_population(pop, members, world, M, seeds, t_prev, randomise)
+        return rollout_population(pop, members, world, M, seeds, t_prev, randomise, task)
 
     monkeypatch.setattr(es_train, "rollout_population", spy)
     mixed = train_es(ESConfig(**TINY, size_episodes=(3, 1)), tmp_path / "mixed", progress=False, log=_quiet)

@@ -184,7 +184,7 @@ def test_state_layout_and_info():
     np.testing.assert_allclose(s[:, 2:].reshape(2, 3, 3)[..., :2], env.pos / 100, rtol=1e-6)
     np.testing.assert_allclose(s[:, 2:].reshape(2, 3, 3)[..., 2], env.heading / math.pi, rtol=1e-6)
     assert obs.shape == (2, 3, 14) and obs.dtype == np.float32
-    assert set(info) == {"in_range", "events", "light", "coverage", "success"}
+    assert set(info) == {"in_range", "events", "light", "coverage", "success", "robot_success"}
     assert info["success"] is info["coverage"]  # localisation's success signal is its coverage
     assert "events" in info and info["light"].dtype == np.int16 and info["light"].shape == (2, 3)
     np.testing.assert_array_equal(info["coverage"], info["in_range"].mean(1))

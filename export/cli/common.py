@@ -4,31 +4,22 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from contextlib import ExitStack
-from importlib import resources
 from pathlib import Path
 
 from kiloforge.actors.base import FloatPolicy
 from kiloforge.cliparse import ArgumentParser, deprecated_alias
 from kiloforge.errors import printable
-from kiloforge.policies import load_policy
 from kiloforge.validate import float_arg, int_arg
 from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, WorldConfig
-from sim.tasks import TASK_HELP, Task, check_policy_task, get_task
+from sim.tasks import TASK_HELP, Task, get_task
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
+from ..shipped import load_task_policy
 
 EXIT_OK = 0
 EXIT_FAIL = 1  #: does not fit, or a verification failed
 EXIT_USER_ERROR = 2
-DEFAULT_POLICY = ("data", "default_policy.npz")  #: the shipped reference policy, inside the export package
-#: ``--policy NAME`` for a shipped policy of each task (when no file of that name exists)
-SHIPPED_POLICIES = {"localisation": {
-    "default": DEFAULT_POLICY,
-    "searcher": ("data", "searcher_policy.npz"),  #: sim.baselines' searcher, TUNED["kilobot"]
-    "pusher": ("data", "pusher_policy.npz"),  #: the same with sim.baselines.PUSHER
-}}
 
 
 def policy_help() -> str:
@@ -78,29 +69,15 @@ def add_task(ap: argparse.ArgumentParser) -> None:
 
 
 def load(policy: Path | None, onnx: Path | None = None, world_json: Path | None = None,
-         task: Task | None = None) -> FloatPolicy:
+         task: "Task | str | None" = None) -> FloatPolicy:
     """The policy of ``--policy`` (a file, or the name of one of the task's shipped policies: ``default``,
-    ``searcher``, ...), ``--onnx`` (with ``--world-json``; it is taken as a policy of ``task``), or the task's
-    shipped default policy. A policy trained for another task than ``task`` (default localisation) is refused."""
-    task = get_task(task)
+    ``searcher``, ...), ``--onnx`` (with ``--world-json``; taken as a policy of ``task``), or the task's
+    shipped default policy; a policy trained for another task than ``task`` (default localisation) is refused."""
     if onnx is not None:
-        return dataclasses.replace(load_onnx_policy(onnx, world_json=world_json), task=task.ref)
+        return dataclasses.replace(load_onnx_policy(onnx, world_json=world_json), task=get_task(task).ref)
     if world_json is not None:
         raise ExportError("--world-json only goes with --onnx")
-    shipped = SHIPPED_POLICIES.get(task.name, {})
-    if policy is not None and (policy.exists() or str(policy) not in shipped):
-        loaded = load_policy(policy)
-        check_policy_task(loaded.task_ref, task, f"policy file {printable(policy)}")
-        return loaded
-    name = str(policy or "default")
-    if name not in shipped:
-        raise ExportError(f"task '{task.name}' ships no policy '{name}'; give --policy FILE.npz "
-                          f"(shipped policies: {', '.join(f'{t}: {sorted(n)}' for t, n in SHIPPED_POLICIES.items())})")
-    ref = resources.files("export").joinpath(*shipped[name])
-    with ExitStack() as stack:
-        loaded = load_policy(stack.enter_context(resources.as_file(ref)))
-    check_policy_task(loaded.task_ref, task, f"shipped policy '{name}'")
-    return loaded
+    return load_task_policy(policy, task)
 
 
 def describe(policy: FloatPolicy) -> str:

@@ -25,10 +25,10 @@ from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
-from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, WorldConfig
 from sim.motion import action_to_u8
 from sim.rollout import HistoryActor
+from sim.tasks.base import TaskRef
 
 from .. import numfmt
 from ..artifact import plain_provenance

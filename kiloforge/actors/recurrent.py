@@ -18,8 +18,8 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, WorldConfig
+from sim.tasks.base import TaskRef
 
 from ..artifact import plain_provenance
 from ..errors import PolicyError

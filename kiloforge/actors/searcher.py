@@ -53,9 +53,9 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 
 from sim.baselines import COUNTER_MAX, TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
-from sim.tasks.base import TaskRef
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 from sim.motion import action_to_u8
+from sim.tasks.base import TaskRef
 
 from .. import numfmt
 from ..artifact import plain_provenance

@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 1)")
     g.add_argument("--robots", nargs="+", type=int, default=None, help="robots trained together (n_robots)")
     g.add_argument("--world", nargs="+", default=None, help="world preset(s)")
+    g.add_argument("--task", nargs="+", default=None, help="task(s) (sim.tasks; default localisation)")
     g.add_argument("--history", nargs="+", type=int, default=None, help="history lengths (t_prev; magddpg)")
     g.add_argument("--grid", nargs="+", action="extend", default=None, metavar="KEY=V1,V2",
                    help="any config field: comma-separated values, tuples as 32x32, or a JSON list")
@@ -67,7 +68,7 @@ def plan(args: argparse.Namespace) -> tuple[Grid, list[Trial], Path]:
     if args.num_cpus is not None and args.num_cpus < 1:
         raise ConfigError(f"--num-cpus must be >= 1, got {args.num_cpus}")
     grid = build_grid(read_grid_file(args.file) if args.file else None, trainer=args.trainer, presets=args.preset,
-                      seeds=args.seeds, robots=args.robots, world=args.world, history=args.history, grid=args.grid,
+                      seeds=args.seeds, robots=args.robots, world=args.world, task=args.task, history=args.history, grid=args.grid,
                       max_minutes=args.max_minutes, cpus_per_trial=args.cpus_per_trial,
                       eval_robots=args.eval_robots, eval_episodes=args.eval_episodes, eval_steps=args.eval_steps)
     trials = expand(grid)

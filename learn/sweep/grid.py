@@ -196,6 +196,7 @@ def _axis_values(trainer: str, key: str, value: Any, where: str) -> list:
 
 def build_grid(file: dict | None = None, *, trainer: str | None = None, presets: list[str] | None = None,
                seeds: list[int] | None = None, robots: list[int] | None = None, world: list[str] | None = None,
+               task: list[str] | None = None,
                history: list[int] | None = None, grid: list[str] | None = None, max_minutes: float | None = None,
                cpus_per_trial: float | None = None, eval_robots: list[int] | None = None,
                eval_episodes: int | None = None, eval_steps: int | None = None) -> Grid:
@@ -219,7 +220,7 @@ def build_grid(file: dict | None = None, *, trainer: str | None = None, presets:
         if key in cli:
             raise ConfigError(f"--grid {key} is given twice")
         cli[key] = (values, f"--grid {key}")
-    for opt, key, values in (("--robots", "n_robots", robots), ("--world", "world", world),
+    for opt, key, values in (("--robots", "n_robots", robots), ("--world", "world", world), ("--task", "task", task),
                              ("--history", "t_prev", history)):
         if values is None:
             continue

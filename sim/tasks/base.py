@@ -95,7 +95,8 @@ class Task(ABC):
 
     @abstractmethod
     def step_info(self, env: Any) -> dict[str, np.ndarray]:
-        """The step's ``info`` entries after the move; must hold ``success`` (B,) in [0, 1]."""
+        """The step's ``info`` entries after the move: ``success`` (B,) in [0, 1], and optionally
+        ``robot_success`` (B, M) bool, the robots that count towards it (plots highlight them)."""
 
     @abstractmethod
     def reward(self, env: Any, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
@@ -113,10 +114,9 @@ class Task(ABC):
         """The baseline ``name`` (a value of :attr:`baselines`) as a :class:`sim.rollout.SwarmPolicy`."""
         raise InputError(f"task '{self.name}' has no baseline '{name}'")
 
-    def episode_ceiling(self, cfg: WorldConfig, n_robots: int, bodies: np.ndarray) -> np.ndarray | None:
-        """Optional upper bound on final success per episode (E,), from the bodies at each episode's end;
-        None when the task has none for this world."""
-        return None
+    def has_ceiling(self, cfg: WorldConfig) -> bool:
+        """True when the task reports an upper bound on final success in ``cfg`` (tables: "of ceiling")."""
+        return False
 
     def metric(self, key: str) -> Metric:
         for m in self.metrics:

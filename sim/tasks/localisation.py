@@ -34,7 +34,7 @@ class Localisation(Task):
         Metric("found_rate", "found"),
         Metric("return", "return"),
     )
-    baselines = {"hand-written searcher": "baseline", "hand-written pusher": "pusher", "random walk": "random"}
+    baselines = {"hand-written": "baseline", "hand-written pusher": "pusher", "random": "random"}
     extra_discs = 1  # the beacon
 
     def spawn(self, env) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,7 +52,7 @@ class Localisation(Task):
     def step_info(self, env) -> dict[str, np.ndarray]:
         in_range = env.target_dist <= env.cfg.comm_radius_mm
         coverage = in_range.sum(axis=1) / env.n_robots
-        return {"in_range": in_range, "coverage": coverage, "success": coverage}
+        return {"in_range": in_range, "coverage": coverage, "success": coverage, "robot_success": in_range}
 
     def reward(self, env, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
         cfg = env.cfg
@@ -74,7 +74,8 @@ class Localisation(Task):
 
         return make_policy(name, cfg)
 
-    def episode_ceiling(self, cfg: WorldConfig, n_robots: int, bodies: np.ndarray) -> np.ndarray | None:
-        from ..ceiling import episode_ceiling, has_ceiling
+    def has_ceiling(self, cfg: WorldConfig) -> bool:
+        """The packing ceiling (:mod:`sim.ceiling`), where its table covers the world."""
+        from ..ceiling import has_ceiling
 
-        return episode_ceiling(cfg, n_robots, bodies) if has_ceiling(cfg) else None
+        return has_ceiling(cfg)
