@@ -15,7 +15,7 @@ from sim.tasks import TASK_HELP, Task, get_task
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
-from ..shipped import load_task_policy
+from ..shipped import SHIPPED_POLICIES, load_task_policy
 
 EXIT_OK = 0
 EXIT_FAIL = 1  #: does not fit, or a verification failed
