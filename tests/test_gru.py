@@ -169,7 +169,7 @@ def test_quantized_gru_tracks_the_float_policy():
     cal = calibration_from_sequences(p, random_sequences(WORLD, 12, 60, 9))
     rep = gru_error_report(p, qp, cal)
     assert rep.step_err["u"][0] < 0.03 and rep.step_err["h'"][1] < 0.01, rep.table()
-    assert rep.du_mean < 0.01 and rep.h_drift_mean < 0.02, rep.table()
+    assert rep.du_mean < 0.01 and rep.drift["h"][1] < 0.02, rep.table()
     assert "free-running" in rep.table() and rep.to_dict()["kind"] == "gru"
     c = qp.cell
     assert c.rn_shift == numfmt.GATE_EXP + c.nh.e_out - c.e_n and c.e_n == c.nx.e_out + c.nx_shift

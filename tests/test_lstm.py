@@ -202,7 +202,7 @@ def test_quantized_lstm_tracks_the_float_policy():
     cal = calibration_from_sequences(p, random_sequences(WORLD, 12, 60, 9))
     rep = lstm_error_report(p, qp, cal)
     assert rep.step_err["u"][0] < 0.03 and rep.step_err["h'"][1] < 0.01, rep.table()
-    assert rep.du_mean < 0.01 and rep.c_drift_max < 0.2, rep.table()
+    assert rep.du_mean < 0.01 and rep.drift["c"][0] < 0.2, rep.table()
     assert "free-running" in rep.table() and rep.to_dict()["kind"] == "lstm"
     cc = qp.cell
     assert min(cc.i.e_out, cc.f.e_out, cc.o.e_out) >= numfmt.SIGMOID_SAT_EXP and cc.g.e_out >= numfmt.TANH_SAT_EXP

@@ -53,7 +53,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
-from sim.motion import action_to_u8
 
 from .. import numfmt
 from ..errors import QuantizeError
@@ -62,8 +61,8 @@ from .base import (BudgetItem, BudgetSpec, CDefine, CDense, CTable, HiddenArch, 
                    dense_summary, sensing_tables, sigmoid)
 from .dense import (check_range_options, input_exponent, is_gate_layer, output_layer,
                     quantize_dense, saturated_fraction, value_range)
-from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentKind, RecurrentPolicy, SequenceCalibration, free_run,
-                        random_recurrent)
+from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
+                        SequenceCalibration, random_recurrent, recurrent_error_report)
 
 MAX_NX_SHIFT = 7  #: nx -> e_n is a multiply by 2^nx_shift of an int8 value (fits int16)
 
@@ -270,65 +269,17 @@ def quantize_gru(policy: GRUPolicy, calib: SequenceCalibration, *, percentile: f
                         **sensing_tables(policy.world, e_in))
 
 
-@dataclass(frozen=True)
-class GRUErrorReport:
-    """Float vs integer GRU: one step from the float state (teacher forcing) and free-running episodes."""
+def gru_error_report(policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> RecurrentErrorReport:
+    """Compare the float and the integer cell on every calibration step (see :class:`RecurrentErrorReport`)."""
+    def teacher(xq: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]:
+        gi = qp.cell.gates(xq, numfmt.quantize(calib.states.reshape(len(xq), -1), HIDDEN_EXP))
+        v = calib.values
+        err = {"r": np.abs(gi["r"] / 2.0 ** GATE_EXP - v["r"]),
+               "1-z": np.abs(gi["k"] / 2.0 ** GATE_EXP - (1.0 - v["z"])),
+               "n": np.abs(gi["n"] / 2.0 ** HIDDEN_EXP - v["n"]), "h'": np.abs(gi["h"] / 2.0 ** HIDDEN_EXP - v["h"])}
+        return gi, err, {k: saturated_fraction(gi[a]) for k, a in (("r", "a_r"), ("1-z", "a_z"), ("n", "pre_n"))}
 
-    step_err: dict[str, tuple[float, float]]  #: component -> (max |err|, mean |err|), teacher forcing
-    saturated: dict[str, float]  #: gate pre-activation -> fraction at -128 or 127 (teacher forcing)
-    du_max: float  #: free-running: max |u_int - u_float|
-    du_mean: float
-    same_command: float  #: free-running: fraction of commands with q == action_to_u8(u_float)
-    h_drift_max: float  #: free-running: max |h_int / 128 - h_float|
-    h_drift_mean: float
-    n_samples: int
-    n_sequences: int
-    e_in: int
-    input_saturated: float
-
-    def table(self) -> str:
-        """A printable report."""
-        lines = [f"GRU quantisation error over {self.n_samples} calibration steps ({self.n_sequences} robot-episodes, "
-                 f"e_in {self.e_in}, {100 * self.input_saturated:.2f}% of inputs saturated)",
-                 "  one step from the float state:  component  max|err|  mean|err|   sat%"]
-        for k, (mx, mn) in self.step_err.items():
-            sat = self.saturated.get(k)
-            lines.append(f"  {'':31}{k:>9} {mx:>9.5f} {mn:>10.5f} {'' if sat is None else f'{100 * sat:6.2f}'}")
-        lines.append(f"  free-running episodes: max |du| = {self.du_max:.5f}, mean |du| = {self.du_mean:.5f}, "
-                     f"same uint8 command {100 * self.same_command:.2f}%; hidden-state drift max "
-                     f"{self.h_drift_max:.4f}, mean {self.h_drift_mean:.5f}")
-        return "\n".join(lines)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"kind": GRU.name, "step_err": {k: list(v) for k, v in self.step_err.items()},
-                "saturated": dict(self.saturated), "du_max": self.du_max, "du_mean": self.du_mean,
-                "same_command": self.same_command, "h_drift_max": self.h_drift_max,
-                "h_drift_mean": self.h_drift_mean, "n_samples": self.n_samples, "n_sequences": self.n_sequences,
-                "e_in": self.e_in, "input_saturated": self.input_saturated}
-
-
-def gru_error_report(policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> GRUErrorReport:
-    """Compare the float and the integer cell on every calibration step (see :class:`GRUErrorReport`)."""
-    S, T, D = calib.seqs.shape
-    xq = qp.quantize_tuple(calib.inputs)  # (S*T, D)
-    hq = numfmt.quantize(calib.states.reshape(S * T, -1), HIDDEN_EXP)
-    gi = qp.cell.gates(xq, hq)
-    o = qp.out
-    q = numfmt.dense_int(gi["h"], o.w, o.b, o.shift, o.lo, o.hi)
-    v = calib.values
-    err = {"r": np.abs(gi["r"] / 2.0 ** GATE_EXP - v["r"]), "1-z": np.abs(gi["k"] / 2.0 ** GATE_EXP - (1.0 - v["z"])),
-           "n": np.abs(gi["n"] / 2.0 ** HIDDEN_EXP - v["n"]), "h'": np.abs(gi["h"] / 2.0 ** HIDDEN_EXP - v["h"]),
-           "u": np.abs(q / 255.0 - v["u"])}
-    step_err = {k: (float(e.max()), float(e.mean())) for k, e in err.items()}
-    sat = {k: saturated_fraction(gi[a]) for k, a in (("r", "a_r"), ("1-z", "a_z"), ("n", "pre_n"))}
-    qs, hs = free_run(qp, calib.seqs)  # the integer cell carries its own state over each recorded episode
-    u_f = v["u"].reshape(S, T, ACTION_DIM)
-    du = np.abs(qs / 255.0 - u_f)
-    drift = np.abs(hs / 2.0 ** HIDDEN_EXP - v["h"].reshape(S, T, -1))
-    return GRUErrorReport(step_err=step_err, saturated=sat, du_max=float(du.max()), du_mean=float(du.mean()),
-                          same_command=float(np.mean(qs == action_to_u8(u_f))), h_drift_max=float(drift.max()),
-                          h_drift_mean=float(drift.mean()), n_samples=S * T, n_sequences=S, e_in=qp.e_in,
-                          input_saturated=saturated_fraction(xq))
+    return recurrent_error_report(GRU.name, qp, calib, teacher, {"h": (slice(None), HIDDEN_EXP)})
 
 
 # --------------------------------------------------------------------------------------------
@@ -365,7 +316,7 @@ class GRUKind(RecurrentKind):
                  headroom: float = 1.0, e_in: int | None = None) -> QuantizedGRU:
         return quantize_gru(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
 
-    def error_report(self, policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> GRUErrorReport:
+    def error_report(self, policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> RecurrentErrorReport:
         return gru_error_report(policy, qp, calib)
 
     def budget_spec(self, world: WorldConfig, arch: HiddenArch, e_in: int) -> BudgetSpec:

@@ -54,7 +54,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
-from sim.motion import action_to_u8
 
 from .. import numfmt
 from ..errors import QuantizeError
@@ -63,8 +62,8 @@ from .base import (BudgetItem, BudgetSpec, CDefine, CDense, CTable, HiddenArch, 
                    dense_summary, sensing_tables, sigmoid)
 from .dense import (check_range_options, input_exponent, is_gate_layer, output_layer,
                     quantize_dense, saturated_fraction, value_range)
-from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentKind, RecurrentPolicy, SequenceCalibration, free_run,
-                        random_recurrent)
+from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
+                        SequenceCalibration, random_recurrent, recurrent_error_report)
 
 GATES = ("i", "f", "g", "o")
 CELL_EXP = GATE_EXP + HIDDEN_EXP  #: the cell state's exponent: i * g lands on it exactly
@@ -246,72 +245,23 @@ def quantize_lstm(policy: LSTMPolicy, calib: SequenceCalibration, *, percentile:
                          **sensing_tables(policy.world, e_in))
 
 
-@dataclass(frozen=True)
-class LSTMErrorReport:
-    """Float vs integer LSTM: one step from the float state (teacher forcing) and free-running episodes."""
-
-    step_err: dict[str, tuple[float, float]]  #: component -> (max |err|, mean |err|), teacher forcing
-    saturated: dict[str, float]  #: gate pre-activation -> fraction at -128 or 127 (teacher forcing)
-    du_max: float  #: free-running: max |u_int - u_float|
-    du_mean: float
-    same_command: float  #: free-running: fraction of commands with q == action_to_u8(u_float)
-    h_drift_max: float  #: free-running: max |h_int / 128 - h_float|
-    c_drift_max: float  #: free-running: max |c_int / 2^15 - c_float|
-    n_samples: int
-    n_sequences: int
-    e_in: int
-    input_saturated: float
-
-    def table(self) -> str:
-        """A printable report."""
-        lines = [f"LSTM quantisation error over {self.n_samples} calibration steps ({self.n_sequences} robot-episodes, "
-                 f"e_in {self.e_in}, {100 * self.input_saturated:.2f}% of inputs saturated)",
-                 "  one step from the float state:  component  max|err|  mean|err|   sat%"]
-        for k, (mx, mn) in self.step_err.items():
-            sat = self.saturated.get(k)
-            lines.append(f"  {'':31}{k:>9} {mx:>9.5f} {mn:>10.5f} {'' if sat is None else f'{100 * sat:6.2f}'}")
-        lines.append(f"  free-running episodes: max |du| = {self.du_max:.5f}, mean |du| = {self.du_mean:.5f}, "
-                     f"same uint8 command {100 * self.same_command:.2f}%; state drift max |h| {self.h_drift_max:.4f}, "
-                     f"max |c| {self.c_drift_max:.4f}")
-        return "\n".join(lines)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"kind": LSTM.name, "step_err": {k: list(v) for k, v in self.step_err.items()},
-                "saturated": dict(self.saturated), "du_max": self.du_max, "du_mean": self.du_mean,
-                "same_command": self.same_command, "h_drift_max": self.h_drift_max, "c_drift_max": self.c_drift_max,
-                "n_samples": self.n_samples, "n_sequences": self.n_sequences, "e_in": self.e_in,
-                "input_saturated": self.input_saturated}
-
-
-def lstm_error_report(policy: LSTMPolicy, qp: QuantizedLSTM, calib: SequenceCalibration) -> LSTMErrorReport:
-    """Compare the float and the integer cell on every calibration step (see :class:`LSTMErrorReport`)."""
-    S, T, D = calib.seqs.shape
+def lstm_error_report(policy: LSTMPolicy, qp: QuantizedLSTM, calib: SequenceCalibration) -> RecurrentErrorReport:
+    """Compare the float and the integer cell on every calibration step (see :class:`RecurrentErrorReport`)."""
     H = qp.hidden_size
-    st = calib.states.reshape(S * T, -1)
-    xq = qp.quantize_tuple(calib.inputs)  # (S*T, D)
-    hq = numfmt.quantize(st[:, :H], HIDDEN_EXP)
-    cq = numfmt.saturate(numfmt.round_half_up(st[:, H:] * 2.0 ** CELL_EXP), -CELL_MAX, CELL_MAX)
-    gi = qp.cell.gates(xq, hq, cq)
-    o = qp.out
-    q = numfmt.dense_int(gi["h"], o.w, o.b, o.shift, o.lo, o.hi)
-    v = calib.values
-    g8 = 2.0 ** GATE_EXP
-    err = {"i": np.abs(gi["i"] / g8 - v["i"]), "f": np.abs(gi["f"] / g8 - v["f"]),
-           "g": np.abs(gi["g"] / 2.0 ** HIDDEN_EXP - v["g"]), "o": np.abs(gi["o"] / g8 - v["o"]),
-           "c'": np.abs(gi["c"] / 2.0 ** CELL_EXP - v["c"]), "h'": np.abs(gi["h"] / 2.0 ** HIDDEN_EXP - v["h"]),
-           "u": np.abs(q / 255.0 - v["u"])}
-    step_err = {k: (float(e.max()), float(e.mean())) for k, e in err.items()}
-    sat = {k: saturated_fraction(gi[f"a_{k}"]) for k in GATES}
-    sat["c'"] = saturated_fraction(gi["p"])
-    qs, ss = free_run(qp, calib.seqs)  # the integer cell carries its own state over each recorded episode
-    u_f = v["u"].reshape(S, T, ACTION_DIM)
-    du = np.abs(qs / 255.0 - u_f)
-    h_drift = np.abs(ss[..., :H] / 2.0 ** HIDDEN_EXP - v["h"].reshape(S, T, -1))
-    c_drift = np.abs(ss[..., H:] / 2.0 ** CELL_EXP - v["c"].reshape(S, T, -1))
-    return LSTMErrorReport(step_err=step_err, saturated=sat, du_max=float(du.max()), du_mean=float(du.mean()),
-                           same_command=float(np.mean(qs == action_to_u8(u_f))), h_drift_max=float(h_drift.max()),
-                           c_drift_max=float(c_drift.max()), n_samples=S * T, n_sequences=S, e_in=qp.e_in,
-                           input_saturated=saturated_fraction(xq))
+
+    def teacher(xq: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]:
+        st = calib.states.reshape(len(xq), -1)
+        hq = numfmt.quantize(st[:, :H], HIDDEN_EXP)
+        cq = numfmt.saturate(numfmt.round_half_up(st[:, H:] * 2.0 ** CELL_EXP), -CELL_MAX, CELL_MAX)
+        gi = qp.cell.gates(xq, hq, cq)
+        v, g8 = calib.values, 2.0 ** GATE_EXP
+        err = {"i": np.abs(gi["i"] / g8 - v["i"]), "f": np.abs(gi["f"] / g8 - v["f"]),
+               "g": np.abs(gi["g"] / 2.0 ** HIDDEN_EXP - v["g"]), "o": np.abs(gi["o"] / g8 - v["o"]),
+               "c'": np.abs(gi["c"] / 2.0 ** CELL_EXP - v["c"]), "h'": np.abs(gi["h"] / 2.0 ** HIDDEN_EXP - v["h"])}
+        return gi, err, {**{k: saturated_fraction(gi[f"a_{k}"]) for k in GATES}, "c'": saturated_fraction(gi["p"])}
+
+    return recurrent_error_report(LSTM.name, qp, calib, teacher,
+                                  {"h": (slice(None, H), HIDDEN_EXP), "c": (slice(H, None), CELL_EXP)})
 
 
 # --------------------------------------------------------------------------------------------
@@ -348,7 +298,7 @@ class LSTMKind(RecurrentKind):
                  headroom: float = 1.0, e_in: int | None = None) -> QuantizedLSTM:
         return quantize_lstm(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
 
-    def error_report(self, policy: LSTMPolicy, qp: QuantizedLSTM, calib: SequenceCalibration) -> LSTMErrorReport:
+    def error_report(self, policy: LSTMPolicy, qp: QuantizedLSTM, calib: SequenceCalibration) -> RecurrentErrorReport:
         return lstm_error_report(policy, qp, calib)
 
     def budget_spec(self, world: WorldConfig, arch: HiddenArch, e_in: int) -> BudgetSpec:

@@ -1,5 +1,6 @@
 """What the recurrent actor kinds (GRU, LSTM) share: PyTorch's cell arrays, their validation, calibration
-over recorded sequences, free-running integer replays and the kind's common answers.
+over recorded sequences, free-running integer replays, the float-vs-integer error report and the kind's common
+answers.
 
 A recurrent actor reads one tuple ``x = [a_prev, obs]`` per control step (``world.tuple_dim`` wide)
 and carries a state between steps (zero at the start of an episode, Algorithm 5). Its artifact
@@ -14,19 +15,21 @@ from __future__ import annotations
 
 from abc import abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
+from sim.motion import action_to_u8
 from sim.tasks.base import TaskRef
 
 from ..artifact import plain_provenance
 from ..errors import PolicyError
+from .. import numfmt
 from ..numfmt import HIDDEN_EXP, QuantLayer
 from ..validate import show
 from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world_and_task, float_arrays, invalid
-from .dense import is_output_layer
+from .dense import is_output_layer, saturated_fraction
 
 ARRAYS = ("w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
 INPUT_LAYOUT = "a_prev+obs"  #: one sim.history tuple per step
@@ -217,6 +220,72 @@ def free_run(qp: QuantizedActor, seqs: np.ndarray) -> tuple[np.ndarray, np.ndarr
         qs[:, t], state = qp.step_int(xs[:, t], state)
         ss[:, t] = state
     return qs, ss
+
+
+#: a kind's one step from the float state, over every calibration step: (quantised input tuples (S*T, D)) ->
+#: (the cell's integer intermediates, "h" the new hidden state; component -> |int - float| per step; gate
+#: pre-activation -> fraction saturated)
+TeacherStep = Callable[[np.ndarray], tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, float]]]
+
+
+@dataclass(frozen=True)
+class RecurrentErrorReport:
+    """Float vs integer recurrent actor: one step from the float state (teacher forcing) and free-running episodes."""
+
+    kind: str
+    step_err: dict[str, tuple[float, float]]  #: component -> (max |err|, mean |err|), teacher forcing
+    saturated: dict[str, float]  #: gate pre-activation -> fraction at -128 or 127 (teacher forcing)
+    du_max: float  #: free-running: max |u_int - u_float|
+    du_mean: float
+    same_command: float  #: free-running: fraction of commands with q == action_to_u8(u_float)
+    drift: dict[str, tuple[float, float]]  #: free-running: state part (h; the LSTM's c) -> (max, mean) |int - float|
+    n_samples: int
+    n_sequences: int
+    e_in: int
+    input_saturated: float
+
+    def table(self) -> str:
+        """A printable report."""
+        lines = [f"{self.kind.upper()} quantisation error over {self.n_samples} calibration steps ({self.n_sequences} "
+                 f"robot-episodes, e_in {self.e_in}, {100 * self.input_saturated:.2f}% of inputs saturated)",
+                 "  one step from the float state:  component  max|err|  mean|err|   sat%"]
+        for k, (mx, mn) in self.step_err.items():
+            sat = self.saturated.get(k)
+            lines.append(f"  {'':31}{k:>9} {mx:>9.5f} {mn:>10.5f} {'' if sat is None else f'{100 * sat:6.2f}'}")
+        drift = ", ".join(f"|{k}| max {mx:.4f} mean {mn:.5f}" for k, (mx, mn) in self.drift.items())
+        lines.append(f"  free-running episodes: max |du| = {self.du_max:.5f}, mean |du| = {self.du_mean:.5f}, "
+                     f"same uint8 command {100 * self.same_command:.2f}%; state drift {drift}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "step_err": {k: list(v) for k, v in self.step_err.items()},
+                "saturated": dict(self.saturated), "du_max": self.du_max, "du_mean": self.du_mean,
+                "same_command": self.same_command,
+                **{f"{k}_drift_{stat}": v for k, d in self.drift.items() for stat, v in zip(("max", "mean"), d)},
+                "n_samples": self.n_samples, "n_sequences": self.n_sequences, "e_in": self.e_in,
+                "input_saturated": self.input_saturated}
+
+
+def recurrent_error_report(kind: str, qp: QuantizedRecurrent, calib: SequenceCalibration, teacher: TeacherStep,
+                           parts: Mapping[str, tuple[slice, int]]) -> RecurrentErrorReport:
+    """Compare the float and the integer actor on every calibration step: the kind's ``teacher`` step, the
+    commands computed from its new hidden state, and free-running episodes (:func:`free_run`) whose states are
+    compared part by part (``parts``: name in ``calib.values`` -> (its columns of the state, its exponent))."""
+    S, T, _ = calib.seqs.shape
+    xq = qp.quantize_tuple(calib.inputs)  # (S*T, D)
+    gi, err, sat = teacher(xq)
+    o, v = qp.out, calib.values
+    q = numfmt.dense_int(gi["h"], o.w, o.b, o.shift, o.lo, o.hi)
+    err = {**err, "u": np.abs(q / 255.0 - v["u"])}
+    qs, ss = free_run(qp, calib.seqs)  # the integer cell carries its own state over each recorded episode
+    u_f = v["u"].reshape(S, T, ACTION_DIM)
+    du = np.abs(qs / 255.0 - u_f)
+    drift = {name: np.abs(ss[..., cols] / 2.0 ** exp - v[name].reshape(S, T, -1)) for name, (cols, exp) in parts.items()}
+    return RecurrentErrorReport(kind=kind, step_err={k: (float(e.max()), float(e.mean())) for k, e in err.items()},
+                                saturated=sat, du_max=float(du.max()), du_mean=float(du.mean()),
+                                same_command=float(np.mean(qs == action_to_u8(u_f))),
+                                drift={k: (float(d.max()), float(d.mean())) for k, d in drift.items()},
+                                n_samples=S * T, n_sequences=S, e_in=qp.e_in, input_saturated=saturated_fraction(xq))
 
 
 class RecurrentKind(ActorKind):
