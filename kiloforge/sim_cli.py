@@ -24,12 +24,12 @@ from pathlib import Path
 
 from kiloforge import io
 from kiloforge.cliparse import ArgumentParser, deprecated_alias, error_line, program
-from kiloforge.errors import KiloforgeError, PolicyError, printable
+from kiloforge.errors import InputError, KiloforgeError, PolicyError, printable
 from kiloforge.interrupts import exit_status, terminate_raises
 from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
 from kiloforge.validate import int_arg, seed_arg
-from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset
+from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset, run_steps
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000
@@ -99,9 +99,10 @@ def _load_policy(a: argparse.Namespace):
         art = load_policy(path)
     except PolicyError as e:
         raise UserError(str(e)) from None
-    art_world = art.world
-    if a.steps is not None:
-        art_world = dataclasses.replace(art_world, episode_steps=a.steps)
+    try:
+        art_world = dataclasses.replace(art.world, episode_steps=run_steps(art.world, a.steps, "--steps"))
+    except InputError as e:
+        raise UserError(str(e)) from None
     note = None
     if a.world is not None and art_world != world:
         note = (f"note: {printable(path.name)} was trained in world '{art.world.name}', which differs from --world "

@@ -68,6 +68,9 @@ ROLE_TARGET = 1
 KILO_TICK_HZ = 30.52  #: kilo_ticks per second, measured (platform notes: 305 ticks in 10 s)
 MAX_ARENA_HALF_MM = 100_000.0  #: a 200 m arena; larger ones only serve to exhaust memory
 MAX_EPISODE_STEPS = 1_000_000  #: control periods per episode (about 11 days of Kilobot time)
+#: control periods per episode a command runs when the length comes from a file's world rather than a flag
+#: (a policy file must not decide how long a command works: :func:`run_steps`)
+FILE_STEPS_CAP = 10_000
 MAX_ROBOTS = 1024  #: robots per simulated swarm, in every command (--robots) and config
 #: RBF width and normaliser: outside these the features (exp(-(d - c)^2 / 2 sigma^2) / norm) underflow to 0 / 0 or
 #: overflow; inside them every feature is finite and the firmware's table can be computed
@@ -305,3 +308,16 @@ def preset(name: str, **overrides: Any) -> WorldConfig:
         raise InputError(f"unknown preset '{name}'; choose one of: {', '.join(sorted(PRESETS))}")
     cfg = PRESETS[name]
     return dataclasses.replace(cfg, **overrides) if overrides else cfg
+
+
+def run_steps(world: WorldConfig, steps: int | None, flag: str) -> int:
+    """Control periods per episode a command runs: ``steps`` when the user gave ``flag``, else the world's
+    ``episode_steps``, which a policy file sets: refused above :data:`FILE_STEPS_CAP` (InputError naming the
+    cap and the flag that runs longer)."""
+    if steps is not None:
+        return int(steps)
+    if world.episode_steps > FILE_STEPS_CAP:
+        raise InputError(f"the policy's world '{world.name}' sets episode_steps {world.episode_steps:,}, more than the "
+                         f"{FILE_STEPS_CAP:,} control periods a command runs by default; pass {flag} N "
+                         f"(up to {MAX_EPISODE_STEPS:,}) to choose the length")
+    return int(world.episode_steps)

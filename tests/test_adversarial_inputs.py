@@ -289,3 +289,102 @@ def test_onnx_world_json_that_blinds_the_rbf_table_is_refused(tmp_path, capsys, 
     msg = _export_refused(["--onnx", str(model), "--world-json", str(wj), "--out", str(tmp_path / "k.c"), *FAST],
                           capsys)
     assert "rbf" in msg.lower() or "RBF" in msg, msg
+
+
+# --- work a policy file may ask for is capped by the command (item 12) --------------------------------
+def _long_world_policy(tmp_path, steps: int):
+    from tests.bad_inputs import crafted, parts, small_policy
+    arrays, meta = parts(small_policy())
+    meta["world"] = {**meta["world"], "episode_steps": steps}
+    p = tmp_path / f"long{steps}.npz"
+    p.write_bytes(crafted(arrays, meta))
+    return p
+
+
+LONG_STEPS = [10_001, 12_345, 250_000, 1_000_000]
+
+
+@pytest.mark.parametrize("steps", LONG_STEPS)
+def test_policy_world_cannot_set_a_long_calibration(tmp_path, capsys, steps):
+    """A hash-valid policy whose world asks for a huge episode: export and export verify refuse at once, naming the cap and the flag."""
+    from sim.config import FILE_STEPS_CAP
+    p = _long_world_policy(tmp_path, steps)
+    msg = _export_refused(["--policy", str(p), "--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--quiet",
+                           "--no-avr"], capsys)
+    assert f"{FILE_STEPS_CAP:,}" in msg and "--calib-steps" in msg and f"{steps:,}" in msg
+    msg = _export_refused(["verify", "--policy", str(p), "--robots", "2", "--episodes", "1", "--robots-calib", "2",
+                           "--calib-steps", "3", "--quiet"], capsys)
+    assert f"{FILE_STEPS_CAP:,}" in msg and "--steps" in msg
+
+
+def test_flag_overrides_the_policy_world_length(tmp_path, capsys):
+    """The same policy exports when the command is told the length (--calib-steps): the cap only guards the default."""
+    p = _long_world_policy(tmp_path, LONG_STEPS[-1])
+    assert export_main(["--policy", str(p), "--out", str(tmp_path / "k.c"), *FAST]) == 0
+    capsys.readouterr()
+    assert (tmp_path / "k.c").exists()
+
+
+@pytest.mark.parametrize("steps", LONG_STEPS[:2])
+def test_sim_caps_the_policy_world_length(tmp_path, capsys, steps):
+    """python -m sim with such a policy: one line naming the cap and --steps; with --steps it runs."""
+    from sim.__main__ import main as sim_main
+    p = _long_world_policy(tmp_path, steps)
+    rc = sim_main(["--policy", str(p), "--out", str(tmp_path / "o"), "--episodes", "1", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--steps" in assert_one_clean_line(err) and "10,000" in err
+    assert not (tmp_path / "o").exists()
+
+
+# --- the host compiler from CC (item 13) --------------------------------------------------------------
+def _write_exec(path, text: str, mode: int = 0o755):
+    path.write_text(text)
+    path.chmod(mode)
+    return str(path)
+
+
+BAD_CC = {
+    "true": lambda d: "/bin/true",
+    "false": lambda d: "false",
+    "text file, not executable": lambda d: _write_exec(d / "cc.txt", "gcc\n", 0o644),
+    "text file, executable, no interpreter": lambda d: _write_exec(d / "cc", "\x7fELF garbage\n"),
+    "script writing nothing": lambda d: _write_exec(d / "cc.sh", "#!/bin/sh\nexit 0\n"),
+    "script failing": lambda d: _write_exec(d / "cc2.sh", "#!/bin/sh\necho 'cc: fatal' >&2\nexit 3\n"),
+    "a directory": lambda d: str(d),
+    "missing program": lambda d: str(d / "no-such-cc"),
+    "unbalanced quote": lambda d: 'gcc "-O2',
+    "echo with flags": lambda d: "echo -n",
+}
+
+
+@pytest.mark.parametrize("how", sorted(BAD_CC))
+def test_bad_cc_is_one_line(tmp_path, monkeypatch, capsys, how):
+    """A CC that is not a working C compiler: export --verify host refuses in one line naming CC; nothing is written."""
+    monkeypatch.setenv("CC", BAD_CC[how](tmp_path))
+    msg = _export_refused(["--out", str(tmp_path / "k.c"), "--verify", "host", *FAST], capsys)
+    assert "CC=" in msg and ("C compiler" in msg or "parsed" in msg), msg
+    assert not (tmp_path / "k.c").exists()
+
+
+def test_bad_cc_makes_simavr_a_documented_skip(tmp_path, monkeypatch):
+    """With a CC that is not a compiler the simavr runner cannot be built: missing_tools says why (the export then uses the estimate)."""
+    from export.verify import avr
+    monkeypatch.setenv("CC", "/bin/true")
+    why = avr.missing_tools(simulate=True)
+    assert why is not None and "CC=" in why and "simavr runner" in why
+
+
+@pytest.mark.parametrize("cc", ["gcc -O2", "  gcc   -std=c99 ", "gcc -Wno-unused-parameter", "'gcc' -O1"])
+def test_cc_with_flags_is_split_like_a_shell(tmp_path, monkeypatch, capsys, cc):
+    """CC with flags (quoted or padded) is the program plus its flags, and the host verification passes with it."""
+    from export.verify.hostbuild import compiler
+    import shutil
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    monkeypatch.setenv("CC", cc)
+    argv = compiler()
+    assert argv is not None and argv[0] == shutil.which("gcc") and argv[1:] == cc.split()[1:]
+    rc = export_main(["--out", str(tmp_path / "k.c"), "--verify", "host", *FAST])
+    out, err = capsys.readouterr()
+    assert rc == 0, err
+    assert "host build vs emulator: bit-exact" in out

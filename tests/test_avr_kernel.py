@@ -13,7 +13,7 @@ import pytest
 
 from tests.avr_tools import require_avr
 from export.codegen import kernel
-from export.verify import avr
+from export.verify import avr, tools
 from kiloforge import numfmt
 from kiloforge.numfmt import QuantLayer
 
@@ -116,8 +116,9 @@ def test_generated_asm_block_is_current():
 
 def test_portable_c_on_host_is_bit_exact():
     """The portable C kernel compiled for the host (-Wall -Wextra -Werror) equals dense_int."""
-    if avr.shutil.which("gcc") is None:
-        pytest.skip("no host gcc")
+    why = tools.host_cc_problem()
+    if why:
+        pytest.skip(why)
     layers, reqs, refs = _suite(2)
     outs = avr.run_kernel_host([kernel.kernel_layer(L) for L in layers], reqs)
     for o, ref in zip(outs, refs):

@@ -12,7 +12,7 @@ import pytest
 
 from tests.avr_tools import require_avr
 from tests.bad_inputs import assert_one_clean_line
-from export.verify import avr, buildcache
+from export.verify import avr, buildcache, tools
 from export.verify.buildcache import CACHE_ENV, CacheError, cached_program
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -199,7 +199,7 @@ def test_real_runner_planted_is_not_run(cache, tmp_path):
     require_avr(simulate=True)
     marker = tmp_path / "m"
     cache.mkdir(mode=0o700)
-    planted = cache / f"{avr.RUNNER_NAME}-{avr.runner_key()}"
+    planted = cache / f"{avr.RUNNER_NAME}-{avr.runner_key(tools.host_cc())}"
     _plant(planted, marker, mode=0o722)  # matching sidecar, but others may write it: rebuilt
     exe = avr.runner()
     assert exe == planted and buildcache.verified(exe)
@@ -216,7 +216,7 @@ def test_export_cli_default_cache_planted(tmp_path):
     d = tmpdir / f"kiloforge-{os.geteuid()}"
     d.mkdir()
     marker = tmp_path / "m"
-    _plant(d / f"{avr.RUNNER_NAME}-{avr.runner_key()}", marker)
+    _plant(d / f"{avr.RUNNER_NAME}-{avr.runner_key(tools.host_cc())}", marker)
     os.chmod(d, 0o777)
     env = {k: v for k, v in os.environ.items() if k != CACHE_ENV}
     env.update(TMPDIR=str(tmpdir), PYTHONPATH=str(ROOT))
@@ -225,8 +225,8 @@ def test_export_cli_default_cache_planted(tmp_path):
     assert res.returncode == 0, res.stderr
     assert not marker.exists()
     assert "stack_source simavr" in res.stdout or "simavr" in res.stdout
-    assert sorted(p.name for p in d.iterdir()) == [f"{avr.RUNNER_NAME}-{avr.runner_key()}",
-                                                    f"{avr.RUNNER_NAME}-{avr.runner_key()}.sha256"]
+    assert sorted(p.name for p in d.iterdir()) == [f"{avr.RUNNER_NAME}-{avr.runner_key(tools.host_cc())}",
+                                                    f"{avr.RUNNER_NAME}-{avr.runner_key(tools.host_cc())}.sha256"]
 
 
 @pytest.mark.parametrize("how", ["a file", "mode 777"])

@@ -86,7 +86,7 @@ def test_runtime_c_unit_tests(tmp_path):
     """tests/c/test_runtime.c passes (the CRC with export/contract/crc.py's constants), and its rounding shift
     equals numfmt.rshift_round on a grid."""
     exe = tmp_path / "test_runtime"
-    res = subprocess.run([compiler(), *HOST_CFLAGS, *runtime_flags(), "-I", str(TEMPLATES), "-o", str(exe),
+    res = subprocess.run([*compiler(), *HOST_CFLAGS, *runtime_flags(), "-I", str(TEMPLATES), "-o", str(exe),
                           str(TESTS / "c" / "test_runtime.c")], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     run = subprocess.run([str(exe), "grid"], capture_output=True, text=True)

@@ -23,7 +23,7 @@ from kiloforge.cliparse import program
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import seed_arg
-from sim.config import KILOBOT
+from sim.config import KILOBOT, run_steps
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
@@ -157,6 +157,7 @@ def run_export(argv: Sequence[str]) -> int:
               f"will not do what the simulator showed: train with --world {KILOBOT.name}", file=sys.stderr)
     print(describe(policy))
     check_robots(policy.world, args.robots_calib, "--robots-calib")
+    calib_steps = run_steps(policy.world, args.calib_steps, "--calib-steps")
     budget = bud.for_policy(policy)
     if not budget.ok:
         print(budget.table())
@@ -164,7 +165,7 @@ def run_export(argv: Sequence[str]) -> int:
                           + "; ".join(budget.suggest()))
 
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.seed,
-                      steps=args.calib_steps, progress=not args.quiet and sys.stderr.isatty())
+                      steps=calib_steps, progress=not args.quiet and sys.stderr.isatty())
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     report = error_report(policy, qp, calib)
     print(report.table())

@@ -27,6 +27,7 @@ from kiloforge.cliparse import deprecated_noop
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import float_arg, seed_arg
+from sim.config import run_steps
 
 from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
@@ -134,10 +135,12 @@ def run_verify(argv: Sequence[str]) -> int:
     print(describe(policy))
     check_robots(policy.world, args.robots, "--robots")
     check_robots(policy.world, args.robots_calib, "--robots-calib")
+    calib_steps = run_steps(policy.world, args.calib_steps, "--calib-steps")
+    steps = run_steps(policy.world, args.steps, "--steps")
 
     progress = not args.quiet and sys.stderr.isatty()
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
-                      steps=args.calib_steps, progress=progress)
+                      steps=calib_steps, progress=progress)
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     report = error_report(policy, qp, calib)
     print(f"quantised as python -m export would (calibration robots {args.robots_calib}, "
@@ -145,7 +148,8 @@ def run_verify(argv: Sequence[str]) -> int:
           f"e_in {qp.e_in}, mean |du| {report.du_mean:.5f}, max |du| {report.du_max:.5f}, "
           f"same uint8 command {100 * report.same_command:.1f}%")
 
-    comps = compare_many(policy, qp, args.robots, args.episodes, args.seed, steps=args.steps, goal=args.goal,
+    comps = compare_many(policy, qp, args.robots, args.episodes, args.seed,
+                         steps=steps, goal=args.goal,
                          progress=progress)
     print()
     for c in comps:

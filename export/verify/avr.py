@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import re
-import shutil
 import subprocess
 import tempfile
 from dataclasses import dataclass, field
@@ -48,7 +47,7 @@ from ..codegen.render import POLICY_FILE
 from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..errors import ExportError
-from . import buildcache
+from . import buildcache, tools
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs
 from .hostbuild import HOST_DIR, StreamSpec, compare, decode_output, encode_stream, random_inputs, runtime_flags
 
@@ -59,11 +58,9 @@ OBJCOPY_HEX = ("-O", "ihex", "-R", ".eeprom", "-R", ".fuse", "-R", ".lock", "-R"
 MCU = "atmega328p"
 F_CPU = 8_000_000
 RAMEND = 0x08FF
-TOOLS = ("avr-gcc", "avr-size", "avr-nm", "avr-objcopy")
 
 STANDIN_DIR = TEMPLATE_DIR / "avr"
 RUNNER_SRC = Path(__file__).resolve().parent / "simavr_run.c"
-SIMAVR_INCLUDE = Path("/usr/include/simavr")
 
 MARK_BEGIN, MARK_END = 1, 2  #: kernel program: marks around each kf_dense2 call
 MARK_CAL_A, MARK_CAL_B = 3, 4  #: back-to-back marks: the cost of marking itself
@@ -77,20 +74,13 @@ class AvrError(ExportError):
 # Tools
 # --------------------------------------------------------------------------------------------
 def missing_tools(simulate: bool = False) -> str | None:
-    """None when the AVR toolchain (and, with ``simulate``, simavr's library) is usable, else why not."""
-    gone = [t for t in TOOLS if shutil.which(t) is None]
-    if gone:
-        return f"missing {', '.join(gone)} (Debian: apt-get install gcc-avr binutils-avr avr-libc)"
-    if simulate:
-        if shutil.which("gcc") is None:
-            return "missing gcc (needed to build the simavr runner)"
-        if not (SIMAVR_INCLUDE / "sim_avr.h").exists():
-            return "missing simavr headers (Debian: apt-get install simavr libsimavr-dev)"
-    return None
+    """None when the AVR toolchain (and, with ``simulate``, a host C compiler and simavr's headers) is usable,
+    else why not (:func:`export.verify.tools.avr_problem`)."""
+    return tools.avr_problem(simulate)
 
 
 def _run(cmd: Sequence[str], what: str, **kw) -> subprocess.CompletedProcess:
-    p = subprocess.run(list(map(str, cmd)), capture_output=True, text=True, **kw)
+    p = tools.run(cmd, what, capture_output=True, text=True, **kw)
     if p.returncode != 0:
         raise AvrError(f"{what} failed ({' '.join(map(str, cmd[:3]))} ...): {(p.stderr or p.stdout).strip()[:4000]}")
     return p
@@ -100,9 +90,9 @@ RUNNER_NAME = "kf_simavr"
 RUNNER_CFLAGS = ("-O2", "-std=c99")
 
 
-def runner_key() -> str:
-    """The cache key of the simavr runner: a hash of its source and build flags."""
-    return hashlib.sha256(RUNNER_SRC.read_bytes() + "\0".join(RUNNER_CFLAGS).encode()).hexdigest()[:12]
+def runner_key(cc: Sequence[str]) -> str:
+    """The cache key of the simavr runner built with compiler ``cc``: a hash of its source, the compiler and flags."""
+    return hashlib.sha256(RUNNER_SRC.read_bytes() + "\0".join([*cc, *RUNNER_CFLAGS]).encode()).hexdigest()[:12]
 
 
 def runner() -> Path:
@@ -111,8 +101,10 @@ def runner() -> Path:
     why = missing_tools(simulate=True)
     if why:
         raise AvrError(why)
-    return buildcache.cached_program(RUNNER_NAME, runner_key(), lambda out: _run(
-        ["gcc", *RUNNER_CFLAGS, "-I", SIMAVR_INCLUDE, "-o", out, RUNNER_SRC, "-lsimavr"], "building the simavr runner"))
+    cc = tools.host_cc()
+    return buildcache.cached_program(RUNNER_NAME, runner_key(cc), lambda out: _run(
+        [*cc, *RUNNER_CFLAGS, "-I", tools.SIMAVR_INCLUDE, "-o", out, RUNNER_SRC, "-lsimavr"],
+        "building the simavr runner"))
 
 
 # --------------------------------------------------------------------------------------------
@@ -229,9 +221,9 @@ def run_elf(elf: Path, input_bytes: bytes = b"", *, max_cycles: int = 2_000_000_
     with tempfile.TemporaryDirectory(prefix="kf_sim_") as td:
         fin, fout = Path(td) / "in.bin", Path(td) / "out.bin"
         fin.write_bytes(bytes(input_bytes))
-        p = subprocess.run([str(exe), "-m", MCU, "-f", str(F_CPU), "-i", str(fin), "-o", str(fout),
-                            "-p", str(paint_from), "-c", str(max_cycles), str(elf)],
-                           capture_output=True, text=True, timeout=timeout_s)
+        p = tools.run([str(exe), "-m", MCU, "-f", str(F_CPU), "-i", str(fin), "-o", str(fout),
+                       "-p", str(paint_from), "-c", str(max_cycles), str(elf)],
+                      "the simavr run", capture_output=True, text=True, timeout=timeout_s)
         output = fout.read_bytes() if fout.exists() else b""
     marks, scans, end = [], [], None
     for line in p.stdout.splitlines():
@@ -373,16 +365,17 @@ def _split_outputs(layers, requests, output: bytes) -> list[np.ndarray]:
     return outs
 
 
-def run_kernel_host(layers, requests, *, cc: str = "gcc") -> list[np.ndarray]:
+def run_kernel_host(layers, requests, *, cc: Sequence[str] | None = None) -> list[np.ndarray]:
     """The same kernel program built for the host (``-std=c99 -Wall -Wextra -Werror``): the portable C."""
     with tempfile.TemporaryDirectory(prefix="kf_kernel_host_") as td:
         d = Path(td)
         for fname, text in {**kernel_sources(), "kernel_test.c": kernel_program(layers)}.items():
             (d / fname).write_text(text)
         exe = d / "kernel_test"
-        _run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-I", d, "-o", exe, d / "kernel_test.c"],
+        _run([*(cc or tools.host_cc()), "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-I", d, "-o", exe, d / "kernel_test.c"],
              "host build of the kernel program")
-        p = subprocess.run([str(exe)], input=_kernel_stream(requests), capture_output=True, timeout=120)
+        p = tools.run([str(exe)], "the host kernel program", input=_kernel_stream(requests), capture_output=True,
+                      timeout=120)
     if p.returncode != 0:
         raise AvrError(f"host kernel program failed: {p.stderr.decode(errors='replace')[:500]}")
     return _split_outputs(layers, requests, p.stdout)

@@ -17,8 +17,6 @@ from __future__ import annotations
 import hashlib
 import os
 import re
-import shutil
-import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +31,7 @@ from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..contract.firmware import EVENT_DTYPE, TICK_RECORD_BYTES
 from ..errors import ExportError
+from . import tools
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs, n_control_steps
 
 HOST_DIR = TEMPLATE_DIR / "host"
@@ -54,10 +53,13 @@ def runtime_flags() -> list[str]:
     return [f"-D{name}={value}" for name, value in runtime_defines().items()]
 
 
-def compiler() -> str | None:
-    """The host C compiler (``$CC`` or gcc), or None when there is none."""
-    cc = os.environ.get("CC", "gcc")
-    return shutil.which(cc)
+def compiler() -> list[str] | None:
+    """The host C compiler's argv (``$CC`` split like a shell would, or gcc), or None when there is no working
+    one (:func:`export.verify.tools.host_cc` says why)."""
+    try:
+        return tools.host_cc()
+    except tools.ToolError:
+        return None
 
 
 def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy", *,
@@ -67,14 +69,12 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy",
     ``sanitize`` adds :data:`SANITIZE_CFLAGS` (ASan + UBSan, the first finding aborts the run). The
     build is cached in ``workdir`` by the hash of the source, the flags and the stand-in files.
     """
-    cc = compiler()
-    if cc is None:
-        raise HostBuildError("no host C compiler found (install gcc or set CC)")
+    cc = tools.host_cc()
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     sources = [HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c"]
     flags = (*HOST_CFLAGS, *(SANITIZE_CFLAGS if sanitize else ()), *runtime_flags())
-    h = hashlib.sha256(c_source.encode() + "\0".join(flags).encode())
+    h = hashlib.sha256(c_source.encode() + "\0".join([*cc, *flags]).encode())
     for p in sorted(HOST_DIR.parent.glob("kf_*.h")) + sorted(HOST_DIR.glob("*")):
         h.update(p.read_bytes())
     exe = workdir / f"{name}-{h.hexdigest()[:16]}"
@@ -83,8 +83,8 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy",
     src = workdir / f"{name}.c"
     src.write_text(c_source, encoding="utf-8")
     with atomic_path(exe, executable=True) as tmp:
-        cmd = [cc, *flags, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
-        res = subprocess.run(cmd, capture_output=True, text=True)
+        cmd = [*cc, *flags, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
+        res = tools.run(cmd, "the host build", capture_output=True, text=True)
         if res.returncode != 0:
             raise HostBuildError(f"host build of {src.name} failed:\n{res.stderr.strip()}")
     return exe
@@ -159,7 +159,7 @@ def run_host(exe: Path | str, inputs: FirmwareInputs, period_ticks: int, obs_dim
     """
     stream = encode_stream(inputs, period_ticks, obs_dim)
     env = dict(os.environ, KF_HOST_FILL=fill)
-    res = subprocess.run([str(exe)], input=stream, capture_output=True, timeout=timeout, env=env)
+    res = tools.run([str(exe)], "the host harness", input=stream, capture_output=True, timeout=timeout, env=env)
     if res.returncode != 0:
         raise HostBuildError(f"{Path(exe).name} exited with {res.returncode}: "
                              f"{res.stderr.decode(errors='replace').strip()}")
