@@ -5,16 +5,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
+from typing import Any
 
-from kiloforge.actors.base import FloatPolicy
+from kiloforge.actors.base import FloatPolicy, QuantizedActor
 from kiloforge.cliparse import ArgumentParser, deprecated_alias
 from kiloforge.errors import printable
-from kiloforge.validate import float_arg, int_arg
+from kiloforge.validate import float_arg, int_arg, seed_arg
 from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, WorldConfig
 from sim.tasks import TASK_HELP, Task, get_task
 
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
+from ..quantize import calibrate, error_report, quantize_policy
 from ..shipped import SHIPPED_POLICIES, load_task_policy
 
 EXIT_OK = 0
@@ -51,6 +53,30 @@ def add_quiet(ap: argparse.ArgumentParser) -> None:
     """``--quiet`` (no progress bar; one is shown only on a terminal), and its old spelling ``--no-progress``."""
     deprecated_alias(ap, "--no-progress", ap.add_argument("--quiet", action="store_true",
                                                           help="no progress bar (one is shown only on a terminal)"))
+
+
+def add_calibration(ap: argparse.ArgumentParser, seed_flag: str = "--seed") -> None:
+    """The flags of the calibration rollouts and the quantiser, the same in ``export`` and ``export verify``
+    (whose ``--seed`` seeds its episodes, so its calibration seed is ``--calib-seed``)."""
+    ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
+                    help="robot counts of the calibration rollouts (default 4 16)")
+    ap.add_argument("--calib-episodes", type=episodes_arg, default=1,
+                    help="calibration episodes per robot count (default 1)")
+    ap.add_argument("--calib-steps", type=steps_arg, default=None,
+                    help="control periods per calibration episode (default: the world's episode length)")
+    ap.add_argument(seed_flag, type=seed_arg, default=0, help="calibration seed, a non-negative integer (default 0)")
+    ap.add_argument("--percentile", type=percentile_arg, default=100.0,
+                    help="range percentile for exponent choice, in (0, 100] (default 100: the largest value seen)")
+
+
+def quantise(policy: FloatPolicy, args: argparse.Namespace, seed: int, steps: int,
+             progress: bool) -> tuple[Any, QuantizedActor, Any]:
+    """(calibration, int8 actor, float-vs-int8 error report) of ``policy`` as the flags of :func:`add_calibration`
+    say, calibrated from ``seed`` on episodes of ``steps`` control periods."""
+    calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=seed, steps=steps,
+                      progress=progress)
+    qp = quantize_policy(policy, calib, percentile=args.percentile)
+    return calib, qp, error_report(policy, qp, calib)
 
 
 def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:

@@ -22,18 +22,16 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.cliparse import program
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
-from kiloforge.validate import seed_arg
 from sim.config import KILOBOT, run_steps
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
 from ..codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
 from ..errors import BudgetError, ExportError, VerifyError
-from ..quantize import calibrate, error_report, quantize_policy
 from ..verify import avr
 from ..verify.hostbuild import verify_host
-from .common import (EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg,
-                     policy_help, robots_arg, steps_arg)
+from .common import (EXIT_OK, Parser, add_calibration, add_quiet, add_task, check_robots, describe, load, policy_help,
+                     quantise)
 
 
 def _uids(text: str) -> tuple[int, ...]:
@@ -58,14 +56,7 @@ def export_parser() -> argparse.ArgumentParser:
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     add_task(ap)
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
-    ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
-                    help="robot counts of the calibration rollouts (default 4 16)")
-    ap.add_argument("--calib-episodes", type=episodes_arg, default=1, help="episodes per robot count (default 1)")
-    ap.add_argument("--calib-steps", type=steps_arg, default=None,
-                    help="control periods per calibration episode (default: the world's episode length)")
-    ap.add_argument("--seed", type=seed_arg, default=0, help="calibration seed, a non-negative integer (default 0)")
-    ap.add_argument("--percentile", type=percentile_arg, default=100.0,
-                    help="range percentile for exponent choice, in (0, 100] (default 100: the largest value seen)")
+    add_calibration(ap)
     ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS",
                     help="comma-separated kilo_uids that run as the target beacon (default: the world's target_uid)")
     ap.add_argument("--kilolib", type=Path, default=None, metavar="DIR",
@@ -164,10 +155,8 @@ def run_export(argv: Sequence[str]) -> int:
         raise BudgetError(f"policy does not fit on the Kilobot ({budget.summary()}); would fit: "
                           + "; ".join(budget.suggest()))
 
-    calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.seed,
-                      steps=calib_steps, progress=not args.quiet and sys.stderr.isatty())
-    qp = quantize_policy(policy, calib, percentile=args.percentile)
-    report = error_report(policy, qp, calib)
+    progress = not args.quiet and sys.stderr.isatty()
+    calib, qp, report = quantise(policy, args, args.seed, calib_steps, progress)
     print(report.table())
     budget = bud.for_quantized(qp)
     if not budget.ok:  # pragma: no cover - same architecture as checked above

@@ -29,10 +29,9 @@ from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import float_arg, seed_arg
 from sim.config import run_steps
 
-from ..quantize import calibrate, error_report, quantize_policy
 from ..verify.closed_loop import GOAL_RATIO, compare_many
-from .common import (EXIT_FAIL, EXIT_OK, Parser, add_quiet, add_task, check_robots, describe, episodes_arg, load, percentile_arg,
-                     policy_help, robots_arg, steps_arg)
+from .common import (EXIT_FAIL, EXIT_OK, Parser, add_calibration, add_quiet, add_task, check_robots, describe,
+                     episodes_arg, load, policy_help, quantise, robots_arg, steps_arg)
 
 COVERAGE_PNG = "coverage.png"
 RETURNS_PNG = "returns_box.png"
@@ -56,14 +55,7 @@ def verify_parser() -> argparse.ArgumentParser:
                     help="directory for coverage.png, returns_box.png and closed_loop.json (created if missing)")
     ap.add_argument("--goal", type=float_arg(0.0, 1.5, lo_open=True), default=GOAL_RATIO,
                     help=f"pass when int8 final coverage >= GOAL x float final coverage (default {GOAL_RATIO})")
-    ap.add_argument("--robots-calib", type=robots_arg, nargs="+", default=[4, 16], metavar="N",
-                    help="robot counts of the calibration rollouts, as for export (default 4 16)")
-    ap.add_argument("--calib-episodes", type=episodes_arg, default=1, help="calibration episodes per robot count (default 1)")
-    ap.add_argument("--calib-steps", type=steps_arg, default=None,
-                    help="control periods per calibration episode, as for export (default: the world's)")
-    ap.add_argument("--calib-seed", type=seed_arg, default=0, help="calibration seed, as export's --seed (default 0)")
-    ap.add_argument("--percentile", type=percentile_arg, default=100.0,
-                    help="range percentile for exponent choice, as for export (default 100)")
+    add_calibration(ap, "--calib-seed")
     add_quiet(ap)
     return ap
 
@@ -139,10 +131,7 @@ def run_verify(argv: Sequence[str]) -> int:
     steps = run_steps(policy.world, args.steps, "--steps")
 
     progress = not args.quiet and sys.stderr.isatty()
-    calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=args.calib_seed,
-                      steps=calib_steps, progress=progress)
-    qp = quantize_policy(policy, calib, percentile=args.percentile)
-    report = error_report(policy, qp, calib)
+    calib, qp, report = quantise(policy, args, args.calib_seed, calib_steps, progress)
     print(f"quantised as python -m export would (calibration robots {args.robots_calib}, "
           f"{args.calib_episodes} episode(s), seed {args.calib_seed}, percentile {args.percentile}): "
           f"e_in {qp.e_in}, mean |du| {report.du_mean:.5f}, max |du| {report.du_max:.5f}, "
