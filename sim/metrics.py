@@ -102,8 +102,23 @@ def summarise(x: np.ndarray) -> Summary:
     return Summary(float(x.mean()), std, t * std / math.sqrt(n), n)
 
 
+class EpisodeSteps:
+    """``episodes`` and ``steps`` of a record of E episodes of T steps whose ``coverage`` is an (E, T) array
+    (:class:`EpisodeMetrics`, :class:`sim.rollout.RolloutResult`, the closed loop's runs)."""
+
+    coverage: np.ndarray
+
+    @property
+    def episodes(self) -> int:
+        return int(self.coverage.shape[0])
+
+    @property
+    def steps(self) -> int:
+        return int(self.coverage.shape[1])
+
+
 @dataclass
-class EpisodeMetrics:
+class EpisodeMetrics(EpisodeSteps):
     """Per-episode task metrics (E episodes) and the coverage curves they came from."""
 
     coverage: np.ndarray  # (E, T) fraction of robots in range after each step
@@ -112,14 +127,6 @@ class EpisodeMetrics:
     found: np.ndarray  # (E,) bool, some robot was in range at some step
     final_coverage: np.ndarray  # (E,) mean coverage over the last 25 %
     ceiling: np.ndarray | None = None  # (E,) packing ceiling of each episode (None: not computed)
-
-    @property
-    def episodes(self) -> int:
-        return int(self.returns.shape[0])
-
-    @property
-    def steps(self) -> int:
-        return int(self.coverage.shape[1])
 
     def summary(self) -> dict[str, Summary]:
         """Summaries of the scalar metrics, keyed by metric name (``of_ceiling`` and ``ceiling``

@@ -20,6 +20,7 @@ import numpy as np
 
 from .config import ACTION_DIM, WorldConfig
 from .history import History
+from .metrics import EpisodeSteps, episode_metrics
 
 
 @runtime_checkable
@@ -85,7 +86,7 @@ class Trajectories:
 
 
 @dataclass
-class RolloutResult:
+class RolloutResult(EpisodeSteps):
     """Per-episode records of a :func:`rollout`."""
 
     cfg: WorldConfig
@@ -97,19 +98,9 @@ class RolloutResult:
     extra: dict = field(default_factory=dict)
     beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode
 
-    @property
-    def episodes(self) -> int:
-        return int(self.rewards.shape[0])
-
-    @property
-    def steps(self) -> int:
-        return int(self.rewards.shape[1])
-
     def metrics(self, ceiling: bool = False):
         """Task metrics (see :mod:`sim.metrics`) of these episodes; ``ceiling``: also final coverage
         as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`, at the final beacon position)."""
-        from .metrics import episode_metrics
-
         ceil = None
         if ceiling:
             from .ceiling import episode_ceiling

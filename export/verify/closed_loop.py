@@ -42,7 +42,7 @@ from kiloforge.policies import swarm_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.events import HeardEvents
-from sim.metrics import EpisodeMetrics, Summary, episode_metrics, summarise
+from sim.metrics import EpisodeMetrics, EpisodeSteps, Summary, episode_metrics, summarise
 
 from .emulator import FirmwareEmulator, events_from_sim
 
@@ -164,7 +164,7 @@ class _FirmwareController:
 # Runs
 # --------------------------------------------------------------------------------------------
 @dataclass
-class LoopResult:
+class LoopResult(EpisodeSteps):
     """Per-episode records of one closed-loop run (E episodes, T steps, M robots)."""
 
     label: str  #: "float" or "int8"
@@ -178,14 +178,6 @@ class LoopResult:
     positions: np.ndarray | None = None  #: (E, T + 1, M, 2) float64 mm when recorded
     headings: np.ndarray | None = None  #: (E, T + 1, M) float64 rad when recorded
     commands: np.ndarray | None = None  #: (E, T, M, 2) the commands sent (float32 u or uint8 q)
-
-    @property
-    def episodes(self) -> int:
-        return int(self.rewards.shape[0])
-
-    @property
-    def steps(self) -> int:
-        return int(self.rewards.shape[1])
 
     @property
     def episodes_per_s(self) -> float:
