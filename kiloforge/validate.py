@@ -164,14 +164,35 @@ def check_keys(obj: dict, where: str, allowed: set[str] | frozenset[str]) -> Non
 
 
 # --- command-line numbers ------------------------------------------------------------------------
+_DECIMAL = re.compile(r"-?[0-9]{1,30}")  # [0-9], not \d: ASCII digits only
+
+
+def parse_decimal(text: str) -> int:
+    """``text`` as a decimal integer: ASCII digits ``0-9`` with an optional leading ``-``, blanks around it
+    allowed, at most 30 digits; ValueError for anything else that ``int()`` would take (``+3``, ``1_0``,
+    Arabic-Indic or other Unicode digits, inner spaces).
+
+    >>> parse_decimal(" 42 "), parse_decimal("-7")
+    (42, -7)
+    >>> parse_decimal("1_0")
+    Traceback (most recent call last):
+    ValueError: not a decimal integer: '1_0'
+    """
+    t = text.strip(" \t\r\n")
+    if not _DECIMAL.fullmatch(t):
+        raise ValueError(f"not a decimal integer: {quote(text)}")
+    return int(t)
+
+
 def int_arg(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
-    """An argparse ``type``: a decimal integer in ``[lo, hi]`` (one-line error otherwise)."""
+    """An argparse ``type``: a decimal integer (:func:`parse_decimal`) in ``[lo, hi]`` (one-line error otherwise)."""
     def parse(text: str) -> int:
-        t = text.strip()
-        if not re.fullmatch(r"[+-]?[0-9]{1,30}", t):
-            raise argparse.ArgumentTypeError(f"expected an integer, got {quote(text)}")
         try:
-            return check_int(int(t), "the value", lo, hi)
+            v = parse_decimal(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer (ASCII digits), got {quote(text)}") from None
+        try:
+            return check_int(v, "the value", lo, hi)
         except InputError as e:
             raise argparse.ArgumentTypeError(str(e).removeprefix("the value ")) from None
     parse.__name__ = "integer"

@@ -31,6 +31,7 @@ from kiloforge.errors import KiloforgeError
 from kiloforge.io import write_atomic
 from kiloforge.numfmt import ACTIVATIONS, act_float
 from kiloforge.policies import load_policy
+from kiloforge.validate import int_arg
 from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
 
 DEFAULT_OPSET = 17
@@ -297,7 +298,7 @@ def main_export_onnx(argv: list[str] | None = None) -> int:
                                              "(input 'history' [N, history_dim], output 'action' [N, 2] in [0, 1]).")
     ap.add_argument("--policy", required=True, help="policy artifact (.npz) written by training")
     ap.add_argument("--out", required=True, help="ONNX file to write, e.g. actor.onnx")
-    ap.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    ap.add_argument("--opset", type=int_arg(1, 1000), default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
     args = ap.parse_args(argv)
     written = False
     try:

@@ -388,3 +388,44 @@ def test_cc_with_flags_is_split_like_a_shell(tmp_path, monkeypatch, capsys, cc):
     out, err = capsys.readouterr()
     assert rc == 0, err
     assert "host build vs emulator: bit-exact" in out
+
+
+# --- integers on the command line: ASCII decimal digits only (item 14) ---------------------------------
+NOT_DECIMAL = ["\u0663", "1_0", "+3", "\uff13", "\U0001d7d1", "1 0", "0x10", "1e3", "3.0", "\u0969\u0966", "٣,5",
+               "5,+6", "7,1_1", "", " ", "-", "١٢٣٤٥", "12\u200b3"]
+
+
+@pytest.mark.parametrize("text", NOT_DECIMAL, ids=[ascii(t) for t in NOT_DECIMAL])
+def test_target_uids_take_ascii_digits_only(tmp_path, capsys, text):
+    """--target-uids with Unicode digits, underscores, a sign, hex or a float: one line, exit 2, nothing written."""
+    msg = _export_refused(["--out", str(tmp_path / "k.c"), "--target-uids", text, *FAST], capsys)
+    assert "--target-uids" in msg
+    assert not (tmp_path / "k.c").exists()
+
+
+@pytest.mark.parametrize("flag", ["--seed", "--calib-steps", "--calib-episodes", "--robots-calib"])
+@pytest.mark.parametrize("text", ["\u0663", "1_0", "+3", "\uff14"], ids=ascii)
+def test_every_integer_flag_takes_ascii_digits_only(tmp_path, capsys, flag, text):
+    """Every integer flag goes through parse_decimal: the same strings are refused by name."""
+    argv = [a for a in FAST if a not in ("--calib-steps", "4")] if flag == "--calib-steps" else list(FAST)
+    if flag == "--robots-calib":
+        argv = argv[2:]
+    msg = _export_refused(["--out", str(tmp_path / "k.c"), *argv, flag, text], capsys)
+    assert flag in msg
+
+
+def test_parse_decimal_matches_int_on_ascii_only():
+    """parse_decimal equals int() on ASCII decimal strings and refuses every other string int() accepts."""
+    from kiloforge.validate import parse_decimal
+    rng = np.random.default_rng(np.random.SeedSequence(4713))
+    for v in rng.integers(-10 ** 18, 10 ** 18, size=200).tolist():
+        assert parse_decimal(f" {v}\t") == v
+    for digit in ("\u0660", "\u06f0", "\u0966", "\uff10", "\U0001d7ce"):  # zero of five Unicode digit sets
+        text = "".join(chr(ord(digit) + int(c)) for c in "907")
+        assert int(text) == 907
+        with pytest.raises(ValueError):
+            parse_decimal(text)
+    for text in ("+1", "1_000", "0_1", " +0 "):
+        int(text)
+        with pytest.raises(ValueError):
+            parse_decimal(text)

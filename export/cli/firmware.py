@@ -22,6 +22,7 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.cliparse import program
 from kiloforge.errors import OutputError
 from kiloforge.io import check_writable, write_files_atomic
+from kiloforge.validate import parse_decimal, quote
 from sim.config import KILOBOT, run_steps
 
 from ..codegen import budget as bud
@@ -35,12 +36,14 @@ from .common import (EXIT_OK, Parser, add_calibration, add_quiet, add_task, chec
 
 
 def _uids(text: str) -> tuple[int, ...]:
+    """``--target-uids``: comma-separated decimal uint16 values (ASCII digits only, :func:`parse_decimal`)."""
     try:
-        uids = tuple(int(t) for t in text.split(",") if t.strip() != "")
+        uids = tuple(parse_decimal(t) for t in text.split(",") if t.strip() != "")
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got '{text}'") from None
+        raise argparse.ArgumentTypeError(f"expected comma-separated decimal integers (ASCII digits), "
+                                         f"got {quote(text)}") from None
     if not uids or any(not 0 <= u <= 0xFFFF for u in uids):
-        raise argparse.ArgumentTypeError(f"target uids must be uint16 values, got '{text}'")
+        raise argparse.ArgumentTypeError(f"target uids must be uint16 values (0..65535), got {quote(text)}")
     return uids
 
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +41,7 @@ import numpy as np
 from kiloforge.actors.mlp import MAX_T_PREV, MLPPolicy
 from kiloforge.errors import InputError, PolicyError
 from kiloforge.policies import save_policy
-from kiloforge.validate import check_int, parse_json, quote, read_json_file, read_regular_file, show
+from kiloforge.validate import check_int, parse_decimal, parse_json, quote, read_json_file, read_regular_file, show
 from sim.config import ACTION_DIM, WorldConfig, preset
 
 # metadata_props keys (the same names are written by learn.onnx_export)
@@ -115,9 +114,10 @@ def _world_from_obj(obj: Any, where: str, t_prev_text: bool = False,
 def _parse_t_prev(v: Any, where: str, text: bool) -> int:
     """An integer in 1..MAX_T_PREV: decimal text in metadata_props (``text``), a JSON integer in a file."""
     if text:
-        if not (isinstance(v, str) and re.fullmatch(r"[0-9]{1,6}", v)):
-            raise OnnxImportError(f"{where}: t_prev must be a decimal integer, got {quote(v)}")
-        v = int(v)
+        try:
+            v = parse_decimal(v if isinstance(v, str) else "")
+        except ValueError:
+            raise OnnxImportError(f"{where}: t_prev must be a decimal integer (ASCII digits), got {quote(v)}") from None
     try:
         return check_int(v, f"{where}: t_prev", 1, MAX_T_PREV)
     except InputError as e:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from kiloforge.cliparse import ArgumentParser, error_line, program
 from kiloforge.interrupts import exit_status
+from kiloforge.validate import int_arg
 
 from ..config import ConfigError
 from . import trial as tr
@@ -33,25 +34,25 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--file", default=None, help="grid file (.json or .toml; see docs/sweeps.md)")
     g.add_argument("--trainer", choices=tr.TRAINERS, default=None, help="trainer (default magddpg)")
     g.add_argument("--preset", nargs="+", default=None, help="training preset(s) (an axis when several)")
-    g.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 1)")
-    g.add_argument("--robots", nargs="+", type=int, default=None, help="robots trained together (n_robots)")
+    g.add_argument("--seeds", nargs="+", type=int_arg(), default=None, help="seeds (default 1)")
+    g.add_argument("--robots", nargs="+", type=int_arg(), default=None, help="robots trained together (n_robots)")
     g.add_argument("--world", nargs="+", default=None, help="world preset(s)")
     g.add_argument("--task", nargs="+", default=None, help="task(s) (sim.tasks; default localisation)")
-    g.add_argument("--history", nargs="+", type=int, default=None, help="history lengths (t_prev; magddpg)")
+    g.add_argument("--history", nargs="+", type=int_arg(), default=None, help="history lengths (t_prev; magddpg)")
     g.add_argument("--grid", nargs="+", action="extend", default=None, metavar="KEY=V1,V2",
                    help="any config field: comma-separated values, tuples as 32x32, or a JSON list")
     g.add_argument("--max-minutes", type=float, default=None,
                    help="wall-clock budget per trial over all its sessions (default: the preset's)")
     g.add_argument("--cpus-per-trial", type=float, default=None, help="CPUs per trial (default 1; torch threads)")
-    g.add_argument("--eval-robots", nargs="+", type=int, default=None,
+    g.add_argument("--eval-robots", nargs="+", type=int_arg(), default=None,
                    help="evaluate each trial's best policy and the baselines at these swarm sizes")
-    g.add_argument("--eval-episodes", type=int, default=None, help="episodes of that evaluation (default 500)")
-    g.add_argument("--eval-steps", type=int, default=None, help="steps per episode of that evaluation (default 500)")
+    g.add_argument("--eval-episodes", type=int_arg(), default=None, help="episodes of that evaluation (default 500)")
+    g.add_argument("--eval-steps", type=int_arg(), default=None, help="steps per episode of that evaluation (default 500)")
     r = p.add_argument_group("where and how")
     r.add_argument("--out", default=None, help="sweep directory (one run directory per trial)")
     r.add_argument("--address", default=None,
                    help="an existing Ray cluster, HOST:PORT or auto (default: a private local Ray)")
-    r.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    r.add_argument("--num-cpus", type=int_arg(), default=None, help="CPUs of the local Ray (default: all)")
     r.add_argument("--dry-run", action="store_true", help="list the trials and their state; run nothing")
     r.add_argument("--quiet", action="store_true", help="no progress")
     r.add_argument("--aggregate", metavar="DIR", default=None,
