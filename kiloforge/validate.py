@@ -343,12 +343,6 @@ def read_json_file(path: str | os.PathLike, what: str, *, max_bytes: int = MAX_J
     return parse_json(data, f"{what} {quote(path)}", max_bytes=max_bytes, max_depth=max_depth)
 
 
-def check_object(value: Any, where: str) -> dict:
-    if not isinstance(value, dict):
-        raise InputError(f"{where} must be a JSON object, got {show(value)}")
-    return value
-
-
 # --- .npz archives -------------------------------------------------------------------------------
 _EOCD = struct.Struct("<4s4H2LH")  # end of central directory record
 _ZIP64_LOCATOR = b"PK\x06\x07"

@@ -10,7 +10,7 @@
 
 Every field is a command-line option (:mod:`learn.cli`, tyro); its ``#:`` comment is the help text.
 ``to_dict`` / ``from_dict`` round-trip through JSON; ``from_dict`` refuses unknown fields and values
-of the wrong type with one line. ``config_from_dict`` picks the class from the ``algorithm`` key.
+of the wrong type with one line (:mod:`kiloforge.validate`'s checks).
 
 The MAGDDPG defaults are the thesis's hyper-parameters (§4.3, §4.3.1), except the actor, which has
 to run on a Kilobot: ``t_prev = 10`` and two hidden layers of 32 ELUs fit the ATmega328P (checked
@@ -47,6 +47,8 @@ from typing import Annotated, Any, ClassVar
 
 import tyro
 
+from kiloforge.errors import InputError
+from kiloforge.validate import check_int, check_real, check_str, check_typed, show
 from sim.config import BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
@@ -69,6 +71,7 @@ SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
 DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher", "pusher")  #: values of ``demo_policy`` (learn.demos)
 CELLS = ("gru", "lstm")  #: recurrent cells of RecurrentConfig.cell (learn.recurrent.RECURRENT_ACTORS)
+MAX_TEXT_FIELD = 4096  #: characters of a str field (a path, a name) in a config file
 
 #: config fields whose flag is not ``--field-name`` but a shorter alias (both work)
 FLAG_ALIASES = {"n_robots": "--robots", "t_prev": "--history"}
@@ -536,22 +539,6 @@ class ESConfig(ConfigBase):
         return TrainConfig(world=self.world, t_prev=self.t_prev, actor_hidden=self.actor_hidden).budget_note()
 
 
-CONFIGS: dict[str, type[ConfigBase]] = {"magddpg": TrainConfig, "magrdpg": RecurrentConfig, "es": ESConfig}
-
-
-def config_from_dict(d: dict[str, Any]) -> ExperimentConfig:
-    """A config of the class its ``algorithm`` key names (files without one: MAGDDPG unless they hold
-    recurrent fields, as the run directories of earlier versions)."""
-    if not isinstance(d, dict):
-        raise ConfigError(f"a training config must be a JSON object, got {type(d).__name__}")
-    algo = d.get("algorithm")
-    if algo is None:
-        algo = "magrdpg" if {"hidden", "unroll"} <= set(d) else "magddpg"
-    if algo not in CONFIGS:
-        raise ConfigError(f"unknown algorithm '{algo}'; choose one of: {', '.join(CONFIGS)}")
-    return CONFIGS[algo].from_dict(d)
-
-
 def randomisation(name: str) -> Any:
     """``sim.variants.RANDOMISATIONS[name]`` (None for ``none``); one-line ConfigError otherwise."""
     if name == "none":
@@ -581,37 +568,25 @@ def _hints(cls: type) -> dict[str, Any]:
 
 
 def check_type(cls: type, name: str, value: Any) -> Any:
-    """A JSON value as field ``name``'s type, exactly: integers for int fields (not booleans or 3.0),
-    finite numbers for float fields, booleans for bool fields, strings for str fields, lists (or a
-    single integer) of integers for tuple fields. One-line ConfigError naming the field otherwise."""
+    """A JSON value as field ``name``'s type, exactly, by :mod:`kiloforge.validate`'s checks: integers for int
+    fields (not booleans or 3.0), finite numbers for float fields, booleans for bool fields, strings for str
+    fields, lists (``n_robots`` also a single integer) of integers for tuple fields. One-line ConfigError naming
+    the field otherwise."""
     hint = _hints(cls)[name]
-
-    def bad() -> typing.NoReturn:
-        kind = getattr(hint, "__name__", str(hint))
+    try:
         if typing.get_origin(hint) is tuple:
-            kind = "a list of integers"
-        raise ConfigError(f"{name}: cannot read {value!r} as {kind}")
-
-    def is_int(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool)
-
-    if hint is bool:
-        return value if isinstance(value, bool) else bad()
-    if hint is int:
-        return value if is_int(value) else bad()
-    if hint is float:
-        if (is_int(value) or isinstance(value, float)) and math.isfinite(value):
-            return float(value)
-        bad()
-    if hint is str:
-        return value if isinstance(value, str) else bad()
-    if typing.get_origin(hint) is tuple:
-        if is_int(value) and name == "n_robots":
-            return (value,)
-        if isinstance(value, (list, tuple)) and all(is_int(v) for v in value):
-            return tuple(value)
-        bad()
-    raise ConfigError(f"{name}: unsupported field type {hint}")  # pragma: no cover
+            if name == "n_robots" and not isinstance(value, (list, tuple)):
+                return (check_int(value, name),)
+            if not isinstance(value, (list, tuple)):
+                raise InputError(f"{name} must be a list of integers, got {show(value)}")
+            return tuple(check_int(v, f"{name}[{i}]") for i, v in enumerate(value))
+        if hint is float:
+            return float(check_real(value, name))
+        if hint is str:
+            return check_str(value, name, MAX_TEXT_FIELD)
+        return check_typed(value, hint.__name__, name)
+    except InputError as e:
+        raise ConfigError(str(e)) from None
 
 
 def parse_text(cls: type, name: str, value: Any) -> Any:

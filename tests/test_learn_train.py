@@ -123,12 +123,27 @@ def test_config_file_and_presets():
     """Unknown keys and mistyped values in a config are refused; presets override defaults."""
     with pytest.raises(ConfigError, match="unknown training config field"):
         TrainConfig.from_dict({"learning_rate": 1e-3})
-    with pytest.raises(ConfigError, match="batch_size: cannot read"):
+    with pytest.raises(ConfigError, match="batch_size must be an integer, got 3.5 \\(a float\\)"):
         TrainConfig.from_dict({"batch_size": 3.5})
     with pytest.raises(ConfigError, match="unknown training preset"):
         from_preset("slow")
     assert from_preset("fast").n_envs > 1 and from_preset("default").n_envs == 1
     assert from_preset("default").batch_size == 32 and from_preset("default").tau == 0.001
+
+
+def test_config_values_are_checked_exactly():
+    """Config file values go through kiloforge.validate: an int field takes only integers, a float field finite
+    numbers (an integer becomes a float), a tuple field integers (n_robots also one), a str field strings."""
+    c = TrainConfig.from_dict({"n_robots": 4, "tau": 1, "actor_hidden": [16, 8], "exp_name": "a"})
+    assert c.n_robots == (4,) and c.tau == 1.0 and isinstance(c.tau, float) and c.actor_hidden == (16, 8)
+    for d, words in (({"n_envs": True}, "n_envs must be an integer, got true (a boolean)"),
+                     ({"tau": float("nan")}, "tau must be a finite number"),
+                     ({"actor_hidden": [16, 8.0]}, "actor_hidden[1] must be an integer, got 8.0 (a float)"),
+                     ({"actor_hidden": 16}, "actor_hidden must be a list of integers, got 16 (an integer)"),
+                     ({"exp_name": 5}, "exp_name must be a string, got 5 (an integer)")):
+        with pytest.raises(ConfigError) as e:
+            TrainConfig.from_dict(d)
+        assert str(e.value) == words or str(e.value).startswith(words), str(e.value)
 
 
 def test_cli_bad_value_is_one_line_exit_2():
