@@ -2,7 +2,8 @@
 
 * :func:`write_atomic` writes one file (bytes, or str encoded as UTF-8): a temp file beside it,
   fsync, ``os.replace``; :func:`atomic_path` is the same for writers that want a file name
-  (matplotlib, Pillow, ``torch.save``, a compiler's ``-o``);
+  (matplotlib, Pillow, ``torch.save``, a compiler's ``-o``); both write through a symbolic link
+  (the link stays, the file it leads to is replaced: :func:`through_links`);
 * :func:`staged_files` is for a command that writes several files into one directory (the
   exporter's C files and manifest, the simulator's plots and metrics, an evaluation): the files
   are written into a staging directory beside them and published together;
@@ -214,11 +215,24 @@ def _temp_beside(path: Path, suffix: str) -> Iterator[tuple[Path, int]]:
         tmp.unlink(missing_ok=True)
 
 
+def through_links(path: Path) -> Path:
+    """The file a one-file write to ``path`` replaces: ``path``, or, when it is a symbolic link, the file it
+    leads to (through every link; it may not exist yet), so the link stays and its target is replaced
+    atomically, as an editor saving through a link does. A loop of links is an OutputError."""
+    if not path.is_symlink():
+        return path
+    target = Path(os.path.realpath(path))
+    if target.is_symlink():
+        raise OutputError(f"cannot write '{printable(path)}': a loop of symbolic links")
+    return target
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = False, *,
                  mode: int | None = None) -> Path:
-    """Write one file atomically (str is UTF-8 encoded); returns its path. ``mode``: its permission
-    bits (default: those of a new file, :func:`new_file_mode`)."""
-    path = Path(path)
+    """Write one file atomically (str is UTF-8 encoded), through a symbolic link (:func:`through_links`);
+    returns ``path``. ``mode``: its permission bits (default: those of a new file, :func:`new_file_mode`)."""
+    given = Path(path)
+    path = through_links(given)
     raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
     _check_dir(path)
     recover(_dir_of(path), [path.name])
@@ -232,15 +246,15 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = 
             os.replace(tmp, path)
     except OSError as e:
         raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
-    return path
+    return given
 
 
 @contextmanager
 def atomic_path(path: str | os.PathLike, executable: bool = False, *, mode: int | None = None) -> Iterator[Path]:
     """Yield a temp sibling of ``path`` (same suffix) to write by name; on success it is fsynced, given
-    ``mode`` (default: the mode of a new file, :func:`new_file_mode`) and moved onto ``path``, on an
-    exception removed (``path`` is left as it was)."""
-    path = Path(path)
+    ``mode`` (default: the mode of a new file, :func:`new_file_mode`) and moved onto ``path`` (through a
+    symbolic link: :func:`through_links`), on an exception removed (``path`` is left as it was)."""
+    path = through_links(Path(path))
     _check_dir(path)
     recover(_dir_of(path), [path.name])
     with _temp_beside(path, path.suffix) as (tmp, _):

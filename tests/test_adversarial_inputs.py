@@ -429,3 +429,61 @@ def test_parse_decimal_matches_int_on_ascii_only():
         int(text)
         with pytest.raises(ValueError):
             parse_decimal(text)
+
+
+# --- rehash --out at a symbolic link writes through it (item 8) -------------------------------------
+def _unhashed_policy(tmp_path):
+    from tests.bad_inputs import crafted, parts, small_policy
+    arrays, meta = parts(small_policy())
+    p = tmp_path / "old.npz"
+    p.write_bytes(crafted(arrays, meta, hashed=False))
+    return p
+
+
+@pytest.mark.parametrize("chain", [1, 2, 3])
+@pytest.mark.parametrize("target_exists", [True, False])
+def test_rehash_out_through_symlinks(tmp_path, capsys, chain, target_exists):
+    """rehash --out LINK (a chain of 1-3 links; target present or not) replaces the file the link leads to; the links stay."""
+    from kiloforge.policies import load_policy
+    src = _unhashed_policy(tmp_path)
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "p.npz"
+    if target_exists:
+        target.write_bytes(b"old contents")
+    links = [tmp_path / f"link{i}.npz" for i in range(chain)]
+    for i, link in enumerate(links):
+        link.symlink_to(target if i == chain - 1 else links[i + 1])
+    assert export_main(["rehash", str(src), "--out", str(links[0])]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    assert all(link.is_symlink() for link in links)
+    assert load_policy(target).hash == load_policy(links[0]).hash
+    assert sorted(p.name for p in (tmp_path / "real").iterdir()) == ["p.npz"]  # no temporary left
+
+
+def test_rehash_in_place_through_a_symlink(tmp_path, capsys):
+    """rehash LINK (in place) re-hashes the file the link leads to and keeps the link."""
+    from kiloforge.policies import load_policy
+    src = _unhashed_policy(tmp_path)
+    link = tmp_path / "link.npz"
+    link.symlink_to(src)
+    assert export_main(["rehash", str(link)]) == 0
+    capsys.readouterr()
+    assert link.is_symlink() and load_policy(src).hash
+
+
+@pytest.mark.parametrize("how", ["loop", "to a directory", "into a missing directory"])
+def test_rehash_out_bad_symlink_is_one_line(tmp_path, capsys, how):
+    """A link loop, a link to a directory or into a missing directory: one line, exit 2, nothing changed."""
+    src = _unhashed_policy(tmp_path)
+    link = tmp_path / "out.npz"
+    if how == "loop":
+        (tmp_path / "b.npz").symlink_to(link)
+        link.symlink_to(tmp_path / "b.npz")
+    elif how == "to a directory":
+        (tmp_path / "d").mkdir()
+        link.symlink_to(tmp_path / "d")
+    else:
+        link.symlink_to(tmp_path / "missing" / "p.npz")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    _export_refused(["rehash", str(src), "--out", str(link)], capsys)
+    assert link.is_symlink() and sorted(p.name for p in tmp_path.iterdir()) == before

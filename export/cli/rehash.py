@@ -3,7 +3,8 @@
 Loading a policy checks its ``policy_hash`` (the sha256 of its arrays and meta) and refuses a file
 without one, or whose contents no longer match it. A file from an older tool, or edited on purpose,
 can be re-hashed here: every other check of loading still applies, and the new file is written
-atomically (in place unless ``--out`` is given).
+atomically (in place unless ``--out`` is given; through a symbolic link, which stays:
+:func:`kiloforge.io.through_links`).
 """
 from __future__ import annotations
 
