@@ -22,7 +22,7 @@ import numpy as np
 from experiments.oracle_push import OraclePush
 from kiloforge.policies import load_policy, policy_paths, swarm_policy
 from sim.baselines import make_policy
-from sim.config import preset
+from sim.config import HELD_OUT_SEED, preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 
@@ -35,7 +35,7 @@ def main() -> int:
     ap.add_argument("--robots", nargs="+", type=int, default=[32])
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="episode seed no training used")
     args = ap.parse_args()
     try:
         files = policy_paths([c for c in args.controllers if c not in SPECIAL])

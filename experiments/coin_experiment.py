@@ -26,6 +26,7 @@ import learn.demos as demos
 import learn.es_train as es_train
 import sim.env
 from sim.baselines import PUSHER, TUNED, HandWrittenSearcher, make_policy
+from sim.config import HELD_OUT_SEED
 
 
 class CoinPusher(HandWrittenSearcher):
@@ -94,7 +95,7 @@ def main() -> int:
     ev = argparse.ArgumentParser(prog="coin_experiment.py evaluate")
     ev.add_argument("policies", nargs="+")
     ev.add_argument("--episodes", type=int, default=100)
-    ev.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ev.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="episode seed no training used")
     e = ev.parse_args(rest)
     evaluate(e.policies, e.episodes, e.seed)
     return 0

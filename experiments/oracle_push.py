@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from kiloforge.policies import load_policy, swarm_policy
 from sim.baselines import make_policy
-from sim.config import WorldConfig
+from sim.config import HELD_OUT_SEED, WorldConfig
 from sim.env import SwarmEnv
 from sim.kinematics import wrap_angle
 from sim.metrics import compare
@@ -52,7 +52,7 @@ def episode_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--robots", nargs="+", type=int, default=[32])
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--steps", type=int, default=500)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="episode seed no training used")
 
 
 class OraclePush:

@@ -87,3 +87,15 @@ def synthetic_qpolicy(world: WorldConfig, t_prev: int, hidden: Sequence[int] = (
     digest.update(world.to_json().encode())
     return QuantizedMLP(layers=layers, e_in=e_in, world=world, t_prev=t_prev, policy_hash=digest.hexdigest(),
                         **sensing_tables(world, e_in))
+
+
+def random_sequences(world: WorldConfig, n_seq: int, steps: int, seed: int) -> np.ndarray:
+    """Input tuples shaped like real ones: actions in [0, 1], flags, target -1 or [0, 1], RBF bins."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    x = np.empty((n_seq, steps, world.tuple_dim), np.float32)
+    x[..., :2] = rng.random((n_seq, steps, 2))
+    x[..., 2] = rng.random((n_seq, steps)) < 0.1
+    x[..., 3] = np.where(rng.random((n_seq, steps)) < 0.3, rng.random((n_seq, steps)), -1.0)
+    x[..., 4] = rng.random((n_seq, steps)) < 0.2
+    x[..., 5:] = rng.exponential(0.2, (n_seq, steps, world.n_rbf))
+    return x

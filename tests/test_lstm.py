@@ -23,20 +23,9 @@ from kiloforge.actors.recurrent import ARRAYS, calibration_from_sequences
 from kiloforge.errors import PolicyError
 from kiloforge.policies import load_policy, save_policy
 from sim.config import preset
+from tests.fixtures import random_sequences
 
 WORLD = preset("kilobot")
-
-
-def random_sequences(world, n_seq: int, steps: int, seed: int) -> np.ndarray:
-    """Input tuples shaped like real ones: actions in [0, 1], flags, target -1 or [0, 1], RBF bins."""
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
-    x = np.empty((n_seq, steps, world.tuple_dim), np.float32)
-    x[..., :2] = rng.random((n_seq, steps, 2))
-    x[..., 2] = rng.random((n_seq, steps)) < 0.1
-    x[..., 3] = np.where(rng.random((n_seq, steps)) < 0.3, rng.random((n_seq, steps)), -1.0)
-    x[..., 4] = rng.random((n_seq, steps)) < 0.2
-    x[..., 5:] = rng.exponential(0.2, (n_seq, steps, world.n_rbf))
-    return x
 
 
 def small_qlstm(hidden: int = 8, seed: int = 1, scale: float = 2.0, world=WORLD) -> tuple[LSTMPolicy, QuantizedLSTM]:

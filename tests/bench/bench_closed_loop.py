@@ -73,7 +73,7 @@ def main() -> int:
         for M, B in [(16, 1), (16, 16), (16, 64), (16, 128), (16, 256), (64, 1), (64, 16), (64, 32), (64, 64)]:
             E = max(B, 4 if B == 1 else B)
             t0 = time.perf_counter()
-            r = run_firmware(qp, M, E, args.seed, steps=steps, n_envs=B)
+            run_firmware(qp, M, E, args.seed, steps=steps, n_envs=B)
             dt = time.perf_counter() - t0
             print(f"{M:>6} {B:>6} {B * M:>6} {E:>8} {dt:>7.2f} {E / dt:>10.1f} {E * steps * M / dt:>13,.0f}",
                   flush=True)

@@ -22,6 +22,7 @@ import numpy as np
 from kiloforge.io import write_atomic
 from kiloforge.policies import load_policy, policy_paths
 from learn.evaluate import evaluate_policies
+from sim.config import HELD_OUT_SEED
 
 
 def main() -> int:
@@ -30,7 +31,7 @@ def main() -> int:
     ap.add_argument("--robots", nargs="+", type=int, default=[4, 16, 32])
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--steps", type=int, default=500)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="episode seed no training used")
     ap.add_argument("--out", required=True)
     args = ap.parse_args()
     out = Path(args.out)

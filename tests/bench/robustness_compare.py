@@ -19,7 +19,7 @@ from pathlib import Path
 from kiloforge.io import write_atomic
 from kiloforge.policies import load_policy, policy_paths, swarm_policy
 from sim.baselines import make_policy
-from sim.config import preset
+from sim.config import HELD_OUT_SEED, preset
 from sim.robustness import SuiteTable, run_suite
 from sim.variants import robustness_suite
 
@@ -57,7 +57,7 @@ def main() -> int:
     ap.add_argument("--robots", nargs="+", type=int, default=[4, 16, 32])
     ap.add_argument("--episodes", type=int, default=30)
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--seed", type=int, default=20261202, help="episode seed no training used")
+    ap.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="episode seed no training used")
     ap.add_argument("--variants", nargs="+", default=None, metavar="NAME",
                     help="only these variants of the suite (nominal is always run; default: all)")
     ap.add_argument("--out", required=True)
