@@ -28,15 +28,6 @@ _T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 
          2.052, 2.048, 2.045, 2.042)
 
 
-def coverage_from_in_range(in_range: np.ndarray) -> np.ndarray:
-    """(..., M) bool → (...) fraction of robots in range.
-
-    >>> coverage_from_in_range(np.array([[True, False], [True, True]])).tolist()
-    [0.5, 1.0]
-    """
-    return np.asarray(in_range, bool).mean(axis=-1)
-
-
 def time_to_find(coverage: np.ndarray) -> np.ndarray:
     """(E, T) coverage → (E,) int: first step (1-based) with any robot in range, T if never.
 

@@ -40,7 +40,7 @@ from hypothesis import strategies as st
 
 from tests.bad_inputs import crafted, nested_json, small_policy
 from kiloforge.artifact import META, canonical_json, npz_bytes, policy_hash
-from kiloforge.errors import KiloforgeError, PolicyError
+from kiloforge.errors import PolicyError
 from kiloforge.validate import read_npz
 from sim.config import WorldConfig, preset
 

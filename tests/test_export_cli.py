@@ -268,8 +268,6 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
 @pytest.mark.skipif(importlib.util.find_spec("onnx") is None, reason="needs onnx (kiloforge[onnx])")
 def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     """--onnx reads an ONNX actor (via export.interop.onnx_import) and quantises the same weights."""
-    import types
-
     from learn.onnx_export import export_onnx
     p = init_policy(KB, 3, (8,), "elu", seed=4, out_scale=0.3)
     export_onnx(p, tmp_path / "actor.onnx")

@@ -1,5 +1,4 @@
 """CI smoke test of the `quick` preset, shortened: a few thousand updates already beat random search."""
-import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")

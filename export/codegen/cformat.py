@@ -7,7 +7,7 @@ made comment-safe. Literals never depend on the width of ``int`` (16 bits on AVR
 from __future__ import annotations
 
 import re
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import numpy as np
 
@@ -188,11 +188,3 @@ def nonzero_windows(table: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     packed = np.concatenate(parts) if pos else np.zeros(1, t.dtype)
     return np.array(los), np.array(lens), np.array(offs), packed
 
-
-def sizes_comment(sizes: Sequence[int]) -> str:
-    """``320 -> 32 -> 2`` for a banner line.
-
-    >>> sizes_comment([320, 32, 2])
-    '320 -> 32 -> 2'
-    """
-    return " -> ".join(str(int(s)) for s in sizes)

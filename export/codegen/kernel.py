@@ -442,7 +442,7 @@ def _avr_post(a) -> None:
 def avr_asm_block() -> str:
     """The C text (a file-scope ``__asm__``) of the AVR kernel, as embedded in ``kf_dense.c``.
 
-    ``write_avr_asm()`` puts it there; a test checks the file holds exactly this text.
+    ``python -m tools.avr_kernel`` puts it there; a test checks the file holds exactly this text.
     """
     rows: list[str] = []
     cur: list[str] = []
@@ -466,10 +466,3 @@ def kf_dense_c_path() -> Path:
     """Path of ``firmware_templates/kf_dense.c``."""
     return TEMPLATE_DIR / "kf_dense.c"
 
-
-def write_avr_asm() -> None:
-    """Replace the generated block of ``kf_dense.c`` with :func:`avr_asm_block` (a developer tool)."""
-    path = kf_dense_c_path()
-    text = path.read_text()
-    i, j = text.index(ASM_BEGIN), text.index(ASM_END) + len(ASM_END)
-    path.write_text(text[:i] + avr_asm_block() + text[j:])

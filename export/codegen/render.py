@@ -37,7 +37,6 @@ from .templates import environment, inline_sources
 
 POLICY_FILE = "kilobot_policy.c"
 TARGET_FILE = "kilobot_target.c"
-BASE_TEMPLATE = "kilobot_policy.c.j2"  #: the shared program every kind's partial extends
 TARGET_TEMPLATE = "kilobot_target.c.j2"
 #: hand-written C inlined into the programs, in this order (their local #includes are pasted in place)
 RUNTIME_SOURCES = ("kf_runtime.h",)

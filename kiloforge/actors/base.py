@@ -260,11 +260,6 @@ class QuantizedActor(ABC):
     def tuple_dim(self) -> int:
         return self.world.tuple_dim
 
-    @property
-    def n_weights(self) -> int:
-        """Multiply-accumulates per control step (every dense layer's weights)."""
-        return int(sum(l.w.size for l in self.layers))
-
     def quantize_tuple(self, x: np.ndarray) -> np.ndarray:
         """Float tuples (..., D) -> int8 values at e_in (error reports; the firmware builds them from tables)."""
         return numfmt.quantize(x, self.e_in)
