@@ -460,7 +460,11 @@ class ESConfig(ConfigBase):
     #: on other criteria (robustness variants, fresh episodes); changes nothing that is learned
     keep_evaluated: bool = False
     max_minutes: float = 0.0  #: stop after the first generation past this wall-clock time (0 = no limit)
-    threads: int = 0  #: torch CPU threads; 0 = auto (1)
+    threads: int = 0  #: torch CPU threads (of the trainer and of each worker); 0 = auto (1)
+    #: processes evaluating the population: 1 = this one (no Ray); N > 1 = N Ray workers of one CPU each, on a private
+    #: local Ray or on the cluster of --ray-address (needs kiloforge[sweep]); the weights learned are the same for any N
+    workers: int = 1
+    ray_address: str = ""  #: join this Ray cluster (HOST:PORT or auto) instead of starting a local Ray; '' = local
     seed: int = 1  #: master seed (initial weights, demonstrations, cloning, perturbations, episodes, evaluation)
     exp_name: str = "es"  #: experiment name used in the default run directory name
     task: str = "localisation"  #: the task (sim.tasks): a built-in or plug-in name, or path/to/file.py:ClassName
@@ -494,6 +498,9 @@ class ESConfig(ConfigBase):
             need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")
         need(self.max_minutes >= 0 and math.isfinite(self.max_minutes), f"max_minutes must be >= 0, got {self.max_minutes}")
         need(0 <= self.threads <= 256, f"threads must be in 0..256 (0 = auto), got {self.threads}")
+        need(1 <= self.workers <= 4096, f"workers must be in 1..4096, got {self.workers}")
+        need(self.ray_address == self.ray_address.strip() and "\n" not in self.ray_address,
+             f"ray_address must be HOST:PORT, auto or empty, got {self.ray_address!r}")
         need(0 <= self.seed < 2 ** 63, f"seed must be a non-negative integer, got {self.seed}")
         need(re.fullmatch(r"[A-Za-z0-9._-]+", self.exp_name) is not None,
              f"exp_name may hold letters, digits, '-', '_' and '.', got '{self.exp_name}'")

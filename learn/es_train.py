@@ -15,8 +15,9 @@ after the current generation with a checkpoint; the CLI exits 130 / 143.
 """
 from __future__ import annotations
 
-import datetime
 import dataclasses
+import datetime
+import functools
 import json
 import math
 import os
@@ -34,6 +35,8 @@ from .checkpoint import Checkpointer
 from .config import ConfigError, ESConfig, TrainConfig, randomisation
 from .demos import bc_pretrain, collect_demos, demonstrator
 from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
+from .es_pool import child as _child
+from .es_pool import noise, worker_pool
 from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
@@ -43,11 +46,6 @@ from .speed import set_threads, tune_allocator
 
 CHECKPOINT_VERSION = 1
 DEMO_ENVS = 24  #: demonstrator envs stepped together per swarm size
-
-
-def _child(ss: np.random.SeedSequence, *key: int) -> np.random.SeedSequence:
-    """The child of ``ss`` at ``key``, independent of how many children were drawn before."""
-    return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + tuple(key))
 
 
 def actor_algo(cfg: ESConfig, world) -> MAGDDPG:
@@ -68,8 +66,20 @@ def set_theta(algo: MAGDDPG, theta: torch.Tensor) -> None:
 
 def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, progress: bool = True,
              log: Callable[[str], None] = print) -> RunResult:
-    """Run ``cfg`` into ``run_dir`` (``resume`` continues its checkpoint); returns counters and why it stopped."""
+    """Run ``cfg`` into ``run_dir`` (``resume`` continues its checkpoint); returns counters and why it stopped.
+
+    The population is evaluated in this process (``cfg.workers`` 1) or on Ray workers (:mod:`learn.es_pool`,
+    started before anything is written, so a cluster that cannot be reached leaves nothing behind)."""
     cfg.validate()
+    with worker_pool(cfg.workers, cfg.ray_address, cfg.threads, log) as pool:
+        if pool.workers > 1 or cfg.ray_address:
+            log(f"evaluating the population on {pool.workers} Ray workers"
+                + (f" of the cluster at {cfg.ray_address}" if cfg.ray_address else ""))
+        return _train_es(cfg, run_dir, resume, progress, log, pool)
+
+
+def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress: bool, log: Callable[[str], None],
+              pool) -> RunResult:
     world, eval_world = cfg.world_config(), cfg.eval_world()
     set_threads(cfg.threads)
     tune_allocator()
@@ -182,6 +192,7 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                 save()
             wall_at_start = c.wall_s
             session_start = time.perf_counter()
+            gen_at_start, episodes_at_start, session_gen_s = gen, c.episodes, 0.0  # this session's rates
             if progress:
                 bar = progress_bar(total=cfg.generations, initial=gen, unit="gen", dynamic_ncols=True,
                                    desc=run_dir.name[:40], max_seconds=60 * cfg.max_minutes, elapsed=wall_at_start)
@@ -194,15 +205,19 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
                         save()
                     break
                 t0 = time.perf_counter()
-                fitness, utility = generation(cfg, world, pop, theta, _child(ss_gen, gen), weights, randomise, c, stop)
+                fitness, utility = generation(cfg, world, pop, theta, _child(ss_gen, gen), weights, randomise, c, stop,
+                                              pool)
                 eps = fitness.pop("eps")
                 theta = adam.step(theta, es_direction(utility, eps, cfg.sigma))
                 gen += 1
                 c.env_s += time.perf_counter() - t0
+                session_gen_s += time.perf_counter() - t0
                 c.wall_s = wall_at_start + (time.perf_counter() - session_start)
                 if bar is not None:
                     bar.update(1)
-                    bar.set_postfix_str(f"fitness {fitness['mean']:.3f}", refresh=True)
+                    bar.set_postfix_str(f"fitness {fitness['mean']:.3f}  {(gen - gen_at_start) / session_gen_s:.2f} gen/s  "
+                                        f"{(c.episodes - episodes_at_start) / session_gen_s:.0f} member-episodes/s",
+                                        refresh=True)
                 if gen % cfg.eval_every == 0 or gen == cfg.generations:
                     t1 = time.perf_counter()
                     row = log_row(evaluate(), fitness["mean"])
@@ -227,7 +242,8 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     if result.stopped != "interrupted" and ckpt.exists():
         save()
     c.wall_s = wall_at_start + (time.perf_counter() - session_start)
-    write_summary(run_dir, cfg, c, result.stopped)
+    write_summary(run_dir, cfg, c, result.stopped,
+                  {"generations": gen, "generation_s": round(c.env_s, 3), "workers": pool.workers})
     return result
 
 
@@ -300,26 +316,51 @@ def clone(cfg: ESConfig, world, algo: MAGDDPG, ss_demo: np.random.SeedSequence, 
     return loss
 
 
-def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
-               weights: list[float], randomise: list, c: Counters, stop: StopRequest) -> tuple[dict, np.ndarray]:
-    """One generation's antithetic population on every swarm size (``randomise``: each size's domain
-    randomisation or None): fitness summary and utilities (2 · pairs,).
+@dataclasses.dataclass(frozen=True)
+class TaskFitness:
+    """The ES fitness of a task (a :class:`learn.es_pool.Fitness`): part i is swarm size ``n_robots[i]``, a
+    member's mean final success of ``task`` (a :func:`sim.tasks.get_task` name, resolved where it runs; a
+    ``file.py:Class`` task must be at the same path on every worker) over that size's ``episodes[i]``
+    episodes, episode e seeded by the generation's child ``(1 + i, e)`` (common random numbers)."""
 
-    A stop request between swarm sizes abandons the generation (the weights stay those of the last one)."""
-    rng = np.random.default_rng(_child(ss, 0))
-    eps = torch.from_numpy(rng.standard_normal((cfg.pairs, pop.n_params)))
-    members = torch.cat([theta + cfg.sigma * eps, theta - cfg.sigma * eps])
-    utility = np.zeros(2 * cfg.pairs)
-    fit = np.zeros(2 * cfg.pairs)
-    episodes = 0
-    for i, (M, w, rand, n_ep) in enumerate(zip(cfg.n_robots, weights, randomise, cfg.size_episode_counts())):
-        seeds = [_child(ss, 1 + i, e) for e in range(n_ep)]
-        res = rollout_population(pop, members, world, M, seeds, cfg.t_prev, rand, cfg.task_spec())
-        stop.check()
-        f = res.final_coverage.mean(axis=1)
-        utility += w * centred_ranks(f)
-        fit += w * f
-        episodes += 2 * cfg.pairs * len(seeds)
+    task: str
+    pop: PopulationMLP
+    world: object
+    t_prev: int
+    n_robots: tuple[int, ...]
+    randomise: tuple  # per swarm size: its domain randomisation or None
+    episodes: tuple[int, ...]
+
+    @property
+    def parts(self) -> int:
+        return len(self.n_robots)
+
+    def __call__(self, members: torch.Tensor, part: int, seed: np.random.SeedSequence) -> np.ndarray:
+        seeds = [_child(seed, 1 + part, e) for e in range(self.episodes[part])]
+        res = rollout_population(self.pop, members, self.world, self.n_robots[part], seeds, self.t_prev,
+                                 self.randomise[part], self.task_spec)
+        return res.final_coverage.mean(axis=1)
+
+    @functools.cached_property
+    def task_spec(self):
+        from sim.tasks import get_task
+
+        return get_task(self.task)
+
+
+def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
+               weights: list[float], randomise: list, c: Counters, stop: StopRequest, pool) -> tuple[dict, np.ndarray]:
+    """One generation's antithetic population on every swarm size (``randomise``: each size's domain
+    randomisation or None), evaluated by ``pool`` (:mod:`learn.es_pool`): fitness summary and utilities (2 · pairs,).
+
+    A stop request abandons the generation (the weights stay those of the last one)."""
+    eps = noise(ss, cfg.pairs, pop.n_params)
+    counts = tuple(cfg.size_episode_counts())
+    fitness = TaskFitness(cfg.task, pop, world, cfg.t_prev, tuple(cfg.n_robots), tuple(randomise), counts)
+    f_parts = pool.evaluate(fitness, theta, cfg.sigma, cfg.pairs, ss, stop)  # (2 pairs, sizes)
+    utility = sum(w * centred_ranks(f_parts[:, i]) for i, w in enumerate(weights))
+    fit = sum(w * f_parts[:, i] for i, w in enumerate(weights))
+    episodes = 2 * cfg.pairs * sum(counts)
     c.episodes += episodes
     c.env_steps += episodes * world.episode_steps
     return {"mean": float(fit.mean()), "max": float(fit.max()), "eps": eps}, utility

@@ -43,7 +43,7 @@ KEPT_DIR = "generations"  #: train-es --keep-evaluated: every evaluated generati
 RUN_DIRS = ("replay", "tensorboard", KEPT_DIR)
 #: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
 RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
-                     "keep_evaluated")
+                     "keep_evaluated", "workers", "ray_address")
 
 
 def result_policy(cfg: object) -> str:
@@ -164,7 +164,9 @@ def rows_to_csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
-def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: str) -> None:
+def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: str, extra: dict | None = None) -> None:
+    """summary.json: the counters, their rates and shares, the best and last evaluations, and ``extra`` (an
+    algorithm's own fields)."""
     best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else {}
 
     def share(x: float) -> float | None:
@@ -183,6 +185,7 @@ def write_summary(run_dir: Path, cfg: ExperimentConfig, c: Counters, stopped: st
         "algorithm": cfg.algorithm, "seed": cfg.seed, "git": git_hash(),
         #: the simulator's hot loops ran compiled (sim/compiled.py); the rates above depend on it, nothing else does
         "sim_compiled": compiled.available(), "sim_compiled_off_because": compiled.why_not() or None,
+        **(extra or {}),
     }
     write_atomic(run_dir / "summary.json", json.dumps(finite_or_none(summary), indent=2, sort_keys=True) + "\n")
 

@@ -15,3 +15,16 @@ def default_signal_handlers():
     yield
     for s, h in defaults.items():
         signal.signal(s, h)
+
+
+@pytest.fixture(scope="module")
+def ray_session(tmp_path_factory):
+    """A local Ray with 2 CPUs for one test module, its temp files under pytest's tmp path; shut down afterwards
+    (code under test that finds Ray running joins it and leaves it running)."""
+    import logging
+
+    ray = pytest.importorskip("ray")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
+             logging_level=logging.ERROR, _temp_dir=str(tmp_path_factory.mktemp("ray")))
+    yield
+    ray.shutdown()

@@ -1,13 +1,12 @@
 """Sweeps on a local Ray (one session for the module): a tiny end-to-end sweep, resume skipping finished trials,
 TensorBoard scalars in every trial."""
 import json
-import logging
 
 import numpy as np
 import pytest
 
 pytest.importorskip("torch")
-ray = pytest.importorskip("ray")
+pytest.importorskip("ray")
 pytest.importorskip("ray.tune")
 
 from learn.sweep.cli import main_sweep  # noqa: E402
@@ -20,15 +19,6 @@ from learn.config import TrainConfig  # noqa: E402
 TINY = ["episode_steps=20", "n_envs=2", "warmup_episodes=2", "episodes=4", "eval_every=40", "eval_episodes=2",
         "replay_size=400", "batch_size=8", "actor_hidden=8x8", "critic_hidden=16x16", "updates_per_step=0.5"]
 ARGS = ["--preset", "quick", "--seeds", "1", "2", "--grid", *TINY, "--quiet"]
-
-
-@pytest.fixture(scope="module")
-def ray_session(tmp_path_factory):
-    """A local Ray with 2 CPUs whose temp files live under pytest's tmp path; shut down afterwards."""
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.ERROR, _temp_dir=str(tmp_path_factory.mktemp("ray")))
-    yield
-    ray.shutdown()
 
 
 def _tiny_trials():

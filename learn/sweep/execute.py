@@ -2,7 +2,8 @@
 
 * Ray: a private local instance by default (``ray.init(address="local")`` with this machine's CPUs,
   or ``num_cpus``), or an existing cluster with ``address`` (``HOST:PORT`` or ``auto``). When Ray is
-  already initialised (tests, notebooks) that instance is used and left running.
+  already initialised (tests, notebooks) that instance is used and left running. Started by
+  :func:`learn.es_pool.init_ray` (quiet, and keeping the driver's SIGINT / SIGTERM handlers).
 * Tune: one trial per pending run directory (``tune.grid_search`` over them), each with
   ``cpus_per_trial`` CPUs (``tune.with_resources``); the Tune experiment lives in
   ``DIR/ray_tune/<name>``, its name a hash of the command's trials, so rerunning the same command
@@ -17,7 +18,6 @@
 """
 from __future__ import annotations
 
-import logging
 import math
 import os
 import shutil
@@ -31,7 +31,6 @@ os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # the legacy reporter, which v
 import ray  # noqa: E402
 from ray import tune  # noqa: E402
 
-from ..config import ConfigError  # noqa: E402
 from . import trial as tr  # noqa: E402
 from .grid import Grid, Trial, digest  # noqa: E402
 
@@ -143,14 +142,9 @@ def init_ray(address: str | None, num_cpus: int | None) -> bool:
     """Start or join Ray unless it is initialised; True when this call did (and should shut it down)."""
     if ray.is_initialized():
         return False
-    kw = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
-    try:
-        if address:
-            ray.init(address=address, **kw)
-        else:
-            ray.init(address="local", num_cpus=num_cpus, **kw)
-    except ConnectionError as e:
-        raise ConfigError(f"cannot reach a Ray cluster at --address {address}: {str(e).splitlines()[0]}") from None
+    from ..es_pool import init_ray as start
+
+    start(ray, address or "", num_cpus, "--address")
     return True
 
 

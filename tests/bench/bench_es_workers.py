@@ -1,0 +1,96 @@
+"""ES generations per second on 1 and on N Ray workers: paired, alternating runs of one config, the ratio.
+
+    python tests/bench/bench_es_workers.py                      # issue 45: 32 robots, 8 pairs, 4 generations, 1 vs 2
+    python tests/bench/bench_es_workers.py --workers 1 2 4 --rounds 3 --robots 16 32
+
+Each round runs ``python -m learn train-es --robots M --demo-policy none --generations G --pairs P --seed S
+--workers N`` once per worker count, the order rotating from round to round (so a change of load hits
+every count alike). Each run's summary.json gives ``generations`` and ``generation_s``, the wall seconds
+spent in generations (Ray's start-up, the evaluations and the checkpoints excluded); generations/s is
+their quotient. The table shows per worker count the median generations/s, member-episodes/s, and the
+median and range of the per-round ratios to one worker. Every run must end with the same weights as
+the one-worker run of its round (the script checks the policy arrays and says so). Print ``uptime``
+with the table: on a shared machine the ratios, not the rates, are what two runs can be compared by,
+and only a run on an idle machine measures the scaling itself.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def run(args: argparse.Namespace, workers: int, out: Path) -> dict:
+    """One train-es run; its summary.json."""
+    cmd = [sys.executable, "-m", "learn", "train-es", "--robots", *map(str, args.robots), "--demo-policy", "none",
+           "--generations", str(args.generations), "--pairs", str(args.pairs), "--seed", str(args.seed),
+           "--eval-every", str(args.generations), "--eval-episodes", "1", "--eval-steps", "50",
+           "--workers", str(workers), "--quiet", "--out", str(out)]
+    res = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr[-2000:]}")
+    return json.loads((out / "summary.json").read_text())
+
+
+def weights(run_dir: Path) -> list[np.ndarray]:
+    from kiloforge.policies import load_policy
+
+    p = load_policy(run_dir / "policy_last.npz")
+    return [np.asarray(a) for a in (*p.weights, *p.biases)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="worker counts; the first is the baseline")
+    p.add_argument("--robots", nargs="+", type=int, default=[32])
+    p.add_argument("--generations", type=int, default=4)
+    p.add_argument("--pairs", type=int, default=8)
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--rounds", type=int, default=2)
+    args = p.parse_args(argv)
+    base = args.workers[0]
+    rates: dict[int, list[float]] = {w: [] for w in args.workers}
+    episodes: dict[int, list[float]] = {w: [] for w in args.workers}
+    ratios: dict[int, list[float]] = {w: [] for w in args.workers}
+    same = True
+    with tempfile.TemporaryDirectory(prefix="bench_es_workers.") as tmp:
+        for r in range(args.rounds):
+            k = r % len(args.workers)
+            order = args.workers[k:] + args.workers[:k]
+            got = {}
+            for w in order:
+                out = Path(tmp) / f"r{r}_w{w}"
+                s = run(args, w, out)
+                got[w] = s["generations"] / s["generation_s"]
+                rates[w].append(got[w])
+                episodes[w].append(s["episodes"] / s["generation_s"])
+                print(f"round {r}, {w} worker(s): {s['generations']} generations in {s['generation_s']:.2f} s "
+                      f"= {got[w]:.3f} generations/s", flush=True)
+            ref = weights(Path(tmp) / f"r{r}_w{base}")
+            for w in args.workers:
+                ratios[w].append(got[w] / got[base])
+                same &= all(np.array_equal(a, b) for a, b in zip(ref, weights(Path(tmp) / f"r{r}_w{w}"), strict=True))
+    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    print(f"\ntrain-es --robots {' '.join(map(str, args.robots))} --demo-policy none --generations {args.generations} "
+          f"--pairs {args.pairs} --seed {args.seed}; {args.rounds} rounds; {os.cpu_count()} CPUs; {load}")
+    print(f"{'workers':>7} | {'generations/s':>13} | {'member-episodes/s':>17} | {'ratio (median)':>14} | ratio range")
+    print("-" * 7 + "-+-" + "-" * 13 + "-+-" + "-" * 17 + "-+-" + "-" * 14 + "-+-" + "-" * 12)
+    for w in args.workers:
+        rr = ratios[w]
+        print(f"{w:>7} | {statistics.median(rates[w]):>13.3f} | {statistics.median(episodes[w]):>17.1f} | "
+              f"{statistics.median(rr):>14.2f} | {min(rr):.2f}-{max(rr):.2f}")
+    print(f"policy_last.npz weights equal across worker counts in every round: {'yes' if same else 'NO'}")
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
