@@ -57,11 +57,11 @@ from sim.config import ACTION_DIM, WorldConfig
 from .. import numfmt
 from ..errors import QuantizeError
 from ..numfmt import GATE_EXP, HIDDEN_EXP, INT8_MAX, INT8_MIN, MAX_SHIFT, QuantLayer, choose_exp
-from .base import (BudgetItem, BudgetSpec, CDefine, CDense, CTable, HiddenArch, RenderSpec,
+from .base import (BudgetItem, BudgetSpec, CDefine, CTable, HiddenArch, RenderSpec,
                    dense_summary, sensing_tables, sigmoid)
 from .dense import (check_range_options, input_exponent, is_gate_layer, output_layer,
                     quantize_dense, saturated_fraction, value_range)
-from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
+from .recurrent import (QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
                         SequenceCalibration, random_recurrent, recurrent_error_report)
 
 MAX_NX_SHIFT = 7  #: nx -> e_n is a multiply by 2^nx_shift of an int8 value (fits int16)
@@ -311,47 +311,35 @@ class GRUKind(RecurrentKind):
     template: ClassVar[str] = "actors/gru.c.j2"
     c_sources: ClassVar[tuple[str, ...]] = ("kf_gru.h",)
     policy_type: ClassVar[type[RecurrentPolicy]] = GRUPolicy
-
-    def quantize(self, policy: GRUPolicy, calib: SequenceCalibration, *, percentile: float = 100.0,
-                 headroom: float = 1.0, e_in: int | None = None) -> QuantizedGRU:
-        return quantize_gru(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
-
-    def error_report(self, policy: GRUPolicy, qp: QuantizedGRU, calib: SequenceCalibration) -> RecurrentErrorReport:
-        return gru_error_report(policy, qp, calib)
+    quantizer = staticmethod(quantize_gru)
+    reporter = staticmethod(gru_error_report)
+    sizes = staticmethod(gru_sizes)
+    c_layers = C_LAYERS
+    code_b = GRU_CODE_B
 
     def budget_spec(self, world: WorldConfig, arch: HiddenArch, e_in: int) -> BudgetSpec:
         D, H, T = world.tuple_dim, arch.hidden, numfmt.TABLE_SIZE
-        return BudgetSpec(
-            header=f"GRU actor: input {D}, {H} hidden units (int8 state), linear output {ACTION_DIM}",
-            layer_sizes=(D, H, ACTION_DIM), dense=tuple(gru_sizes(D, H)),
-            flash=(BudgetItem("flash", "gate tables", 3 * T, "sigmoid, 1 - sigmoid (uint8), tanh (int8)"),),
-            memory=(BudgetItem("sram", "hidden state + input", H + D, f"{H} + {D} int8"),),
-            scratch=(BudgetItem("sram", "gate buffers", 2 * 2 * H + H, f"{2 * H} int16 + {H} uint8"),),
-            code_b=GRU_CODE_B, code_note="GRU step", arch={"hidden": H})
+        return self.cell_budget(world, arch, "int8 state",
+                                BudgetItem("flash", "gate tables", 3 * T, "sigmoid, 1 - sigmoid (uint8), tanh (int8)"),
+                                BudgetItem("sram", "hidden state + input", H + D, f"{H} + {D} int8"),
+                                BudgetItem("sram", "gate buffers", 2 * 2 * H + H, f"{2 * H} int16 + {H} uint8"))
 
     def render_spec(self, qp: QuantizedGRU) -> RenderSpec:
         H, c = qp.hidden_size, qp.cell
-        if not 1 <= H <= MAX_HIDDEN:
-            raise QuantizeError(f"a GRU of {H} hidden units does not fit the firmware's uint8 loops (1..{MAX_HIDDEN})")
-        tables: list[CTable | CDense] = [
+        return self.cell_render(qp, [
             CTable("KF_GATE_R", "uint8_t", c.r_table,
                    f"r = sigmoid(a_r) at exponent {GATE_EXP}; index a_r + 128, a_r at exponent {c.r.e_out}"),
             CTable("KF_GATE_K", "uint8_t", c.k_table,
                    f"k = 1 - sigmoid(a_z) at exponent {GATE_EXP}; index a_z + 128, a_z at exponent {c.z.e_out}"),
             CTable("KF_TANH", "int8_t", c.n_table,
                    f"n = tanh(p) at exponent {HIDDEN_EXP}; index p + 128, p at exponent {c.e_n}"),
-        ]
-        for (name, what), layer in zip(C_LAYERS, qp.layers):
-            tables.append(CDense(f"KF_L{name}", f"KF_W_{name}", f"KF_B_{name}", f"KF_S_{name}", layer, what, name))
-        return RenderSpec(
-            memory=(CDefine("KF_HIDDEN", H, comment=f"GRU hidden units (int8 state at exponent {HIDDEN_EXP})"),),
-            scratch=(CDefine("KF_Y_LEN", 2 * H, "uint16_t", "scratch: two gate vectors (int16)"),
-                     CDefine("KF_GATE_EXP", GATE_EXP, comment="gates are uint8 at this exponent"),
-                     CDefine("KF_RN_SHIFT", c.rn_shift, comment=f"r * (W_hn h + b_hn): exponent {GATE_EXP} + e_nh "
-                                                                f"{c.nh.e_out} -> e_n {c.e_n}"),
-                     CDefine("KF_NX_SHIFT", c.nx_shift,
-                             comment=f"W_in x + b_in: exponent e_nx {c.nx.e_out} -> e_n {c.e_n} (left shift)")),
-            tables=tuple(tables))
+        ], f"int8 state at exponent {HIDDEN_EXP}", (
+            CDefine("KF_Y_LEN", 2 * H, "uint16_t", "scratch: two gate vectors (int16)"),
+            CDefine("KF_GATE_EXP", GATE_EXP, comment="gates are uint8 at this exponent"),
+            CDefine("KF_RN_SHIFT", c.rn_shift, comment=f"r * (W_hn h + b_hn): exponent {GATE_EXP} + e_nh "
+                                                       f"{c.nh.e_out} -> e_n {c.e_n}"),
+            CDefine("KF_NX_SHIFT", c.nx_shift, comment=f"W_in x + b_in: exponent e_nx {c.nx.e_out} -> e_n {c.e_n} "
+                                                       "(left shift)")))
 
 
 GRU = GRUKind()

@@ -56,13 +56,12 @@ import numpy as np
 from sim.config import ACTION_DIM, WorldConfig
 
 from .. import numfmt
-from ..errors import QuantizeError
 from ..numfmt import GATE_EXP, HIDDEN_EXP, INT8_MAX, INT8_MIN, QuantLayer, choose_exp
-from .base import (BudgetItem, BudgetSpec, CDefine, CDense, CTable, HiddenArch, RenderSpec,
+from .base import (BudgetItem, BudgetSpec, CDefine, CTable, HiddenArch, RenderSpec,
                    dense_summary, sensing_tables, sigmoid)
 from .dense import (check_range_options, input_exponent, is_gate_layer, output_layer,
                     quantize_dense, saturated_fraction, value_range)
-from .recurrent import (MAX_HIDDEN, QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
+from .recurrent import (QuantizedRecurrent, RecurrentErrorReport, RecurrentKind, RecurrentPolicy,
                         SequenceCalibration, random_recurrent, recurrent_error_report)
 
 GATES = ("i", "f", "g", "o")
@@ -293,29 +292,23 @@ class LSTMKind(RecurrentKind):
     template: ClassVar[str] = "actors/lstm.c.j2"
     c_sources: ClassVar[tuple[str, ...]] = ("kf_lstm.h",)
     policy_type: ClassVar[type[RecurrentPolicy]] = LSTMPolicy
-
-    def quantize(self, policy: LSTMPolicy, calib: SequenceCalibration, *, percentile: float = 100.0,
-                 headroom: float = 1.0, e_in: int | None = None) -> QuantizedLSTM:
-        return quantize_lstm(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
-
-    def error_report(self, policy: LSTMPolicy, qp: QuantizedLSTM, calib: SequenceCalibration) -> RecurrentErrorReport:
-        return lstm_error_report(policy, qp, calib)
+    quantizer = staticmethod(quantize_lstm)
+    reporter = staticmethod(lstm_error_report)
+    sizes = staticmethod(lstm_sizes)
+    c_layers = C_LAYERS
+    code_b = LSTM_CODE_B
 
     def budget_spec(self, world: WorldConfig, arch: HiddenArch, e_in: int) -> BudgetSpec:
         D, H, T = world.tuple_dim, arch.hidden, numfmt.TABLE_SIZE
-        return BudgetSpec(
-            header=f"LSTM actor: input {D}, {H} hidden units (int8 h, int32 c), linear output {ACTION_DIM}",
-            layer_sizes=(D, H, ACTION_DIM), dense=tuple(lstm_sizes(D, H)),
-            flash=(BudgetItem("flash", "gate tables", 5 * T, "3 sigmoid (uint8), 2 tanh (int8)"),),
-            memory=(BudgetItem("sram", "hidden + cell state + input", H + 4 * H + D, f"{H} int8 + {H} int32 + {D} int8"),),
-            scratch=(BudgetItem("sram", "gate buffers", 2 * H + 2 * H, f"{H} int16 + {H} uint8 + {H} int8"),),
-            code_b=LSTM_CODE_B, code_note="LSTM step", arch={"hidden": H})
+        return self.cell_budget(world, arch, "int8 h, int32 c",
+                                BudgetItem("flash", "gate tables", 5 * T, "3 sigmoid (uint8), 2 tanh (int8)"),
+                                BudgetItem("sram", "hidden + cell state + input", H + 4 * H + D,
+                                           f"{H} int8 + {H} int32 + {D} int8"),
+                                BudgetItem("sram", "gate buffers", 2 * H + 2 * H, f"{H} int16 + {H} uint8 + {H} int8"))
 
     def render_spec(self, qp: QuantizedLSTM) -> RenderSpec:
         H, c = qp.hidden_size, qp.cell
-        if not 1 <= H <= MAX_HIDDEN:
-            raise QuantizeError(f"an LSTM of {H} hidden units does not fit the firmware's uint8 loops (1..{MAX_HIDDEN})")
-        tables: list[CTable | CDense] = [
+        return self.cell_render(qp, [
             CTable("KF_GATE_I", "uint8_t", c.i_table,
                    f"i = sigmoid(a_i) at exponent {GATE_EXP}; index a_i + 128, a_i at exponent {c.i.e_out}"),
             CTable("KF_GATE_F", "uint8_t", c.f_table,
@@ -326,17 +319,11 @@ class LSTMKind(RecurrentKind):
                    f"o = sigmoid(a_o) at exponent {GATE_EXP}; index a_o + 128, a_o at exponent {c.o.e_out}"),
             CTable("KF_TANH_C", "int8_t", c.c_table,
                    f"tanh(c) at exponent {HIDDEN_EXP}; index p + 128, p = c at exponent {c.e_c}"),
-        ]
-        for (name, what), layer in zip(C_LAYERS, qp.layers):
-            tables.append(CDense(f"KF_L{name}", f"KF_W_{name}", f"KF_B_{name}", f"KF_S_{name}", layer, what, name))
-        return RenderSpec(
-            memory=(CDefine("KF_HIDDEN", H, comment=f"LSTM hidden units (int8 h at exponent {HIDDEN_EXP}, int32 c at "
-                                                    f"exponent {CELL_EXP})"),),
-            scratch=(CDefine("KF_Y_LEN", H, "uint16_t", "scratch: one gate vector (int16)"),
-                     CDefine("KF_GATE_EXP", GATE_EXP, comment="gates are uint8 at this exponent"),
-                     CDefine("KF_CELL_MAX", CELL_MAX, "int32_t", "|c| never exceeds this (kiloforge/actors/lstm.py)"),
-                     CDefine("KF_C_SHIFT", c.c_shift, comment=f"c at exponent {CELL_EXP} -> the tanh input at e_c {c.e_c}")),
-            tables=tuple(tables))
+        ], f"int8 h at exponent {HIDDEN_EXP}, int32 c at exponent {CELL_EXP}", (
+            CDefine("KF_Y_LEN", H, "uint16_t", "scratch: one gate vector (int16)"),
+            CDefine("KF_GATE_EXP", GATE_EXP, comment="gates are uint8 at this exponent"),
+            CDefine("KF_CELL_MAX", CELL_MAX, "int32_t", "|c| never exceeds this (kiloforge/actors/lstm.py)"),
+            CDefine("KF_C_SHIFT", c.c_shift, comment=f"c at exponent {CELL_EXP} -> the tanh input at e_c {c.e_c}")))
 
 
 LSTM = LSTMKind()

@@ -23,12 +23,13 @@ from sim.config import ACTION_DIM, WorldConfig
 from sim.motion import action_to_u8
 from sim.tasks.base import TaskRef
 
-from ..artifact import plain_provenance
-from ..errors import PolicyError
 from .. import numfmt
+from ..artifact import plain_provenance
+from ..errors import PolicyError, QuantizeError
 from ..numfmt import HIDDEN_EXP, QuantLayer
 from ..validate import show
-from .base import ActorKind, BudgetOption, FloatPolicy, HiddenArch, QuantizedActor, Resize, check_world_and_task, float_arrays, invalid
+from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CDense, CTable, FloatPolicy, HiddenArch,
+                   QuantizedActor, RenderSpec, Resize, check_world_and_task, float_arrays, invalid)
 from .dense import is_output_layer, saturated_fraction
 
 ARRAYS = ("w_ih", "w_hh", "b_ih", "b_hh", "w_out", "b_out")
@@ -289,9 +290,27 @@ def recurrent_error_report(kind: str, qp: QuantizedRecurrent, calib: SequenceCal
 
 
 class RecurrentKind(ActorKind):
-    """The answers a recurrent kind shares: its artifact, calibration, size flag and resize."""
+    """The answers a recurrent kind shares: its artifact, calibration, quantiser and error report, size flag and
+    resize."""
 
     policy_type: ClassVar[type[RecurrentPolicy]]
+    #: the kind's quantiser: (policy, calibration, *, percentile, headroom, e_in) -> its QuantizedRecurrent
+    quantizer: ClassVar[Callable[..., QuantizedRecurrent]]
+    #: the kind's error report: (policy, its QuantizedRecurrent, calibration) -> RecurrentErrorReport
+    reporter: ClassVar[Callable[..., RecurrentErrorReport]]
+    #: the kind's dense layers: (input width, hidden units) -> (n_out, n_in) of each, in firmware order
+    sizes: ClassVar[Callable[[int, int], list[tuple[int, int]]]]
+    #: (C name suffix, what the layer computes) of the dense layers in firmware order
+    c_layers: ClassVar[tuple[tuple[str, str], ...]]
+    code_b: ClassVar[int]  #: code of the cell's step beyond the dense calls (gate tables, state update); estimate
+
+    def quantize(self, policy: RecurrentPolicy, calib: SequenceCalibration, *, percentile: float = 100.0,
+                 headroom: float = 1.0, e_in: int | None = None) -> QuantizedRecurrent:
+        return self.quantizer(policy, calib, percentile=percentile, headroom=headroom, e_in=e_in)
+
+    def error_report(self, policy: RecurrentPolicy, qp: QuantizedRecurrent,
+                     calib: SequenceCalibration) -> RecurrentErrorReport:
+        return self.reporter(policy, qp, calib)
 
     @property
     def budget_usage(self) -> str:  # type: ignore[override]
@@ -339,10 +358,37 @@ class RecurrentKind(ActorKind):
         return HiddenArch(qp.hidden_size)  # type: ignore[attr-defined]
 
     def resizes(self, world: WorldConfig, arch: HiddenArch) -> list[Resize]:
+        return [Resize(arch=HiddenArch, found=lambda n: f"{self._a()} of <= {n} hidden units",
+                       none=f"no {self.name.upper()} size fits", cap=MAX_HIDDEN)]
+
+    def _a(self) -> str:
+        """"a GRU", "an LSTM"."""
         label = self.name.upper()
-        article = "an" if label[0] in "AEFHILMNORSX" else "a"
-        return [Resize(arch=HiddenArch, found=lambda n: f"{article} {label} of <= {n} hidden units",
-                       none=f"no {label} size fits", cap=MAX_HIDDEN)]
+        return f"{'an' if label[0] in 'AEFHILMNORSX' else 'a'} {label}"
+
+    def cell_budget(self, world: WorldConfig, arch: HiddenArch, state: str, gate_tables: BudgetItem, memory: BudgetItem,
+                    scratch: BudgetItem) -> BudgetSpec:
+        """The budget of a cell of ``arch.hidden`` units (``state``: how it keeps its state) with the kind's gate
+        tables, state and scratch buffers."""
+        D, H, label = world.tuple_dim, arch.hidden, self.name.upper()
+        return BudgetSpec(header=f"{label} actor: input {D}, {H} hidden units ({state}), linear output {ACTION_DIM}",
+                          layer_sizes=(D, H, ACTION_DIM), dense=tuple(self.sizes(D, H)), flash=(gate_tables,),
+                          memory=(memory,), scratch=(scratch,), code_b=self.code_b, code_note=f"{label} step",
+                          arch={"hidden": H})
+
+    def cell_render(self, qp: QuantizedRecurrent, gate_tables: list[CTable], state: str,
+                    scratch: tuple[CDefine, ...]) -> RenderSpec:
+        """What the C of a cell holds: its gate tables, its dense layers (:attr:`c_layers`), ``KF_HIDDEN``
+        (``state``: how the state is kept) and its scratch defines; a cell wider than the firmware's uint8 loops
+        is refused."""
+        H = qp.hidden_size
+        if not 1 <= H <= MAX_HIDDEN:
+            raise QuantizeError(f"{self._a()} of {H} hidden units does not fit the firmware's uint8 loops "
+                                f"(1..{MAX_HIDDEN})")
+        dense = [CDense(f"KF_L{name}", f"KF_W_{name}", f"KF_B_{name}", f"KF_S_{name}", layer, what, name)
+                 for (name, what), layer in zip(self.c_layers, qp.layers)]
+        return RenderSpec(memory=(CDefine("KF_HIDDEN", H, comment=f"{self.name.upper()} hidden units ({state})"),),
+                          scratch=scratch, tables=(*gate_tables, *dense))
 
     def budget_arch(self, values: Mapping[str, Any]) -> HiddenArch:
         return HiddenArch(int(values[self.name]))
