@@ -97,13 +97,17 @@ def run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]]
     ``held``: what its ``__main__`` module held back, :func:`kiloforge.interrupts.as_program`); a Ctrl-C before
     the command's entry point took over ends in one line (130)."""
     from .interrupts import as_program, exit_status
+    from .stdio import guarded_output
 
-    try:
-        with as_program(held) if program else nullcontext():
-            return _run_guarded(prog, load, argv)
-    except KeyboardInterrupt as e:  # run_entry_point handles every one from its start to the program's end
-        print(f"{prog}: error: interrupted before it started; nothing written", file=sys.stderr)
-        return exit_status(e)
+    def run() -> int:
+        try:
+            with as_program(held) if program else nullcontext():
+                return _run_guarded(prog, load, argv)
+        except KeyboardInterrupt as e:  # run_entry_point handles every one from its start to the program's end
+            print(f"{prog}: error: interrupted before it started; nothing written", file=sys.stderr)
+            return exit_status(e)
+
+    return guarded_output(prog, run)
 
 
 def _run_guarded(prog: str, load: Callable[[], Callable[[list[str] | None], int]], argv: Sequence[str] | None) -> int:
@@ -132,12 +136,16 @@ def main(argv: Sequence[str] | None = None, held: Sequence[int] = ()) -> int:
     """Entry point of the ``kiloforge`` command; returns the exit status (``held``: the signals
     ``python -m kiloforge`` held back while it loaded, a list its holders go on appending to)."""
     from .interrupts import exit_status
+    from .stdio import guarded_output
 
-    try:
-        return _main(argv, held)
-    except KeyboardInterrupt as e:  # before a command started (its entry point reports its own)
-        print("kiloforge: error: interrupted; nothing written", file=sys.stderr)
-        return exit_status(e)
+    def run() -> int:
+        try:
+            return _main(argv, held)
+        except KeyboardInterrupt as e:  # before a command started (its entry point reports its own)
+            print("kiloforge: error: interrupted; nothing written", file=sys.stderr)
+            return exit_status(e)
+
+    return guarded_output("kiloforge", run)
 
 
 def _main(argv: Sequence[str] | None, held: Sequence[int]) -> int:

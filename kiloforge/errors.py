@@ -39,6 +39,18 @@ def one_line(msg: object) -> str:
     return "; ".join(p for p in parts if p)
 
 
+def os_error_text(e: OSError, name: bool = True) -> str:
+    """An operating-system error in words, for one line: ``'<file>': <reason>`` (``name``: with the file).
+
+    >>> os_error_text(OSError(36, "File name too long", "x" * 300))[-30:]
+    "xxxxxx...': File name too long"
+    """
+    reason = printable(e.strerror or type(e).__name__)
+    if name and e.filename is not None:
+        return f"'{printable(e.filename, 120)}': {reason}"
+    return reason
+
+
 class KiloforgeError(Exception):
     """Base of every user-facing error; ``str(err)`` is one line."""
 

@@ -124,6 +124,7 @@ def _staged_output(out: Path, files: tuple[str, ...]):
 def run(a: argparse.Namespace) -> dict:
     """Run the command; returns the metrics.json content. Raises :class:`UserError` for user mistakes."""
     _check_args(a)
+    io.check_name_lengths(a.out, temp=False)  # before any work
     world, factory, desc, note = _load_policy(a)
     if note:
         print(note, file=sys.stderr)
@@ -166,7 +167,7 @@ def run(a: argparse.Namespace) -> dict:
                              title=f"{world.name}: {robots} robots, {a.episodes} episodes")
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
     print(compare({name: m}))
-    print(f"wrote {out}/: {' '.join(OUTPUT_FILES)}")
+    print(f"wrote {printable(out)}/: {' '.join(OUTPUT_FILES)}")
     return report
 
 
@@ -197,7 +198,7 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
         (staging / "robustness.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
         (staging / "robustness.md").write_text(md)
     print(table.format())
-    print(f"wrote {out}/: {' '.join(SUITE_FILES)}")
+    print(f"wrote {printable(out)}/: {' '.join(SUITE_FILES)}")
     return report
 
 

@@ -20,7 +20,7 @@ from typing import Any, Sequence
 
 from kiloforge.actors.base import QuantizedActor
 from kiloforge.cliparse import program
-from kiloforge.errors import OutputError
+from kiloforge.errors import OutputError, printable
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import parse_decimal, quote
 from sim.config import KILOBOT, run_steps
@@ -189,7 +189,7 @@ def run_export(argv: Sequence[str]) -> int:
                               options)
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
-    print(f"wrote {', '.join(map(str, contents))}")
+    print(f"wrote {', '.join(map(printable, contents))}")
     if not args.quiet:
         print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
     return EXIT_OK

@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 from typing import Sequence
 
+from kiloforge.errors import printable
 from kiloforge.policies import rehash_policy
 
 from .common import EXIT_OK, Parser
@@ -29,5 +30,5 @@ def run_rehash(argv: Sequence[str]) -> int:
     args = rehash_parser().parse_args(list(argv))
     policy, old = rehash_policy(args.policy, args.out)
     was = "had none" if old is None else ("unchanged" if old == policy.hash else f"was {old[:16]}...")
-    print(f"wrote {args.out or args.policy}: policy_hash {policy.hash} ({was})")
+    print(f"wrote {printable(args.out or args.policy)}: policy_hash {policy.hash} ({was})")
     return EXIT_OK
