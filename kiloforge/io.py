@@ -52,6 +52,7 @@ JOURNAL_FORMAT = "kiloforge-publish"
 STALE_LOCK_S = 60.0  #: a temporary whose lock is free is stale after this long (covers a reused pid)
 _TAG = re.compile(r"\.kf(\d+)-[0-9a-f]{8}\.(tmp|stage)")
 _PUBLISHED: list[Path] = []  #: every set published by this process, in order (see :func:`published_since`)
+_STAGES: dict[Path, Path] = {}  #: staging directory -> the directory its files are published into
 
 
 def published_since(mark: int) -> list[Path]:
@@ -64,11 +65,77 @@ def published_count() -> int:
     return len(_PUBLISHED)
 
 
+def shown(path: str | os.PathLike) -> str:
+    """``path`` for a message: escaped, and a file of a staging directory named where it will be published."""
+    path = Path(path)
+    return printable(_STAGES[path.parent] / path.name if path.parent in _STAGES else path)
+
+
 def _dir_of(path: Path) -> Path:
     return path.parent if str(path.parent) else Path(".")
 
 
+MAX_STEM = 60  #: characters of a file name made from free text (:func:`file_stem`)
+
+
+def file_stem(text: str) -> str:
+    """A file-name stem made from free text (a policy's label): letters, digits, ``-_.`` kept, anything else
+    ``_``; at most :data:`MAX_STEM` characters, a cut one ending in 8 hex digits of its text's sha256 (so
+    two long labels stay two names).
+
+    >>> file_stem("runs/a b$x")
+    'runs_a_b_x'
+    >>> len(file_stem("x" * 300))
+    60
+    """
+    stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in text)
+    if len(stem) <= MAX_STEM:
+        return stem
+    digest = hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return f"{stem[:MAX_STEM - 9]}-{digest}"
+
+
+def _limit(path: Path, name: str, default: int) -> int:
+    """``os.pathconf`` of the nearest existing directory of ``path`` (``default`` where it says nothing)."""
+    d = Path(os.path.abspath(path))
+    while True:
+        try:
+            value = os.pathconf(d, name)
+            return value if value and value > 0 else default
+        except (OSError, ValueError):
+            if d == d.parent:
+                return default
+            d = d.parent
+
+
+def check_name_lengths(path: str | os.PathLike, temp: bool = True) -> None:
+    """Raise :class:`OutputError` (one line, before any work) when the file system would refuse ``path``
+    as too long: a component over its longest name, the temporary written beside ``path`` first
+    (``temp``; :func:`_temp_name`, a few dozen bytes longer than the name), or the whole path over its
+    longest path. Names count in bytes as the file system sees them (``os.fsencode``)."""
+    path = Path(path)
+    name_max = _limit(path.parent, "PC_NAME_MAX", 255)
+    for part in path.parts:
+        n = len(os.fsencode(part))
+        if n > name_max:
+            raise OutputError(f"cannot write '{printable(path, 120)}': the name '{printable(part, 60)}' is {n} bytes, "
+                              f"more than the {name_max} this file system allows")
+    if temp and path.name:
+        n = len(os.fsencode(path.name))
+        temp = len(os.fsencode(_temp_name(path.name, "stage", path.suffix)))
+        if temp > name_max:
+            raise OutputError(f"cannot write '{printable(path, 120)}': its name is {n} bytes and the temporary "
+                              f"written beside it first {temp}, more than the {name_max} this file system allows; "
+                              f"choose a name of at most {name_max - (temp - n)} bytes")
+    path_max = _limit(path.parent, "PC_PATH_MAX", 4096)
+    full = len(os.fsencode(os.path.abspath(path))) + 64  # room for a temporary beside it or a file in it
+    if full > path_max:
+        raise OutputError(f"cannot write '{printable(path, 120)}': the path is {full - 64} bytes, too long for the "
+                          f"{path_max} this file system allows")
+
+
 def _check_dir(path: Path) -> None:
+    check_name_lengths(path)
     d = _dir_of(path)
     if not d.exists():
         raise OutputError(f"cannot write '{path}': directory '{d}' does not exist")
@@ -204,7 +271,7 @@ def _temp_beside(path: Path, suffix: str) -> Iterator[tuple[Path, int]]:
         except FileExistsError:
             continue
         except OSError as e:
-            raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+            raise OutputError(f"cannot write '{shown(path)}': {printable(e.strerror or e)}") from None
     else:  # pragma: no cover - 16 collisions of a random 32-bit token
         raise OutputError(f"cannot write '{path}': no free temporary name")
     try:
@@ -219,6 +286,7 @@ def through_links(path: Path) -> Path:
     """The file a one-file write to ``path`` replaces: ``path``, or, when it is a symbolic link, the file it
     leads to (through every link; it may not exist yet), so the link stays and its target is replaced
     atomically, as an editor saving through a link does. A loop of links is an OutputError."""
+    check_name_lengths(path)
     if not path.is_symlink():
         return path
     target = Path(os.path.realpath(path))
@@ -245,7 +313,7 @@ def write_atomic(path: str | os.PathLike, data: bytes | str, executable: bool = 
             os.chmod(tmp, new_file_mode(executable) if mode is None else mode)
             os.replace(tmp, path)
     except OSError as e:
-        raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+        raise OutputError(f"cannot write '{shown(path)}': {printable(e.strerror or e)}") from None
     return given
 
 
@@ -258,14 +326,19 @@ def atomic_path(path: str | os.PathLike, executable: bool = False, *, mode: int 
     _check_dir(path)
     recover(_dir_of(path), [path.name])
     with _temp_beside(path, path.suffix) as (tmp, _):
-        yield tmp
+        try:
+            yield tmp
+        except BrokenPipeError:  # standard output's reader went away: not this file's failure
+            raise
+        except OSError as e:  # the writer's (a full disk): one line naming the file, not the temporary
+            raise OutputError(f"cannot write '{shown(path)}': {printable(e.strerror or e)}") from None
         try:
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
             os.chmod(tmp, new_file_mode(executable) if mode is None else mode)
             os.replace(tmp, path)
         except OSError as e:
-            raise OutputError(f"cannot write '{path}': {printable(e.strerror or e)}") from None
+            raise OutputError(f"cannot write '{shown(path)}': {printable(e.strerror or e)}") from None
 
 
 # --- a set of files ------------------------------------------------------------------------------
@@ -354,6 +427,7 @@ def staged_files(directory: str | os.PathLike, names: Sequence[str] | None = Non
     ``names=None, record=R``: the set is whatever files the block wrote (in name order), ``R`` last
     (for writers whose file names depend on their options, such as an evaluation's plots)."""
     directory = Path(directory)
+    check_name_lengths(directory, temp=False)
     names = [record] if names is None and record is not None else list(names or ())
     if not names or len(set(names)) != len(names) or not all(_simple_name(n) for n in names):
         raise ValueError(f"staged_files needs distinct plain file names, got {names}")
@@ -376,9 +450,16 @@ def staged_files(directory: str | os.PathLike, names: Sequence[str] | None = Non
             lock = os.open(stage / "lock", os.O_RDWR | os.O_CREAT, 0o600)
         except OSError as e:
             raise OutputError(f"cannot write into '{directory}': {printable(e.strerror or e)}") from None
+        _STAGES[stage] = directory
         try:
             _lock(lock)
-            yield stage
+            try:
+                yield stage
+            except OSError as e:
+                if e.filename is None or not os.fspath(e.filename).startswith(os.fspath(stage)):
+                    raise
+                raise OutputError(f"cannot write into '{printable(directory)}': "
+                                  f"{printable(e.strerror or e)}") from None
             if record is not None:  # what the block wrote, the record last
                 wrote = sorted(p.name for p in stage.iterdir() if p.is_file() and p.name != "lock"
                                and not p.name.startswith("."))
@@ -390,6 +471,7 @@ def staged_files(directory: str | os.PathLike, names: Sequence[str] | None = Non
             except OSError as e:
                 raise OutputError(f"cannot write into '{directory}': {printable(e.strerror or e)}") from None
         finally:
+            _STAGES.pop(stage, None)
             os.close(lock)
             if stage.exists() and _read_journal(stage) is None:
                 shutil.rmtree(stage, ignore_errors=True)

@@ -79,12 +79,15 @@ def build_parser() -> ArgumentParser:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from export.shipped import load_task_policy
-    from kiloforge.io import staged_files
+    from kiloforge.errors import printable
+    from kiloforge.io import check_name_lengths, staged_files
     from kiloforge.policies import policy_labels
     from sim.tasks import get_task
 
     from .evaluate import evaluate_policies
 
+    if args.out is not None:
+        check_name_lengths(args.out, temp=False)  # before any work
     task = get_task(args.task)
     policies = {name: load_task_policy(path, task) for name, path in zip(policy_labels(args.policy), args.policy)}
     run = dict(seed=args.seed, n_envs=args.n_envs, baselines=not args.no_baselines, progress=not args.quiet, task=task)
@@ -95,18 +98,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     with staged_files(out, record="evaluation.json", create=True) as tmp:  # all files or none
         evaluate_policies(policies, args.robots, args.episodes, args.steps, tmp, gif=not args.no_gif, **run)
-    print(f"wrote {out}/evaluation.json and plots")
+    print(f"wrote {printable(out)}/evaluation.json and plots")
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    from kiloforge.errors import printable
+    from kiloforge.io import check_writable
+
     from .plots import plot_learning_curves
-    from .runfiles import ALGORITHM_NAMES, read_json, read_metrics
+    from .runfiles import ALGORITHM_NAMES, read_config, read_metrics
+
+    check_writable([args.out or "learning_curves.png"])  # before reading the runs
 
     groups: dict[str, list] = {}
     algorithms: list[str] = []
     for run in args.runs:
-        cfg = read_json(Path(run) / "config.json")
+        cfg = read_config(run)
         rows = read_metrics(run)
         sizes = cfg.get("n_robots", "?")
         sizes = "/".join(map(str, sizes)) if isinstance(sizes, list) else sizes
@@ -117,7 +125,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     out = Path(args.out or "learning_curves.png")
     title = args.title or f"{' / '.join(algorithms)} learning curves (mean ± 2 std over seeds)"
     plot_learning_curves(groups, out, title=title)
-    print(f"wrote {out}")
+    print(f"wrote {printable(out)}")
     return 0
 
 

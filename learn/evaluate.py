@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from kiloforge.io import write_atomic
+from kiloforge.io import file_stem, write_atomic
 from kiloforge.policies import swarm_policy
 from sim.ceiling import mean_capacity, open_capacity
 from sim.config import WorldConfig
@@ -180,11 +180,7 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
     if gif_of is not None:
         tr = runs[gif_of].trajectories
         animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
-                        out_dir / f"episode_{_slug(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots")
-
-
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+                        out_dir / f"episode_{file_stem(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots")
 
 
 def metrics_row(m: EpisodeMetrics) -> dict[str, float]:

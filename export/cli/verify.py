@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from kiloforge.cliparse import deprecated_noop
-from kiloforge.errors import OutputError
-from kiloforge.io import check_writable, write_files_atomic
+from kiloforge.errors import OutputError, printable
+from kiloforge.io import check_name_lengths, check_writable, write_files_atomic
 from kiloforge.validate import float_arg, seed_arg
 from sim.config import run_steps
 
@@ -115,6 +115,7 @@ def run_verify(argv: Sequence[str]) -> int:
     args = verify_parser().parse_args(list(argv))
     out: Path | None = args.out
     if out is not None:  # fail before the slow part
+        check_name_lengths(out, temp=False)
         if out.exists() and not out.is_dir():
             raise OutputError(f"--out must be a directory, '{out}' is a file")
         base = out.resolve()
@@ -164,5 +165,5 @@ def run_verify(argv: Sequence[str]) -> int:
         files = {out / COVERAGE_PNG: cov, out / RETURNS_PNG: box,
                  out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}  # the record last
         write_files_atomic(files, create=True)
-        print(f"wrote {', '.join(str(p) for p in files)}")
+        print(f"wrote {', '.join(printable(p) for p in files)}")
     return EXIT_OK if passed else EXIT_FAIL
