@@ -10,6 +10,7 @@ written atomically).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -50,11 +51,13 @@ def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path:
             continue
         for ax, (key, _) in zip(axes, panels):
             steps, vals = align_runs(runs, key)
-            mean = np.nanmean(vals, axis=0)
+            with warnings.catch_warnings():  # a column without numbers (all NaN) is drawn as nothing
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean = np.nanmean(vals, axis=0)
+                sd = np.nanstd(vals, axis=0, ddof=1) if vals.shape[0] > 1 else None
             n = vals.shape[0]
             ax.plot(steps, mean, color=f"C{g}", lw=1.5, label=f"{label} (n={n})" if n > 1 else label)
-            if n > 1:
-                sd = np.nanstd(vals, axis=0, ddof=1)
+            if sd is not None:
                 ax.fill_between(steps, mean - 2 * sd, mean + 2 * sd, color=f"C{g}", alpha=0.2, lw=0)
     for ax, (key, name) in zip(axes, panels):
         ax.set_xlabel("transitions (time steps)")

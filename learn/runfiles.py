@@ -1,33 +1,94 @@
 """Reading a run directory's files with the core dependencies only (no torch, no tyro): ``learn plot``
-runs where the learn extra is not installed."""
+runs where the learn extra is not installed.
+
+A run directory is input like any other file (it may come from someone else, or be damaged): every
+file is read through :mod:`kiloforge.validate` (a regular file, at most a size cap, never a FIFO or a
+device; strict JSON), ``config.json`` must be an object whose fields ``learn plot`` uses have their
+types, and ``metrics.csv`` must have a header with the columns plotted, rows as wide as the header
+and numbers of at most :data:`MAX_CSV_FIELD` characters. Every refusal is one line naming the file.
+"""
 from __future__ import annotations
 
 import csv
-import json
+import io
 import os
 from pathlib import Path
+from typing import Any
 
 from kiloforge.errors import InputError
+from kiloforge.validate import MIB, check_int, check_object, check_str, quote, read_json_file, read_regular_file
 
 #: how ``learn plot`` names each trainer's runs (the ``algorithm`` key of config.json)
 ALGORITHM_NAMES = {"magddpg": "MAGDDPG", "magrdpg": "MAGRDPG", "es": "ES"}
+MAX_METRICS_BYTES = 64 * MIB  #: metrics.csv (a row is about 200 bytes; a long run has thousands)
+MAX_CSV_FIELD = 64  #: characters of one metrics.csv field (the trainer writes numbers as %.6g)
+MAX_CSV_LINE = 64 * 1024  #: characters of one metrics.csv line (checked before the csv module parses it)
+PLOTTED_COLUMNS = ("env_steps", "eval_return", "eval_final_coverage")  #: what every trainer writes and plot reads
 
 
-def read_json(path: Path) -> dict:
-    """A JSON file as a dict; one-line InputError when it is missing or unreadable."""
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(f"'{path}' does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(f"cannot read '{path}': {e}") from None
+def read_json(path: str | os.PathLike, what: str = "run file") -> dict:
+    """A JSON object from a file (:func:`kiloforge.validate.read_json_file`); one-line InputError otherwise."""
+    return check_object(read_json_file(path, what), f"{what} {quote(path)}")
+
+
+def read_config(run_dir: str | os.PathLike) -> dict[str, Any]:
+    """A run's config.json, with the fields ``learn plot`` shows checked: ``exp_name`` and ``algorithm``
+    strings, ``t_prev`` an integer, ``n_robots`` an integer or a list of them (each may be absent)."""
+    path = Path(run_dir) / "config.json"
+    cfg = read_json(path, "run config")
+    where = f"run config {quote(path)}"
+    for key in ("exp_name", "algorithm"):
+        if key in cfg:
+            check_str(cfg[key], f"{where}: {key}", printable_only=False)
+    if "t_prev" in cfg:
+        check_int(cfg["t_prev"], f"{where}: t_prev", 0)
+    sizes = cfg.get("n_robots", 1)
+    for i, m in enumerate(sizes if isinstance(sizes, list) else [sizes]):
+        check_int(m, f"{where}: n_robots" + (f"[{i}]" if isinstance(sizes, list) else ""), 1)
+    return cfg
 
 
 def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """metrics.csv of a run directory as a list of float dicts."""
+    """metrics.csv of a run directory as a list of float dicts (empty fields are NaN)."""
     path = Path(run_dir) / "metrics.csv"
-    if not path.is_file():
-        raise InputError(f"'{run_dir}' has no metrics.csv; is it a training run directory?")
-    with open(path, newline="") as f:
-        return [{k: float(v) if v not in ("", None) else float("nan") for k, v in r.items()}
-                for r in csv.DictReader(f)]
+    if not os.path.lexists(path):
+        raise InputError(f"{quote(run_dir)} has no metrics.csv; is it a training run directory?")
+    name = f"metrics file {quote(path)}"
+    try:
+        text = read_regular_file(path, "metrics file", MAX_METRICS_BYTES).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{name} is not UTF-8 text (invalid byte at offset {e.start})") from None
+    lines = text.splitlines()
+    long = next((i for i, line in enumerate(lines) if len(line) > MAX_CSV_LINE), None)
+    if long is not None:
+        raise InputError(f"{name}: line {long + 1} has {len(lines[long]):,} characters, more than the "
+                         f"{MAX_CSV_LINE:,} allowed")
+    try:
+        table = list(csv.reader(io.StringIO(text)))
+    except csv.Error as e:
+        raise InputError(f"{name}: not valid CSV ({e})") from None
+    if not table:
+        raise InputError(f"{name} is empty; expected a header with {', '.join(PLOTTED_COLUMNS)}")
+    header = table[0]
+    missing = [c for c in PLOTTED_COLUMNS if c not in header]
+    if missing or len(set(header)) != len(header):
+        why = f"no column {', '.join(missing)}" if missing else "a column name appears twice"
+        raise InputError(f"{name}: its header has {why}")
+    rows = []
+    for n, row in enumerate(table[1:], start=2):
+        if len(row) != len(header):
+            raise InputError(f"{name}: line {n} has {len(row)} fields, the header {len(header)}")
+        rows.append({k: _number(v, name, n, k) for k, v in zip(header, row)})
+    return rows
+
+
+def _number(text: str, name: str, line: int, column: str) -> float:
+    if text == "":
+        return float("nan")
+    if len(text) > MAX_CSV_FIELD:
+        raise InputError(f"{name}: line {line} column {quote(column)} has {len(text):,} characters, more than "
+                         f"the {MAX_CSV_FIELD} of a number")
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"{name}: line {line} column {quote(column)} is {quote(text)}, not a number") from None
