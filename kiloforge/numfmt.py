@@ -88,13 +88,19 @@ def half_up_constant(shift: np.ndarray | int) -> np.ndarray:
     return np.where(s > 0, np.left_shift(np.int64(1), np.maximum(s - 1, 0)), 0)
 
 
+ROUND_LIMIT = 2.0 ** 62  #: |values| :func:`round_half_up` saturates at (every caller saturates or refuses far below)
+
+
 def round_half_up(x: np.ndarray | float) -> np.ndarray:
-    """Round to nearest integer, ties towards +inf (the format's rounding rule), as int64.
+    """Round to nearest integer, ties towards +inf (the format's rounding rule), as int64. A finite value
+    beyond ±2^62 (a huge weight times its scale) becomes ±2^62 instead of overflowing the cast.
 
     >>> round_half_up(np.array([-1.5, -0.5, 0.5, 1.5, 2.4])).tolist()
     [-1, 0, 1, 2, 2]
+    >>> round_half_up(np.array([1e30, -1e30])).tolist() == [2 ** 62, -2 ** 62]
+    True
     """
-    return np.floor(np.asarray(x, dtype=np.float64) + 0.5).astype(np.int64)
+    return np.clip(np.floor(np.asarray(x, dtype=np.float64) + 0.5), -ROUND_LIMIT, ROUND_LIMIT).astype(np.int64)
 
 
 def rshift_round(acc: np.ndarray, shift: np.ndarray | int) -> np.ndarray:

@@ -68,6 +68,12 @@ def dense_weights(name: str, W: np.ndarray, b: np.ndarray, e_in: int, e_out: int
     row_max = np.abs(W).max(axis=1)  # (n_out,)
     ew = np.array([choose_exp(float(m), lo=WEIGHT_EXP_LO, hi=MAX_SHIFT + e_out - e_in) for m in row_max],
                   dtype=np.int64)  # largest exponent keeping each row in int8 and the shift <= MAX_SHIFT
+    over = row_max * np.ldexp(1.0, ew) > INT8_MAX + 0.5  # not in int8 even at the coarsest weight scale
+    if over.any():
+        j = int(np.flatnonzero(over)[0])
+        raise QuantizeError(f"{name} row {j}: weights up to {row_max[j]:.4g} exceed the int8 format's range "
+                            f"(|w| <= {INT8_MAX} x 2^{-WEIGHT_EXP_LO} = {INT8_MAX * 2.0 ** -WEIGHT_EXP_LO:.4g}); the "
+                            f"policy has weights too large for the int8 format")
     if np.any(ew + e_in - e_out < 0):
         if not may_lower_e_out:
             j = int(np.argmin(ew))
