@@ -5,7 +5,8 @@ run's ``exp_name``, a ``--title``. Matplotlib would read ``$...$`` in it as math
 is an exception at draw time), and a file name that is not UTF-8 (``\\udcff`` from surrogateescape)
 cannot be drawn at all. :class:`SafeFigure` makes every text of the figure plain before it is drawn:
 escaped by :func:`kiloforge.errors.printable`, cut to :data:`MAX_LABEL` characters, never mathtext
-or TeX; characters missing from the font are drawn as boxes without a warning on stderr. Every
+or TeX; characters missing from the font are drawn as boxes and a label too long for the tight layout
+keeps the default margins, without a warning on stderr. Every
 figure is made by :func:`figure`; :func:`save_png` writes one atomically, :func:`png_bytes` returns
 its bytes.
 """
@@ -57,7 +58,8 @@ class SafeFigure(Figure):
 
     def tight_layout(self, *args: Any, **kwargs: Any) -> None:
         self.plain_texts()
-        with _no_glyph_warnings():
+        with _no_glyph_warnings():  # a label too long to fit: the figure keeps its default margins
+            warnings.filterwarnings("ignore", message="Tight layout not applied", category=UserWarning)
             super().tight_layout(*args, **kwargs)
 
     def draw(self, renderer: Any) -> None:
