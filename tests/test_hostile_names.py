@@ -17,7 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bad_inputs import KILOBOT, assert_one_clean_line, crafted, parts, small_policy
+from tests.bad_inputs import KILOBOT, assert_one_clean_line, crafted, parts, small_policy
 from kiloforge.actors.gru import random_gru_policy
 from kiloforge.cli import main as kf_main
 from kiloforge.plotting import figure, png_bytes
