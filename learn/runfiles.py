@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from kiloforge.errors import InputError
-from kiloforge.validate import MIB, check_int, check_object, check_str, quote, read_json_file, read_regular_file
+from kiloforge.validate import MIB, check_int, check_str, quote, read_json_file, read_regular_file, show
 
 #: how ``learn plot`` names each trainer's runs (the ``algorithm`` key of config.json)
 ALGORITHM_NAMES = {"magddpg": "MAGDDPG", "magrdpg": "MAGRDPG", "es": "ES"}
@@ -28,7 +28,10 @@ PLOTTED_COLUMNS = ("env_steps", "eval_return", "eval_final_coverage")  #: what e
 
 def read_json(path: str | os.PathLike, what: str = "run file") -> dict:
     """A JSON object from a file (:func:`kiloforge.validate.read_json_file`); one-line InputError otherwise."""
-    return check_object(read_json_file(path, what), f"{what} {quote(path)}")
+    doc = read_json_file(path, what)
+    if not isinstance(doc, dict):
+        raise InputError(f"{what} {quote(path)} must be a JSON object, got {show(doc)}")
+    return doc
 
 
 def read_config(run_dir: str | os.PathLike) -> dict[str, Any]:
