@@ -1,7 +1,7 @@
 """ES generations per second on 1 and on N Ray workers: paired, alternating runs of one config, the ratio.
 
-    python tests/bench/bench_es_workers.py                      # issue 45: 32 robots, 8 pairs, 4 generations, 1 vs 2
-    python tests/bench/bench_es_workers.py --workers 1 2 4 --rounds 3 --robots 16 32
+    python -m tests.bench.bench_es_workers                      # issue 45: 32 robots, 8 pairs, 4 generations, 1 vs 2
+    python -m tests.bench.bench_es_workers --workers 1 2 4 --rounds 3 --robots 16 32
 
 Each round runs ``python -m learn train-es --robots M --demo-policy none --generations G --pairs P --seed S
 --workers N`` once per worker count, the order rotating from round to round (so a change of load hits
