@@ -8,6 +8,7 @@ package index it skips locally and fails in CI.
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -20,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from tests.avr_tools import require_avr
+from export.verify import avr
 from kiloforge import __version__
 
 pytestmark = pytest.mark.wheel
@@ -144,3 +146,17 @@ def test_console_script_ignores_stray_modules(installed):
     cwd = _workdir(installed, "stray", stray=True)
     _export(installed, cwd, "--out", "kp.c", exe="kiloforge-export")
     _wrote(cwd, "kp.c")
+
+
+def test_hostile_inputs_outside_the_repository(installed):
+    """tests/hostile_cases.py run by the installed package in an empty directory: every case one line / exit 2, or (a
+    planted build runner) exit 0 without running it."""
+    cwd = _workdir(installed, "hostile")
+    script = cwd / "hostile_cases.py"
+    shutil.copy(ROOT / "tests" / "hostile_cases.py", script)
+    res = _run([installed.python, script], cwd=cwd, env=installed.env)
+    rows = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
+    bad = [r for r in rows if not r["ok"]]
+    assert res.returncode == 0 and len(rows) >= 8 and not bad, (bad or res.stdout + res.stderr)[-3000:]
+    if os.environ.get("CI") or avr.missing_tools(simulate=True) is None:
+        assert any(r["case"].startswith("planted runner") for r in rows), "the planted-runner case did not run"
