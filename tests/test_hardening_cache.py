@@ -241,3 +241,13 @@ def test_export_cli_explicit_cache_refused(tmp_path, how):
     assert res.returncode == 2, res.stderr
     assert CACHE_ENV in assert_one_clean_line(res.stderr)
     assert not (tmp_path / "k.c").exists()
+
+
+def test_default_cache_in_an_unwritable_temp_dir_is_one_line(tmp_path, monkeypatch):
+    """A temp directory where nothing can be created (default location and the fresh fallback both fail): one-line CacheError."""
+    monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.setattr(buildcache.tempfile, "tempdir", str(tmp_path / "missing" / "tmp"))
+    monkeypatch.setattr(buildcache, "_FRESH", [])
+    with pytest.raises(CacheError, match=CACHE_ENV) as e:
+        cached_program("kf_test", "k1", _builder(tmp_path / "m"))
+    assert "\n" not in str(e.value)

@@ -112,13 +112,17 @@ def cache_dir() -> Path:
             raise CacheError(f"the build cache {CACHE_ENV}={printable(d)} {why}; point {CACHE_ENV} at a "
                              f"private directory of yours (mode 700) or unset it")
         return d
-    d = default_location()
-    if _make_private(d, parents=False) is None:
-        return d
-    if not _FRESH or not_private(_FRESH[0]) is not None:
-        fresh = Path(tempfile.mkdtemp(prefix=f"kiloforge-{os.geteuid()}-"))
-        atexit.register(shutil.rmtree, fresh, ignore_errors=True)
-        _FRESH[:] = [fresh]
+    try:
+        d = default_location()
+        if _make_private(d, parents=False) is None:
+            return d
+        if not _FRESH or not_private(_FRESH[0]) is not None:
+            fresh = Path(tempfile.mkdtemp(prefix=f"kiloforge-{os.geteuid()}-"))
+            atexit.register(shutil.rmtree, fresh, ignore_errors=True)
+            _FRESH[:] = [fresh]
+    except OSError as e:  # no usable temp directory (gettempdir, mkdtemp)
+        raise CacheError(f"no private build cache can be made in the temp directory ({printable(e.strerror or e)}); "
+                         f"set {CACHE_ENV} to a private directory of yours") from None
     why = not_private(_FRESH[0])
     if why:  # pragma: no cover - mkdtemp makes a 0700 directory of ours
         raise CacheError(f"the build cache {printable(_FRESH[0])} {why}")
