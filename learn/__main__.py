@@ -103,9 +103,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from kiloforge.errors import printable
+    from kiloforge.errors import InputError, printable
     from kiloforge.io import check_writable
+    from sim.tasks import DEFAULT_TASK
 
+    from .evaluate import success_panel
     from .plots import plot_learning_curves
     from .runfiles import ALGORITHM_NAMES, read_config, read_metrics
 
@@ -113,8 +115,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     groups: dict[str, list] = {}
     algorithms: list[str] = []
+    tasks: set[str] = set()
     for run in args.runs:
         cfg = read_config(run)
+        tasks.add(str(cfg.get("task", DEFAULT_TASK)))
         rows = read_metrics(run)
         sizes = cfg.get("n_robots", "?")
         sizes = "/".join(map(str, sizes)) if isinstance(sizes, list) else sizes
@@ -124,7 +128,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
         algorithms += [name] if name not in algorithms else []
     out = Path(args.out or "learning_curves.png")
     title = args.title or f"{' / '.join(algorithms)} learning curves (mean ± 2 std over seeds)"
-    plot_learning_curves(groups, out, title=title)
+    if len(tasks) > 1:
+        raise InputError(f"the runs train different tasks ({', '.join(sorted(tasks))}); plot each task's runs apart")
+    plot_learning_curves(groups, out, title=title, success=success_panel(tasks.pop()))
     print(f"wrote {printable(out)}")
     return 0
 

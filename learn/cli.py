@@ -32,6 +32,7 @@ import tyro
 from kiloforge.cliparse import first_unknown_option, unknown_option, version_line
 
 from sim.config import PRESETS as WORLD_PRESETS
+from sim.tasks import DEFAULT_TASK
 
 from .config import FLAG_ALIASES, PRESETS, ConfigBase, ConfigError, ESConfig, RecurrentConfig, TrainConfig, flag_name
 from .runfiles import read_json
@@ -158,8 +159,10 @@ def parse_train_args(argv: list[str], cls: type[ConfigBase], prog: str, default_
     return cfg, out, args.resume, args.quiet
 
 
-def report_rl(res) -> None:
+def report_rl(res, cfg: ConfigBase) -> None:
     """What a MAGDDPG / MAGRDPG run prints when it ends."""
+    from .evaluate import row_summary
+
     c = res.counters
     best = max(c.rows, key=lambda r: r["eval_return"]) if c.rows else None
     print(f"  {c.env_steps} transitions, {c.updates} updates in {c.wall_s:.0f} s: "
@@ -167,19 +170,21 @@ def report_rl(res) -> None:
           f"{c.updates / c.update_s if c.update_s else float('nan'):.0f} updates/s while updating")
     if best:
         print(f"  best evaluation at {best['env_steps']:.0f} transitions: return {best['eval_return']:.1f}, "
-              f"final coverage {best['eval_final_coverage']:.3f}, time to find {best['eval_time_to_find']:.1f}")
+              f"{row_summary(best, cfg.task_spec())}")
 
 
-def report_es(res) -> None:
+def report_es(res, cfg: ConfigBase) -> None:
     """What an ES run prints when it ends."""
+    from .evaluate import success_panel
+
     c = res.counters
+    col, label = success_panel(cfg.task_spec())
     print(f"  {c.rows[-1]['generation'] if c.rows else 0:.0f} generations, {c.env_steps} env steps in {c.wall_s:.0f} s")
     if c.rows:
-        best = max(c.rows, key=lambda r: r["eval_final_coverage"])
-        sizes = "  ".join(f"{k[len('eval_final_coverage_m'):]} robots {v:.3f}" for k, v in best.items()
-                          if k.startswith("eval_final_coverage_m"))
-        print(f"  best evaluation at generation {best['generation']:.0f}: final coverage "
-              f"{best['eval_final_coverage']:.3f}{'  (' + sizes + ')' if sizes else ''}")
+        best = max(c.rows, key=lambda r: r[col])
+        sizes = "  ".join(f"{k[len(col + '_m'):]} robots {v:.3f}" for k, v in best.items() if k.startswith(col + "_m"))
+        print(f"  best evaluation at generation {best['generation']:.0f}: {label} "
+              f"{best[col]:.3f}{'  (' + sizes + ')' if sizes else ''}")
 
 
 def _rl_trainer():
@@ -242,13 +247,13 @@ def as_flags(msg: str, cls: type[ConfigBase]) -> str:
     return flag + sep + rest
 
 
-def _report(res: Any, report: Callable[[Any], None], prog: str, cfg: ConfigBase) -> None:
+def _report(res: Any, report: Callable[[Any, ConfigBase], None], prog: str, cfg: ConfigBase) -> None:
     """What a finished run prints: where it is, its numbers, its policies and, last, the export command of its
     result (:func:`learn.rundir.result_policy`)."""
     from .rundir import result_policy
 
     print(f"run: {res.run_dir}  ({res.stopped})")
-    report(res)
+    report(res, cfg)
     pols = [res.run_dir / n for n in ("policy_best.npz", "policy_last.npz", "policy_bc.npz")
             if (res.run_dir / n).is_file()]
     print(f"  policies: {', '.join(map(str, pols)) if pols else 'none (no evaluation ran)'}")
@@ -257,7 +262,8 @@ def _report(res: Any, report: Callable[[Any], None], prog: str, cfg: ConfigBase)
         result = result if result.is_file() else pols[0]
         exporter = "kiloforge export" if prog.startswith("kiloforge") else "python -m export"
         print(f"  result: {result}")
-        print(f"  next: {exporter} --policy {shlex.quote(str(result))} --out kilobot_policy.c   (the firmware C of "
+        task = "" if cfg.task == DEFAULT_TASK else f" --task {shlex.quote(cfg.task)}"
+        print(f"  next: {exporter}{task} --policy {shlex.quote(str(result))} --out kilobot_policy.c   (the firmware C of "
               f"the run's result)")
 
 

@@ -37,7 +37,7 @@ from .demos import bc_pretrain, collect_demos, demonstrator
 from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
 from .es_pool import child as _child
 from .es_pool import noise, worker_pool
-from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
+from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row, success_panel
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
 from .rundir import KEPT_DIR, Counters, RunResult, check_resumable, finite_or_none, git_hash, prepare_run_dir, \
@@ -98,7 +98,9 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
         init = init_policy_of(cfg, algo, world)
     ckpt = Checkpointer(run_dir)
     pop = PopulationMLP.of(algo.actor.net)
-    evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed, task=cfg.task_spec()) for M in cfg.n_robots]
+    task = cfg.task_spec()
+    evaluators = [Evaluator(eval_world, M, cfg.eval_episodes, eval_seed, task=task) for M in cfg.n_robots]
+    primary, primary_label = success_panel(task)
     weights = cfg.weights()
     c = Counters()
     result = RunResult(run_dir, c, "done")
@@ -134,13 +136,13 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
         if cfg.keep_evaluated:
             (run_dir / KEPT_DIR).mkdir(exist_ok=True)
             export(f"{KEPT_DIR}/gen_{gen:03d}.npz", row)
-        if row["eval_final_coverage"] > c.best_return:  # ES selects on final coverage, not return
-            c.best_return = row["eval_final_coverage"]
+        if row[primary] > c.best_return:  # ES selects on the task's primary metric (final success), not return
+            c.best_return = row[primary]
             export("policy_best.npz", row)
-        write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+        write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows, task))
         from .plots import plot_learning_curves
 
-        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png",
+        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png", success=(primary, primary_label),
                              title=f"ES, {'/'.join(map(str, cfg.n_robots))} robots, {algo.describe()} ({cfg.world} world)")
         return row
 
@@ -222,7 +224,7 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
                     t1 = time.perf_counter()
                     row = log_row(evaluate(), fitness["mean"])
                     c.eval_s += time.perf_counter() - t1
-                    msg = f"generation {gen}: final coverage {row['eval_final_coverage']:.3f} (fitness {fitness['mean']:.3f})"
+                    msg = f"generation {gen}: {primary_label} {row[primary]:.3f} (fitness {fitness['mean']:.3f})"
                     if bar is not None:
                         bar.write(msg)
                     else:

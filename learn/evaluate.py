@@ -40,21 +40,22 @@ class Evaluator:
 
         assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
         self.world, self.n_robots, self.episodes, self.seed = world, n_robots, episodes, seed
+        self.task = get_task(task)
         # the largest batch that divides the episodes, so no env is simulated for nothing
         b = min(episodes, MAX_EVAL_ENVS)
         while episodes % b:
             b -= 1
-        self.env = make_env(world, b, n_robots, seed, randomise, task)
+        self.env = make_env(world, b, n_robots, seed, randomise, self.task)
 
     def __call__(self, policy) -> EpisodeMetrics:
-        """Metrics of ``policy`` (a :class:`sim.rollout.SwarmPolicy`, e.g. :class:`LearnerPolicy`)."""
+        """Metrics of ``policy`` (a :class:`sim.rollout.SwarmPolicy`, e.g. :class:`LearnerPolicy`), the task's kind."""
         return rollout(self.env, policy, self.episodes, seed=self.seed).metrics()
 
 
 def evaluate_sizes(evaluators: list["Evaluator"], policy) -> tuple[dict[str, float], dict[str, float]]:
     """Each evaluator (one swarm size) on a fresh ``policy()``: (mean of every metric over the sizes,
     every size's metrics as ``<metric>_m<M>`` columns — empty with a single size)."""
-    per_size = {ev.n_robots: metrics_row(ev(policy())) for ev in evaluators}
+    per_size = {ev.n_robots: metrics_row(ev(policy()), ev.task) for ev in evaluators}
     keys = next(iter(per_size.values())).keys()
     mean = {k: float(np.mean([m[k] for m in per_size.values()])) for k in keys}
     cols = {f"{k}_m{M}": v for M, m in per_size.items() for k, v in m.items()} if len(per_size) > 1 else {}
@@ -183,10 +184,27 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
                         out_dir / f"episode_{file_stem(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots")
 
 
-def metrics_row(m: EpisodeMetrics) -> dict[str, float]:
-    """The evaluation columns of the trainer's metrics CSV."""
+def metrics_row(m: EpisodeMetrics, task: "Task | str | None" = None) -> dict[str, float]:
+    """The evaluation columns of the trainer's metrics CSV: return (mean, std), then ``eval_<key>`` for each
+    of the task's evaluation metrics (localisation: final_coverage, mean_coverage, time_to_find, found_rate)."""
     s = m.summary()
     return {"eval_return": s["return"].mean, "eval_return_std": s["return"].std,
-            "eval_final_coverage": s["final_coverage"].mean, "eval_mean_coverage": s["mean_coverage"].mean,
-            "eval_time_to_find": s["time_to_find"].mean, "eval_found_rate": s["found_rate"].mean}
+            **{f"eval_{k}": s[k].mean for k in get_task(task).eval_keys}}
+
+
+def row_summary(row: dict, task: "Task | str | None" = None) -> str:
+    """The task's evaluation metrics of a metrics row as text: ``final cov 0.912, mean cov 0.701, ...``."""
+    t = get_task(task)
+    return ", ".join(f"{t.metric(k).label} {row[f'eval_{k}']:.3f}" for k in t.eval_keys)
+
+
+def primary_column(task: "Task | str | None" = None) -> str:
+    """The CSV column a trainer selects its best policy on: ``eval_<the task's primary metric>``."""
+    return f"eval_{get_task(task).primary_metric}"
+
+
+def success_panel(task: "Task | str | None" = None) -> tuple[str, str]:
+    """(CSV column, name) of the task's primary metric, for :func:`learn.plots.plot_learning_curves`."""
+    t = get_task(task)
+    return primary_column(t), t.metric(t.primary_metric).long
 

@@ -34,14 +34,16 @@ def align_runs(runs: list[list[dict]], key: str) -> tuple[np.ndarray, np.ndarray
 
 
 def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path: str | os.PathLike,
-                         title: str | None = None) -> Path:
+                         title: str | None = None, success: tuple[str, str] = ("eval_final_coverage", "final coverage")
+                         ) -> Path:
     """Learning curves to PNG. ``groups`` maps a label to one run's metric rows or to several runs'.
 
-    Several runs under one label are drawn as their mean with a ±2 std band (over runs).
+    Several runs under one label are drawn as their mean with a ±2 std band (over runs). Panels: the
+    evaluation return and ``success`` (the CSV column and name of the task's primary metric).
     """
     assert groups, "plot_learning_curves needs at least one run"
     fig = figure(9.0, 3.6)
-    panels = (("eval_return", "evaluation return"), ("eval_final_coverage", "final coverage"))
+    panels = (("eval_return", "evaluation return"), success)
     axes = [fig.add_subplot(1, 2, k + 1) for k in range(2)]
     for g, (label, runs) in enumerate(groups.items()):
         if runs and isinstance(runs[0], dict):

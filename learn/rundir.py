@@ -29,13 +29,22 @@ from typing import Callable
 
 from kiloforge.io import write_atomic
 from sim import compiled
+from sim.tasks import Task, get_task
 
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, flag_name
 
-METRIC_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std",
-                  "eval_final_coverage", "eval_mean_coverage", "eval_time_to_find", "eval_found_rate",
-                  "train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
+_COUNTER_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std")
+_TRAIN_COLUMNS = ("train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
+
+
+def metric_columns(task: "Task | str | None" = None) -> tuple[str, ...]:
+    """metrics.csv's leading columns: counters, evaluation return, ``eval_<key>`` of the task's evaluation
+    metrics (:attr:`sim.tasks.Task.eval_keys`), training statistics."""
+    return _COUNTER_COLUMNS + tuple(f"eval_{k}" for k in get_task(task).eval_keys) + _TRAIN_COLUMNS
+
+
+METRIC_COLUMNS = metric_columns()  #: localisation's
 #: files a run writes (removed when a run without a checkpoint restarts from scratch)
 RUN_FILES = ("config.json", "world.json", "metrics.csv", "learning_curve.png", "checkpoint.pt", "policy_best.npz",
              "policy_last.npz", "policy_bc.npz", "demos.json", "summary.json")
@@ -153,11 +162,13 @@ def check_resumable(saved: dict, cfg: ExperimentConfig) -> None:
                           f"{', '.join(flag_name(k) for k in RESUME_MAY_CHANGE if k in now)} may change")
 
 
-def rows_to_csv(rows: list[dict]) -> str:
-    """CSV of metric rows: METRIC_COLUMNS, then any extra columns (e.g. bc_pass) in first-seen order."""
+def rows_to_csv(rows: list[dict], task: "Task | str | None" = None) -> str:
+    """CSV of metric rows: :func:`metric_columns` of the task, then any extra columns (e.g. bc_pass) in
+    first-seen order."""
     buf = io.StringIO()
-    extra = list(dict.fromkeys(k for r in rows for k in r if k not in METRIC_COLUMNS))
-    w = csv.DictWriter(buf, fieldnames=list(METRIC_COLUMNS) + extra, lineterminator="\n")
+    columns = metric_columns(task)
+    extra = list(dict.fromkeys(k for r in rows for k in r if k not in columns))
+    w = csv.DictWriter(buf, fieldnames=list(columns) + extra, lineterminator="\n")
     w.writeheader()
     for r in rows:
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})

@@ -35,12 +35,12 @@ def read_json(path: str | os.PathLike, what: str = "run file") -> dict:
 
 
 def read_config(run_dir: str | os.PathLike) -> dict[str, Any]:
-    """A run's config.json, with the fields ``learn plot`` shows checked: ``exp_name`` and ``algorithm``
+    """A run's config.json, with the fields ``learn plot`` shows checked: ``exp_name``, ``algorithm`` and ``task``
     strings, ``t_prev`` an integer, ``n_robots`` an integer or a list of them (each may be absent)."""
     path = Path(run_dir) / "config.json"
     cfg = read_json(path, "run config")
     where = f"run config {quote(path)}"
-    for key in ("exp_name", "algorithm"):
+    for key in ("exp_name", "algorithm", "task"):
         if key in cfg:
             check_str(cfg[key], f"{where}: {key}", printable_only=False)
     if "t_prev" in cfg:

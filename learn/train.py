@@ -41,7 +41,7 @@ from kiloforge.io import write_atomic
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, RecurrentConfig, TrainConfig
 from .demos import bc_pretrain, collect_demos, demonstrator
-from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row
+from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row, row_summary, success_panel
 from .groups import EnvGroup, size_shares
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
@@ -306,13 +306,13 @@ def evaluate_and_log(cfg, algo, evaluators, c: Counters, train_returns, losses, 
     if row["eval_return"] > c.best_return:
         c.best_return = row["eval_return"]
         export("policy_best.npz", row)
-    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows))
+    write_atomic(run_dir / "metrics.csv", rows_to_csv(c.rows, cfg.task_spec()))
     if tb is not None:
         tb.row(row)
     if plot:
-        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png", title=curve_title(cfg, algo))
-    msg = (f"return {row['eval_return']:.1f}  final cov {row['eval_final_coverage']:.2f}  "
-           f"find {row['eval_time_to_find']:.0f}")
+        plot_learning_curves({run_dir.name: c.rows}, run_dir / "learning_curve.png", title=curve_title(cfg, algo),
+                             success=success_panel(cfg.task_spec()))
+    msg = f"return {row['eval_return']:.1f}  {row_summary(row, cfg.task_spec())}"
     if bar is not None:
         bar.set_postfix_str(f"{msg}  upd/s {row['updates_per_s']:.0f}", refresh=True)
     else:

@@ -150,7 +150,8 @@ class SwarmEnv:
     """B synchronised envs of M searchers and a target (see the module doc for one step).
 
     Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
-    beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``),
+    beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``; None when the task
+    has no beacon: then nothing but the robots transmits or collides),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
     ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
     own world parameters at every reset from its init stream (``world_draw`` holds them).
@@ -206,7 +207,7 @@ class SwarmEnv:
     @property
     def _pushable(self) -> bool:
         """True when collisions can move the beacon (so the radio needs its position per tick)."""
-        return self._collider is not None and bool(np.any(np.asarray(self._mobility) > 0))
+        return self._collider is not None and self.target is not None and bool(np.any(np.asarray(self._mobility) > 0))
 
     @property
     def tick_level_radio(self) -> bool:
@@ -234,7 +235,7 @@ class SwarmEnv:
         if self.spawn_box() <= 0:
             raise ValueError(f"no room to spawn: arena_half_mm {cfg.arena_half_mm} <= spawn margin / robot radius")
         if cfg.collisions and cfg.robot_radius_mm > 0:
-            discs = self.n_robots + self.task.extra_discs
+            discs = self.n_robots + int(self.task.beacon)
             frac = discs * math.pi * cfg.robot_radius_mm ** 2 / (2 * self.spawn_box()) ** 2
             if frac > MAX_PACKING:
                 side = math.sqrt(discs * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
@@ -249,15 +250,15 @@ class SwarmEnv:
             self._separate_spawn(pos, target, self.spawn_box())
         return target, pos, heading
 
-    def _separate_spawn(self, pos: np.ndarray, target: np.ndarray, h: float) -> None:
+    def _separate_spawn(self, pos: np.ndarray, target: np.ndarray | None, h: float) -> None:
         """Rejection: redraw (in index order, from the env's init stream) each robot that overlaps
-        an earlier robot or the target, until no disc overlaps (vectorised overlap test)."""
+        an earlier robot or the target (if any), until no disc overlaps (vectorised overlap test)."""
         from . import grid
 
         B, M = self.n_envs, self.n_robots
         diam = 2.0 * self.cfg.robot_radius_mm
         for _ in range(10_000):
-            allpos = np.concatenate([pos, target[:, None, :]], axis=1)  # (B, M + 1, 2)
+            allpos = pos if target is None else np.concatenate([pos, target[:, None, :]], axis=1)  # (B, M [+ 1], 2)
             p = grid.pairs_within(allpos, diam, self.cfg.arena_half_mm)
             p_bad = p.dist < diam  # touching exactly is allowed
             if not p_bad.any():
@@ -289,7 +290,7 @@ class SwarmEnv:
             self.phase = draw_phases(self._rng_radio, M, self.cfg, w.msg_period)
         P = self.cfg.period_ticks
         still = np.broadcast_to(self.pos, (P, B, M, 2)) if self.tick_level_radio else None  # no movement
-        self.target_dist = target_distance(self.pos, self.target)
+        self.target_dist = self._target_distance()
         obs, info = self._sense(self._hear(still, self.target_dist))
         self._check_success(info)
         self._started = True
@@ -354,7 +355,7 @@ class SwarmEnv:
                 self._collider.resolve(self.pos, self.target, beacon_mobility=self._mobility)
             if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
                 record = np.broadcast_to(self.pos, (P, B, M, 2))
-        self.target_dist = target_distance(self.pos, self.target)  # (B, M) true distance after the move
+        self.target_dist = self._target_distance()
         obs, info = self._sense(self._hear(record, self.target_dist, beacon))
         reward = self.task.reward(self, u, info)
         self.t += 1
@@ -362,6 +363,10 @@ class SwarmEnv:
         truncated = np.full(B, self.t >= cfg.episode_steps)
         terminated = np.zeros(B, bool)
         return obs, reward, terminated, truncated, info
+
+    def _target_distance(self) -> np.ndarray | None:
+        """(B, M) true robot–beacon distances after the move (None without a beacon)."""
+        return None if self.target is None else target_distance(self.pos, self.target)
 
     def _check_success(self, info: StepInfo) -> None:
         """A task's success signal must be (B,) values in [0, 1] (checked at every reset)."""

@@ -1,6 +1,7 @@
-"""Task metrics of the cooperative-localisation task, besides the reward.
+"""Episode metrics: any task's (:class:`SuccessMetrics`, from its per-step success) and the
+cooperative-localisation task's (:class:`EpisodeMetrics`), besides the reward.
 
-Per episode (arrays over E episodes of T steps):
+Localisation, per episode (arrays over E episodes of T steps):
 
 * coverage curve: fraction of robots within the communication radius of the target after each step;
 * time to find: the first step t (1..T) after which at least one robot is within range;
@@ -167,8 +168,41 @@ _COLUMNS = (("final_coverage", "final cov"), ("of_ceiling", "of ceiling"), ("mea
             ("time_to_find", "steps to find"), ("found_rate", "found"), ("return", "return"))
 
 
-def compare(table: dict[str, EpisodeMetrics]) -> str:
-    """A text table, one row per named policy: mean ± 95 % CI of each metric.
+@dataclass
+class SuccessMetrics(EpisodeSteps):
+    """Per-episode metrics of a task from its success curve: the final value (mean over the last 25 %),
+    the mean over the episode and the return, under the task's keys (``final_key``, ``mean_key``)."""
+
+    coverage: np.ndarray  # (E, T) the task's success after each step (named as EpisodeMetrics' for the plots)
+    returns: np.ndarray  # (E,) sum of team rewards
+    final: np.ndarray  # (E,) mean success over the last 25 %
+    final_key: str = "final_success"
+    mean_key: str = "mean_success"
+    ceiling: np.ndarray | None = None  # no upper bound known
+
+    def summary(self) -> dict[str, Summary]:
+        return {self.final_key: summarise(self.final), self.mean_key: summarise(self.coverage.mean(axis=1)),
+                "return": summarise(self.returns)}
+
+    def to_dict(self, per_episode: bool = True) -> dict:
+        d: dict = {"episodes": self.episodes, "steps": self.steps,
+                   "summary": {k: v.to_dict() for k, v in self.summary().items()}}
+        if per_episode:
+            d["per_episode"] = {self.final_key: self.final.tolist(), "return": self.returns.tolist()}
+        return d
+
+
+def success_metrics(rewards: np.ndarray, success: np.ndarray, final_key: str, mean_key: str) -> SuccessMetrics:
+    """:class:`SuccessMetrics` from per-step team rewards (E, T) and success (E, T)."""
+    r = np.asarray(rewards, np.float64)
+    c = np.asarray(success, np.float64)
+    assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and success {c.shape} must both be (E, T)"
+    return SuccessMetrics(c, r.sum(axis=1), final_coverage(c), final_key, mean_key)
+
+
+def compare(table: dict, columns: tuple[tuple[str, str], ...] | None = None) -> str:
+    """A text table, one row per named policy: mean ± 95 % CI of each metric (``columns``: (key, label)
+    pairs, default localisation's; a task's are ``[(m.key, m.label) for m in task.metrics]``).
 
     >>> m = episode_metrics(np.zeros((2, 4)), np.array([[0, 0.5, 1, 1], [0, 0, 0, 0.5]]))
     >>> print(compare({"demo": m}))  # doctest: +NORMALIZE_WHITESPACE
@@ -177,7 +211,7 @@ def compare(table: dict[str, EpisodeMetrics]) -> str:
     """
     assert table, "compare needs at least one entry"
     sums = {name: m.summary() for name, m in table.items()}
-    cols = [(key, label) for key, label in _COLUMNS if any(key in s for s in sums.values())]
+    cols = [(key, label) for key, label in (columns or _COLUMNS) if any(key in s for s in sums.values())]
     header = ["policy"] + [label for _, label in cols] + ["episodes"]
     rows = []
     for name, m in table.items():

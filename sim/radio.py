@@ -146,17 +146,21 @@ def target_distance(pos: np.ndarray, target: np.ndarray) -> np.ndarray:
 PAIR_DTYPE = np.float64
 
 
-def thesis_radio(pos: np.ndarray, target: np.ndarray, flags: np.ndarray, cfg: WorldConfig,
+def thesis_radio(pos: np.ndarray, target: np.ndarray | None, flags: np.ndarray, cfg: WorldConfig,
                  rngs: Sequence[np.random.Generator], target_dist: np.ndarray | None = None,
                  method: str = "auto") -> RadioPeriod:
-    """Thesis-mode messages for one period. pos (B, M, 2), target (B, 2), flags (B, M) uint8."""
+    """Thesis-mode messages for one period. pos (B, M, 2), target (B, 2) or None (no beacon), flags (B, M) uint8."""
     B, M, _ = pos.shape
     R = cfg.comm_radius_mm
     pr = grid.pairs_within(pos, R, cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)  # (env, rx, snd)
     s_env, s_rx, s_snd, s_true, s_uidx = pr.env, pr.i, pr.j, pr.dist, pr.uidx
-    dt = target_distance(pos, target) if target_dist is None else target_dist  # (B, M)
-    t_env, t_rx = np.nonzero(dt <= R)  # sorted (env, rx)
-    t_true = dt[t_env, t_rx]
+    if target is None:
+        t_env = t_rx = np.zeros(0, np.int64)
+        t_true = np.zeros(0)
+    else:
+        dt = target_distance(pos, target) if target_dist is None else target_dist  # (B, M)
+        t_env, t_rx = np.nonzero(dt <= R)  # sorted (env, rx)
+        t_true = dt[t_env, t_rx]
     loss, noise = cfg.msg_loss > 0, cfg.dist_noise_mm > 0
     zs = zt = None
     if loss or noise:
@@ -196,22 +200,23 @@ def draw_phases(rngs: Sequence[np.random.Generator], n_robots: int, cfg: WorldCo
     return np.stack([rng.integers(0, T) for rng, T in zip(rngs, periods)]).astype(np.int64)
 
 
-def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, tick0: int,
+def tick_radio(pos_ticks: np.ndarray, target: np.ndarray | None, phases: np.ndarray, tick0: int,
                flags: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
                method: str = "auto", *, target_ticks: np.ndarray | None = None,
                msg_period: np.ndarray | None = None, msg_loss: np.ndarray | None = None,
                dist_noise_mm: np.ndarray | None = None) -> RadioPeriod:
     """Tick-level messages of the period covering global ticks ``tick0 .. tick0 + P - 1``.
 
-    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) the beacon, or
-    its positions after each tick ``target_ticks`` (P, B, 2) when it moves; phases (B, M + 1);
+    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) the beacon (None: no
+    beacon), or its positions after each tick ``target_ticks`` (P, B, 2) when it moves; phases (B, M + 1)
+    (column M, the beacon's, is drawn without a beacon too, so the streams do not depend on the task);
     flags (B, M) uint8 senders' flags. Per-env or per-transmitter variations (None = ``cfg``'s):
     ``msg_period`` (B, M + 1) ticks between sends, ``msg_loss`` (B,), ``dist_noise_mm`` (B,).
     """
     P, B, M, _ = pos_ticks.shape
     R = cfg.comm_radius_mm
     periods = np.full((B, M + 1), cfg.msg_period_ticks, np.int64) if msg_period is None else msg_period
-    if compiled.available() and M + 1 <= compiled.RADIO_MAX_N:  # the same messages, compiled (bit-identical)
+    if target is not None and compiled.available() and M + 1 <= compiled.RADIO_MAX_N:  # the same, compiled (bit-identical)
         e, rx, snd, k, d, single = compiled.radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R)
     else:
         e, rx, snd, k, d, single = _messages(pos_ticks, target, target_ticks, phases, tick0, periods, R, cfg, method)
@@ -231,20 +236,22 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray, phases: np.ndarray, ti
                        e.take(t), rx.take(t), k.take(t), dm.take(t), single=single)
 
 
-def _messages(pos_ticks: np.ndarray, target: np.ndarray, target_ticks: np.ndarray | None, phases: np.ndarray,
+def _messages(pos_ticks: np.ndarray, target: np.ndarray | None, target_ticks: np.ndarray | None, phases: np.ndarray,
               tick0: int, periods: np.ndarray, R: float, cfg: WorldConfig, method: str
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
     """The period's messages in range, before loss and noise: (env, rx, snd, tick, true distance) in
     (env, receiver, sender, tick) order, and whether no candidate sender sends more than once."""
     P, B, M, _ = pos_ticks.shape
-    Z = np.empty((P, B, M + 1), np.complex128)  # robots and (column M) the beacon, after each tick
+    N = M + (target is not None)
+    Z = np.empty((P, B, N), np.complex128)  # robots and (column M) the beacon, if any, after each tick
     Z.real[..., :M], Z.imag[..., :M] = pos_ticks[..., 0], pos_ticks[..., 1]
-    tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
-    Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
+    if target is not None:
+        tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
+        Z.real[..., M], Z.imag[..., M] = tt[..., 0], tt[..., 1]
     final = Z[-1]
-    reach = np.abs(Z - final).max(axis=0)  # (B, M + 1) farthest each transmitter was from its end
+    reach = np.abs(Z - final).max(axis=0)  # (B, N) farthest each transmitter was from its end
     # a pair within R at some tick is within R + reach_i + reach_j at the end
-    cand = grid.pairs_within(final.view(np.float64).reshape(B, M + 1, 2), R + 2.0 * float(reach.max()) + 1e-3,
+    cand = grid.pairs_within(final.view(np.float64).reshape(B, N, 2), R + 2.0 * float(reach.max()) + 1e-3,
                              cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)
     ri, rj = reach[cand.env, cand.i], reach[cand.env, cand.j]
     m = np.flatnonzero((cand.i < M) & (cand.dist <= R + ri + rj + 1e-3))  # the target only sends
@@ -261,7 +268,7 @@ def _messages(pos_ticks: np.ndarray, target: np.ndarray, target_ticks: np.ndarra
     rounds = np.arange(tot, dtype=np.int64) - np.repeat(first, nsend)
     k = k0 + periods[e, snd] * rounds  # (tot,) send tick
     mv = moved.nonzero()[0]  # messages between transmitters that moved: distance at the send tick
-    base = (k.take(mv) * B + e.take(mv)) * (M + 1)
+    base = (k.take(mv) * B + e.take(mv)) * N
     d[mv] = np.abs(Z.reshape(-1).take(base + rx.take(mv)) - Z.reshape(-1).take(base + snd.take(mv)))
     h = np.flatnonzero(d <= R)  # in range at the send tick; (receiver, sender, tick) order
     return e.take(h), rx.take(h), snd.take(h), k.take(h), d.take(h), bool(nsend.max(initial=0) <= 1)

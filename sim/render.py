@@ -7,7 +7,8 @@
   robots and the beacon and writes the GIF): robots as discs sized by ``robot_radius_mm`` (dots for
   point robots) with heading ticks, robots within range of the target highlighted, a step counter;
 
-The target is ``(2,)`` (a fixed beacon) or ``(T+1, 2)`` (its position at every step).
+The target is ``(2,)`` (a fixed beacon), ``(T+1, 2)`` (its position at every step), or None (a task
+without a beacon).
 * :func:`plot_coverage` — fraction of robots in range over time, mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
@@ -57,14 +58,16 @@ def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
     return ax
 
 
-def _target_track(target: np.ndarray, steps: int) -> np.ndarray:
-    """The target's position at each of ``steps`` steps, (steps, 2), from (2,) or (steps, 2)."""
+def _target_track(target: np.ndarray | None, steps: int) -> np.ndarray | None:
+    """The target's position at each of ``steps`` steps, (steps, 2), from (2,) or (steps, 2); None: no beacon."""
+    if target is None:
+        return None
     t = np.asarray(target, np.float64)
     assert t.shape in ((2,), (steps, 2)), f"target must be (2,) or ({steps}, 2), got {t.shape}"
     return np.broadcast_to(t, (steps, 2))
 
 
-def plot_trajectories(positions: np.ndarray, target: np.ndarray, cfg: WorldConfig, path: str | os.PathLike,
+def plot_trajectories(positions: np.ndarray, target: np.ndarray | None, cfg: WorldConfig, path: str | os.PathLike,
                       title: str | None = None) -> Path:
     """One episode's paths to PNG. ``positions`` (T+1, M, 2) mm, ``target`` (2,) or (T+1, 2) mm."""
     positions = np.asarray(positions, np.float64)
@@ -72,8 +75,8 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray, cfg: WorldConfi
     M = positions.shape[1]
     track = _target_track(target, positions.shape[0])
     fig = _figure()
-    ax = _arena_axes(fig, cfg, track[-1])
-    if np.any(track != track[0]):  # a pushed beacon: its path and where it started
+    ax = _arena_axes(fig, cfg, None if track is None else track[-1])
+    if track is not None and np.any(track != track[0]):  # a pushed beacon: its path and where it started
         ax.plot(track[:, 0], track[:, 1], lw=1.0, ls="--", color=C_TARGET, alpha=0.9)
         ax.plot([track[0, 0]], [track[0, 1]], marker="D", ms=6, mfc="none", color=C_TARGET, ls="none",
                 label="target start")
@@ -144,15 +147,16 @@ class _FramePainter:
         """Map a painted frame onto the shared palette (no dithering: flat colours stay flat)."""
         return img.quantize(palette=self.palette, dither=Image.Dither.NONE)
 
-    def paint(self, pos: np.ndarray, heading: np.ndarray, in_range: np.ndarray, target: np.ndarray,
+    def paint(self, pos: np.ndarray, heading: np.ndarray, in_range: np.ndarray, target: np.ndarray | None,
               label: str) -> Image.Image:
         img = self.background.copy()
         draw = ImageDraw.Draw(img)
-        (bx, by), = self._to_px(np.asarray(target, np.float64)[None])
-        by = self.height - by
-        c, d = self.comm_px, 1.3 * self.r_px
-        draw.ellipse((bx - c, by - c, bx + c, by + c), outline=C_TARGET, width=1)  # the comm radius
-        draw.polygon([(bx, by - d), (bx + d, by), (bx, by + d), (bx - d, by)], fill=C_TARGET, outline="black")
+        if target is not None:
+            (bx, by), = self._to_px(np.asarray(target, np.float64)[None])
+            by = self.height - by
+            c, d = self.comm_px, 1.3 * self.r_px
+            draw.ellipse((bx - c, by - c, bx + c, by + c), outline=C_TARGET, width=1)  # the comm radius
+            draw.polygon([(bx, by - d), (bx + d, by), (bx, by + d), (bx - d, by)], fill=C_TARGET, outline="black")
         xy = self._to_px(np.asarray(pos, np.float64))  # (M, 2) pixels
         xy[:, 1] = self.height - xy[:, 1]  # Pillow's y axis points down
         tip = xy + 1.7 * self.r_px * np.stack([np.cos(heading), -np.sin(heading)], -1)  # (M, 2)
@@ -164,12 +168,12 @@ class _FramePainter:
         return img
 
 
-def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndarray, in_range: np.ndarray,
+def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndarray | None, in_range: np.ndarray,
                     cfg: WorldConfig, path: str | os.PathLike, max_frames: int = 80, fps: int = 10,
-                    size_in: float = 4.0, dpi: int = 80, title: str | None = None) -> Path:
+                    size_in: float = 4.0, dpi: int = 80, title: str | None = None, label: str = "in range") -> Path:
     """One episode to an animated GIF. ``positions`` (T+1, M, 2), ``headings`` (T+1, M),
-    ``target`` (2,) or (T+1, 2), ``in_range`` (T+1, M) bool. At most ``max_frames`` frames (evenly subsampled,
-    first and last step always included)."""
+    ``target`` (2,), (T+1, 2) or None, ``in_range`` (T+1, M) bool: the robots highlighted, counted in the
+    frame's ``label``. At most ``max_frames`` frames (evenly subsampled, first and last step always included)."""
     positions = np.asarray(positions, np.float64)
     T1, M, _ = positions.shape
     assert np.shape(headings) == (T1, M) and np.shape(in_range) == (T1, M), "headings / in_range shape mismatch"
@@ -180,8 +184,8 @@ def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndar
     images = []
     for t in frames:
         hit = np.asarray(in_range[t], bool)
-        img = painter.paint(positions[t], np.asarray(headings[t], np.float64), hit, track[t],
-                            f"step {t}/{T1 - 1}   in range {int(hit.sum())}/{M}")
+        img = painter.paint(positions[t], np.asarray(headings[t], np.float64), hit, None if track is None else track[t],
+                            f"step {t}/{T1 - 1}   {label} {int(hit.sum())}/{M}")
         images.append(painter.to_palette(img))
     with atomic_path(path) as tmp:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps),

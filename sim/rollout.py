@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
 from .config import ACTION_DIM, WorldConfig
 from .history import History
-from .metrics import EpisodeSteps, episode_metrics
+from .metrics import EpisodeSteps
 
 
 @runtime_checkable
@@ -80,7 +80,7 @@ class Trajectories:
 
     positions: np.ndarray  # (E, T+1, M, 2) float32 mm, index 0 = after reset
     headings: np.ndarray  # (E, T+1, M) float32 rad
-    target: np.ndarray  # (E, T+1, 2) float32 mm, the target beacon after each step (pushed ones move)
+    target: np.ndarray | None  # (E, T+1, 2) float32 mm, the target beacon after each step (pushed ones move); None: no beacon
     in_range: np.ndarray  # (E, T+1, M) bool, robots counting towards success (localisation: in range; index 0 = at reset)
     actions: np.ndarray  # (E, T, M, 2) float32, the commands sent
 
@@ -96,18 +96,16 @@ class RolloutResult(EpisodeSteps):
     coverage: np.ndarray  # (E, T) float64 the task's success after each step (localisation: coverage)
     trajectories: Trajectories | None = None
     extra: dict = field(default_factory=dict)
-    beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode
+    beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode (None: no beacon)
+    task: Any = None  #: the env's task (sim.tasks.Task): its metrics; None: localisation
 
     def metrics(self, ceiling: bool = False):
-        """Task metrics (see :mod:`sim.metrics`) of these episodes; ``ceiling``: also final coverage
-        as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`, at the final beacon position)."""
-        ceil = None
-        if ceiling:
-            from .ceiling import episode_ceiling
+        """The task's metrics of these episodes (:meth:`sim.tasks.Task.episode_metrics`); ``ceiling``: also
+        relative to the task's upper bound (localisation: each episode's packing ceiling)."""
+        from .tasks import get_task
 
-            assert self.beacon is not None, "no beacon positions recorded"
-            ceil = episode_ceiling(self.cfg, self.n_robots, self.beacon)
-        return episode_metrics(self.rewards, self.coverage, ceil)
+        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage, self.beacon,
+                                                   ceiling)
 
 
 def robot_success(info, n_envs: int, n_robots: int) -> np.ndarray:
@@ -139,11 +137,12 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
     rewards = np.zeros((n_batches * B, T))
     coverage = np.zeros((n_batches * B, T))
-    beacon = np.zeros((n_batches * B, 2))
+    has_beacon = env.task.beacon
+    beacon = np.zeros((n_batches * B, 2)) if has_beacon else None
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)
         head = np.zeros((rec_batches * B, T + 1, M), np.float32)
-        tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32)
+        tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32) if has_beacon else None
         inr = np.zeros((rec_batches * B, T + 1, M), bool)
         acts = np.zeros((rec_batches * B, T, M, 2), np.float32)
 
@@ -163,7 +162,8 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
             if rec:
                 pos[rows, 0] = env.pos
                 head[rows, 0] = env.heading
-                tgt[rows, 0] = env.target
+                if has_beacon:
+                    tgt[rows, 0] = env.target
                 inr[rows, 0] = robot_success(info, B, M)
             for t in range(T):
                 a = np.asarray(policy.act(obs), np.float64)
@@ -174,20 +174,22 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
                 if rec:
                     pos[rows, t + 1] = env.pos
                     head[rows, t + 1] = env.heading
-                    tgt[rows, t + 1] = env.target
+                    if has_beacon:
+                        tgt[rows, t + 1] = env.target
                     inr[rows, t + 1] = robot_success(info, B, M)
                     acts[rows, t] = a
                 if bar is not None:
                     bar.update(1)
             assert np.all(truncated), "env did not truncate after cfg.episode_steps steps"
-            beacon[rows] = env.target
+            if has_beacon:
+                beacon[rows] = env.target
     finally:
         if bar is not None:
             bar.close()
 
     traj = None
     if n_rec:
-        traj = Trajectories(pos[:n_rec], head[:n_rec], tgt[:n_rec], inr[:n_rec], acts[:n_rec])
+        traj = Trajectories(pos[:n_rec], head[:n_rec], None if tgt is None else tgt[:n_rec], inr[:n_rec], acts[:n_rec])
     return RolloutResult(cfg=cfg, n_robots=M, seed=seed, rewards=rewards[:episodes],
                          coverage=coverage[:episodes], trajectories=traj,
-                         beacon=beacon[:episodes])
+                         beacon=None if beacon is None else beacon[:episodes], task=env.task)

@@ -29,8 +29,8 @@ def _run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
 def test_registry_resolves_names_and_default():
     """None and 'localisation' give localisation; an unknown name is one line listing the tasks."""
     assert isinstance(get_task(None), Localisation) and isinstance(get_task("localisation"), Localisation)
-    assert "localisation" in TASKS and task_names()[0] == "localisation"
-    with pytest.raises(InputError, match="unknown task 'aggregate'; choose one of: localisation"):
+    assert {"localisation", "aggregation"} <= set(TASKS) and task_names()[:2] == ["aggregation", "localisation"]
+    with pytest.raises(InputError, match="unknown task 'aggregate'; choose one of: aggregation, localisation"):
         get_task("aggregate")
 
 
@@ -154,3 +154,43 @@ def test_evaluation_json_names_its_task(tmp_path):
 def test_task_base_requires_the_methods():
     """Task is abstract: a subclass must implement spawn, step_info, reward, state_dim and state."""
     assert Task.__abstractmethods__ == {"spawn", "step_info", "reward", "state_dim", "state"}
+
+
+def test_largest_cluster_on_known_geometry():
+    """Links at <= 2 body diameters chain robots into clusters; success is the largest one's share."""
+    from sim.tasks.aggregation import largest_cluster, link_mm
+
+    cfg = preset("kilobot")
+    assert link_mm(cfg) == 66.0
+    pos = np.array([[[0, 0], [60, 0], [120, 0], [180, 0], [-200, -200], [-200, -140], [200, 200], [0, 200]],
+                    [[0, 0], [67, 0], [134, 0], [201, 0], [-200, -200], [-200, -134], [200, 200], [0, 200]]], float)
+    frac, members = largest_cluster(pos, link_mm(cfg), cfg.arena_half_mm)
+    np.testing.assert_array_equal(frac, [4 / 8, 2 / 8])
+    np.testing.assert_array_equal(members[0], [1, 1, 1, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(members[1], [0, 0, 0, 0, 1, 1, 0, 0])
+
+
+def test_aggregation_world_has_no_beacon():
+    """Aggregation spawns no beacon: no beacon disc, no beacon messages, success from the robots alone."""
+    from sim.tasks.aggregation import largest_cluster, link_mm
+
+    cfg = preset("kilobot")
+    env = SwarmEnv(cfg, 3, 12, seed=5, task="aggregation")
+    obs, info = env.reset()
+    assert env.target is None and env.target_dist is None and env.state().shape == (3, 36)
+    for _ in range(3):
+        obs, r, _, _, info = env.step(np.full((3, 12, 2), 0.7))
+        assert not np.any(info["events"].role) and np.all(obs[..., 1] == -1)  # the target input is never set
+        np.testing.assert_array_equal(info["success"], largest_cluster(env.pos, link_mm(cfg), cfg.arena_half_mm)[0])
+
+
+def test_hand_written_aggregator_beats_random():
+    """The probabilistic aggregation rule gathers more robots than the random walk (16 robots, 8 episodes)."""
+    from sim.rollout import rollout
+
+    task = get_task("aggregation")
+    cfg = dataclasses.replace(preset("kilobot"), episode_steps=300)
+    env = SwarmEnv(cfg, 8, 16, seed=0, task=task)
+    final = {name: rollout(env, task.make_baseline(name, cfg), 8, seed=3).metrics().summary()["final_cluster"].mean
+             for name in ("aggregator", "random")}
+    assert final["aggregator"] > final["random"] + 0.05, final

@@ -14,6 +14,7 @@ from pathlib import Path
 from kiloforge.errors import InputError
 
 from .base import LEGACY_TASK, Metric, Task, TaskRef
+from .aggregation import Aggregation
 from .localisation import Localisation
 
 __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS", "TASK_HELP", "Task", "TaskRef",
@@ -22,7 +23,7 @@ __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS"
 ENTRY_POINT_GROUP = "kiloforge.tasks"
 DEFAULT_TASK = "localisation"
 #: the built-in tasks, by name
-TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation,)}
+TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation, Aggregation)}
 
 #: the help text of every command's ``--task``
 TASK_HELP = (f"the task: {', '.join(sorted(TASKS))}, an installed plug-in (entry point group {ENTRY_POINT_GROUP}) "

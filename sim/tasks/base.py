@@ -66,6 +66,12 @@ class Metric:
     label: str  #: short column label in tables and plots
     unit: str = ""  #: "" for fractions and counts, e.g. "steps"
     higher_is_better: bool = True
+    bounded: bool = False  #: only reported relative to the task's upper bound (``ceiling=True``)
+    name: str = ""  #: a longer name for plot axes and logs (default: the label)
+
+    @property
+    def long(self) -> str:
+        return self.name or self.label
 
 
 class Task(ABC):
@@ -76,11 +82,16 @@ class Task(ABC):
     version: ClassVar[int] = 1  #: bump when episodes of the same seed would differ
     description: ClassVar[str] = ""  #: one line for --help and docs
     success_label: ClassVar[str] = "success"  #: what the per-step success signal is called in plots
-    primary_metric: ClassVar[str] = "final_success"  #: the metric key that ranks policies
-    metrics: ClassVar[tuple[Metric, ...]] = ()  #: every scalar metric, primary first
+    primary_metric: ClassVar[str] = "final_success"  #: the metric key that ranks policies: final success
+    mean_metric: ClassVar[str] = "mean_success"  #: the key of success averaged over the episode
+    #: every scalar metric :meth:`episode_metrics` reports, primary first (tables show them in this order)
+    metrics: ClassVar[tuple[Metric, ...]] = (Metric("final_success", "final"), Metric("mean_success", "mean"),
+                                             Metric("return", "return"))
     #: baseline label -> name for :meth:`make_baseline`; labels start with "hand-written" or "random"
     baselines: ClassVar[dict[str, str]] = {}
-    extra_discs: ClassVar[int] = 0  #: bodies beside the robots that occupy spawn area (collision worlds)
+    #: True: a beacon robot (kilo_uid ``cfg.target_uid``) that only transmits stands in the world (a disc in
+    #: collision worlds), and the firmware gets its beacon role; False: only the M robots
+    beacon: ClassVar[bool] = False
 
     @property
     def ref(self) -> TaskRef:
@@ -91,7 +102,8 @@ class Task(ABC):
 
     @abstractmethod
     def spawn(self, env: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Start positions from the env's init streams: bodies (B, 2), robots (B, M, 2), headings (B, M)."""
+        """Start positions from the env's init streams: the beacon (B, 2) (None when :attr:`beacon` is False),
+        robots (B, M, 2), headings (B, M). The env then redraws overlapping robots (collision worlds)."""
 
     @abstractmethod
     def step_info(self, env: Any) -> dict[str, np.ndarray]:
@@ -113,6 +125,24 @@ class Task(ABC):
     def make_baseline(self, name: str, cfg: WorldConfig) -> Any:
         """The baseline ``name`` (a value of :attr:`baselines`) as a :class:`sim.rollout.SwarmPolicy`."""
         raise InputError(f"task '{self.name}' has no baseline '{name}'")
+
+    def episode_metrics(self, cfg: WorldConfig, n_robots: int, rewards: np.ndarray, success: np.ndarray,
+                        beacon: np.ndarray | None, ceiling: bool = False) -> Any:
+        """Per-episode metrics (``summary()``, ``to_dict()``) of E episodes: team rewards and success (E, T), the
+        beacon at each episode's end (E, 2) or None; ``ceiling``: also relative to the task's upper bound."""
+        from ..metrics import success_metrics
+
+        return success_metrics(rewards, success, self.primary_metric, self.mean_metric)
+
+    @property
+    def eval_keys(self) -> tuple[str, ...]:
+        """The metrics a trainer's evaluations log (``eval_<key>`` columns), besides the return."""
+        return tuple(m.key for m in self.metrics if m.key != "return" and not m.bounded)
+
+    @property
+    def columns(self) -> tuple[tuple[str, str], ...]:
+        """(key, label) of every metric, for :func:`sim.metrics.compare`."""
+        return tuple((m.key, m.label) for m in self.metrics)
 
     def has_ceiling(self, cfg: WorldConfig) -> bool:
         """True when the task reports an upper bound on final success in ``cfg`` (tables: "of ceiling")."""

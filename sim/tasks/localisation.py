@@ -26,16 +26,17 @@ class Localisation(Task):
     description = "searchers find a beacon and gather within communication range of it (the thesis's task)"
     success_label = "coverage"
     primary_metric = "final_coverage"
+    mean_metric = "mean_coverage"
     metrics = (
-        Metric("final_coverage", "final cov"),
-        Metric("of_ceiling", "of ceiling"),
+        Metric("final_coverage", "final cov", name="final coverage"),
+        Metric("of_ceiling", "of ceiling", bounded=True),
         Metric("mean_coverage", "mean cov"),
         Metric("time_to_find", "steps to find", "steps", higher_is_better=False),
         Metric("found_rate", "found"),
         Metric("return", "return"),
     )
     baselines = {"hand-written": "baseline", "hand-written pusher": "pusher", "random": "random"}
-    extra_discs = 1  # the beacon
+    beacon = True
 
     def spawn(self, env) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         B, M = env.n_envs, env.n_robots
@@ -73,6 +74,15 @@ class Localisation(Task):
         from ..baselines import make_policy
 
         return make_policy(name, cfg)
+
+    def episode_metrics(self, cfg: WorldConfig, n_robots: int, rewards: np.ndarray, success: np.ndarray,
+                        beacon: np.ndarray | None, ceiling: bool = False) -> Any:
+        """:class:`sim.metrics.EpisodeMetrics`; with ``ceiling`` also final coverage as a fraction of each
+        episode's packing ceiling (:mod:`sim.ceiling`, at the final beacon position)."""
+        from ..ceiling import episode_ceiling
+        from ..metrics import episode_metrics
+
+        return episode_metrics(rewards, success, episode_ceiling(cfg, n_robots, beacon) if ceiling else None)
 
     def has_ceiling(self, cfg: WorldConfig) -> bool:
         """The packing ceiling (:mod:`sim.ceiling`), where its table covers the world."""

@@ -1,0 +1,183 @@
+"""Aggregation: robots spread over the arena gather into one cluster. No beacon.
+
+*Cluster.* Two robots are linked when their centres are at most :func:`link_mm` apart: two body
+diameters in collision worlds (66 mm for Kilobots, which then sense each other at 33..66 mm), half the
+communication radius for point robots. A cluster is a connected group of linked robots.
+
+*Success* of a step is the fraction of robots in the largest cluster (1 when all gathered; 1/M when
+none touch); the primary metric is its mean over the last quarter of the episode, like localisation's
+final coverage. Team reward: ``scale * (success² - penalty · (1/M) Σ_i ||a_i||²)``, localisation's form.
+Critic state: every robot's pose, normalised.
+
+*Baselines.* :class:`ProbabilisticAggregator`, the cockroach-inspired rule of Jeanson et al. (2005) and
+Garnier et al. (2005) as Kilobots can run it: walk (straight runs, random turns, away from lit walls);
+a walking robot stops with a probability that grows with the neighbours it hears, a resting one
+leaves with one that shrinks with them. The neighbour count comes from the robot's own RBF histogram
+(the observation), so the rule uses only what the firmware has. Parameters tuned on validation
+episodes (seed 777, docs/tasks.md). And the random walk.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..config import ACTION_DIM, OBS_RBF, OBS_WALL, WorldConfig
+from ..kinematics import wrap_angle
+from .base import Metric, Task
+
+
+def link_mm(cfg: WorldConfig) -> float:
+    """Centre distance at which two robots are in one cluster."""
+    return 4.0 * cfg.robot_radius_mm if cfg.robot_radius_mm > 0 else 0.5 * cfg.comm_radius_mm
+
+
+def cluster_labels(pos: np.ndarray, link: float, extent: float) -> np.ndarray:
+    """(B, M) label of each robot's cluster: the smallest flat index ``env * M + i`` of its members.
+
+    Linked pairs from :func:`sim.grid.pairs_within`, then min-label propagation with pointer jumping
+    (converges in O(log diameter) rounds), all envs at once.
+    """
+    from .. import grid
+
+    B, M, _ = pos.shape
+    lab = np.arange(B * M)
+    p = grid.pairs_within(pos, link, extent)
+    keep = p.dist <= link
+    a = p.env[keep].astype(np.int64) * M + p.i[keep]
+    b = p.env[keep].astype(np.int64) * M + p.j[keep]
+    while a.size:
+        m = np.minimum(lab[a], lab[b])
+        new = lab.copy()
+        np.minimum.at(new, a, m)
+        np.minimum.at(new, b, m)
+        new = new[new]
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    return lab.reshape(B, M)
+
+
+def largest_cluster(pos: np.ndarray, link: float, extent: float) -> tuple[np.ndarray, np.ndarray]:
+    """(fraction of robots in the largest cluster (B,), membership of a largest cluster (B, M) bool)."""
+    B, M, _ = pos.shape
+    lab = cluster_labels(pos, link, extent)
+    size = np.bincount(lab.ravel(), minlength=B * M).reshape(B, M)  # size of the cluster labelled env*M + i
+    best = size.max(axis=1)
+    members = size.reshape(-1)[lab] == best[:, None]
+    return best / M, members
+
+
+class Aggregation(Task):
+    name = "aggregation"
+    version = 1
+    description = "robots spread over the arena gather into one cluster (no beacon)"
+    success_label = "in the largest cluster"
+    primary_metric = "final_cluster"
+    mean_metric = "mean_cluster"
+    metrics = (Metric("final_cluster", "final cluster", name="final largest-cluster fraction"),
+               Metric("mean_cluster", "mean cluster"),
+               Metric("return", "return"))
+    baselines = {"hand-written": "aggregator", "random": "random"}
+    beacon = False
+
+    def spawn(self, env) -> tuple[None, np.ndarray, np.ndarray]:
+        B, M = env.n_envs, env.n_robots
+        h = env.spawn_box()
+        pos = np.empty((B, M, 2))
+        heading = np.empty((B, M))
+        for e, rng in enumerate(env.init_streams):  # loop over envs: each owns its generator
+            pos[e] = rng.uniform(-h, h, (M, 2))
+            heading[e] = rng.uniform(-math.pi, math.pi, M)
+        return None, pos, wrap_angle(heading)
+
+    def step_info(self, env) -> dict[str, np.ndarray]:
+        frac, members = largest_cluster(env.pos, link_mm(env.cfg), env.cfg.arena_half_mm)
+        return {"success": frac, "robot_success": members}
+
+    def reward(self, env, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        cfg = env.cfg
+        s = info["success"]
+        effort = np.sum(u * u, axis=(1, 2)) / env.n_robots
+        return (cfg.reward_scale * (s * s - cfg.action_penalty * effort)).astype(np.float32)
+
+    def state_dim(self, cfg: WorldConfig, n_robots: int) -> int:
+        return 3 * n_robots
+
+    def state(self, env) -> np.ndarray:
+        a, B, M = env.cfg.arena_half_mm, env.n_envs, env.n_robots
+        robots = np.concatenate([env.pos / a, env.heading[..., None] / math.pi], axis=-1)
+        return robots.reshape(B, 3 * M).astype(np.float32)
+
+    def make_baseline(self, name: str, cfg: WorldConfig) -> Any:
+        if name == "aggregator":
+            return ProbabilisticAggregator(cfg)
+        from ..baselines import make_policy
+
+        return make_policy(name, cfg)
+
+
+@dataclass(frozen=True)
+class AggregatorParams:
+    """Constants of :class:`ProbabilisticAggregator` (probabilities per control period)."""
+
+    stop_base: float = 0.0  #: P(stop) of a walking robot that hears no neighbour
+    stop_per_nbr: float = 0.15  #: ... plus this per neighbour heard (capped at 1)
+    leave_base: float = 0.02  #: P(leave) of a resting robot that hears no neighbour ...
+    leave_decay: float = 1.0  #: ... divided by 1 + leave_decay · n² with n neighbours heard
+    run_steps: int = 8  #: mean straight run of the walk (periods, geometric)
+    turn_max_steps: int = 3  #: a random turn pivots 1..this many periods
+    wall_turn_steps: int = 3  #: pivot periods away from a lit wall
+
+
+class ProbabilisticAggregator:
+    """The probabilistic aggregation rule (module doc), vectorised over (B envs, M robots).
+
+    Neighbours heard: the RBF histogram's sum times ``rbf_norm`` divided by the sum of the bins one
+    neighbour in the middle of the range adds (so n counts neighbours within the communication radius).
+    """
+
+    def __init__(self, cfg: WorldConfig, params: AggregatorParams | None = None) -> None:
+        from ..events import rbf
+
+        self.cfg, self.p = cfg, params or AggregatorParams()
+        mid = 0.5 * (cfg.rbf_lo_mm + min(cfg.rbf_hi_mm, cfg.comm_radius_mm))
+        self.per_neighbour = float(rbf(cfg, np.array([mid])).sum())
+        self.rng: np.random.Generator | None = None
+
+    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
+        self.rng = rng
+        shape = (n_envs, n_robots)
+        self.resting = np.zeros(shape, bool)
+        self.turn_left = np.zeros(shape, np.int64)  # pivot periods still to do
+        self.turn_dir = np.zeros(shape, bool)  # True: left
+
+    def neighbours(self, obs: np.ndarray) -> np.ndarray:
+        """(B, M) estimated neighbours heard this period."""
+        return obs[..., OBS_RBF:OBS_RBF + self.cfg.n_rbf].sum(axis=-1) / self.per_neighbour
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        assert self.rng is not None, "ProbabilisticAggregator.act before reset"
+        p, rng = self.p, self.rng
+        n = self.neighbours(obs)
+        u = rng.random((2,) + n.shape)  # one draw for stopping / leaving, one for starting a turn
+        stop = ~self.resting & (u[0] < np.minimum(1.0, p.stop_base + p.stop_per_nbr * n))
+        leave = self.resting & (u[0] < p.leave_base / (1.0 + p.leave_decay * n * n))
+        self.resting = (self.resting | stop) & ~leave
+        walking = ~self.resting
+        idle = walking & (self.turn_left == 0)
+        wall = idle & (obs[..., OBS_WALL] > 0.5)
+        tumble = idle & ~wall & (u[1] < 1.0 / p.run_steps)
+        steps = rng.integers(1, p.turn_max_steps + 1, n.shape)
+        left = rng.random(n.shape) < 0.5
+        self.turn_left = np.where(wall, p.wall_turn_steps, np.where(tumble, steps, self.turn_left))
+        self.turn_dir = np.where(wall | tumble, left, self.turn_dir)
+        turning = walking & (self.turn_left > 0)
+        a = np.zeros(n.shape + (ACTION_DIM,))
+        a[walking & ~turning] = 1.0
+        a[..., 0] = np.where(turning & ~self.turn_dir, 1.0, a[..., 0])  # right pivot: left motor on
+        a[..., 1] = np.where(turning & self.turn_dir, 1.0, a[..., 1])
+        self.turn_left = np.where(turning, self.turn_left - 1, self.turn_left)
+        return a
