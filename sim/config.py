@@ -71,6 +71,9 @@ MAX_EPISODE_STEPS = 1_000_000  #: control periods per episode (about 11 days of 
 #: control periods per episode a command runs when the length comes from a file's world rather than a flag
 #: (a policy file must not decide how long a command works: :func:`run_steps`)
 FILE_STEPS_CAP = 10_000
+#: and, in a tick-level world (whose work per period grows with period_ticks), kilo_ticks per episode:
+#: 10,000 periods of the kilobot preset's 31 ticks
+FILE_TICKS_CAP = 310_000
 MAX_ROBOTS = 1024  #: robots per simulated swarm, in every command (--robots) and config
 #: RBF width and normaliser: outside these the features (exp(-(d - c)^2 / 2 sigma^2) / norm) underflow to 0 / 0 or
 #: overflow; inside them every feature is finite and the firmware's table can be computed
@@ -314,12 +317,17 @@ def preset(name: str, **overrides: Any) -> WorldConfig:
 
 def run_steps(world: WorldConfig, steps: int | None, flag: str) -> int:
     """Control periods per episode a command runs: ``steps`` when the user gave ``flag``, else the world's
-    ``episode_steps``, which a policy file sets: refused above :data:`FILE_STEPS_CAP` (InputError naming the
-    cap and the flag that runs longer)."""
+    ``episode_steps``, which a policy file sets: refused above :data:`FILE_STEPS_CAP` periods or, in a
+    tick-level world, :data:`FILE_TICKS_CAP` kilo_ticks (InputError naming the cap and the flag that runs longer)."""
     if steps is not None:
         return int(steps)
+    hint = f"pass {flag} N (up to {MAX_EPISODE_STEPS:,}) to choose the length"
     if world.episode_steps > FILE_STEPS_CAP:
         raise InputError(f"the policy's world '{world.name}' sets episode_steps {world.episode_steps:,}, more than the "
-                         f"{FILE_STEPS_CAP:,} control periods a command runs by default; pass {flag} N "
-                         f"(up to {MAX_EPISODE_STEPS:,}) to choose the length")
+                         f"{FILE_STEPS_CAP:,} control periods a command runs by default; {hint}")
+    ticks = world.episode_steps * world.period_ticks
+    if world.tick_level and ticks > FILE_TICKS_CAP:
+        raise InputError(f"the policy's world '{world.name}' sets episodes of {world.episode_steps:,} periods x "
+                         f"{world.period_ticks} kilo_ticks = {ticks:,} ticks, more than the {FILE_TICKS_CAP:,} a "
+                         f"command simulates by default; {hint}")
     return int(world.episode_steps)

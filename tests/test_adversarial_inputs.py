@@ -317,6 +317,21 @@ def test_policy_world_cannot_set_a_long_calibration(tmp_path, capsys, steps):
     assert f"{FILE_STEPS_CAP:,}" in msg and "--steps" in msg
 
 
+@pytest.mark.parametrize("steps,period", [(10_000, 32), (2_000, 255), (1_300, 240)])
+def test_policy_world_cannot_set_long_tick_level_episodes(tmp_path, capsys, steps, period):
+    """A tick-level world within the period cap but with long control periods: refused by its kilo_ticks, naming that cap."""
+    from sim.config import FILE_TICKS_CAP
+    from tests.bad_inputs import crafted, parts, small_policy
+    arrays, meta = parts(small_policy())
+    assert meta["world"]["tick_level"]
+    meta["world"] = {**meta["world"], "episode_steps": steps, "period_ticks": period}
+    p = tmp_path / "ticks.npz"
+    p.write_bytes(crafted(arrays, meta))
+    msg = _export_refused(["--policy", str(p), "--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--quiet",
+                           "--no-avr"], capsys)
+    assert f"{FILE_TICKS_CAP:,}" in msg and f"{steps * period:,}" in msg and "--calib-steps" in msg
+
+
 def test_flag_overrides_the_policy_world_length(tmp_path, capsys):
     """The same policy exports when the command is told the length (--calib-steps): the cap only guards the default."""
     p = _long_world_policy(tmp_path, LONG_STEPS[-1])

@@ -91,8 +91,9 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
         "       -fshort-enums -DF_CPU=8000000 -I<kilolib> -o prog.elf this.c <kilolib>/kilolib.a",
         "Kilombo: add -DKILOMBO. Host replay: export/verify/hostbuild.py with firmware_templates/host/.",
     ]
-    for ln in lines:
-        assert "*/" not in ln and "/*" not in ln, f"banner line is not comment-safe: {ln!r}"
+    for ln in lines:  # every part above is escaped or ours; checked anyway, as text from a file reaches C here
+        if "*/" in ln or "/*" in ln:
+            raise ExportError(f"banner line is not comment-safe: {ln!r}")
     return lines
 
 
