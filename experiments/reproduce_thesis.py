@@ -56,12 +56,13 @@ KILOBOT_RUNS = [
                            "--eval-episodes", "20", "--exp-name", "kb4"]),
 ]
 ROBOT_RUNS = [
-    ("th_r1_s1", 1, 10, 8, ["--seed", "1", "--eval-episodes", "20", "--exp-name", "th_r1"]),
-    ("goal2_s1", 2, 10, 15, ["--seed", "1", "--eval-episodes", "20"]),
-    ("goal4_s1", 4, 10, 45, ["--seed", "1", "--eval-episodes", "20"]),
-    ("th_r8_s1", 8, 10, 8, ["--seed", "1", "--eval-episodes", "20", "--exp-name", "th_r8"]),
+    ("th_r1_s1", 1, 10, 8, ["--world", "thesis", "--seed", "1", "--eval-episodes", "20", "--exp-name", "th_r1"]),
+    ("goal2_s1", 2, 10, 15, ["--world", "thesis", "--seed", "1", "--eval-episodes", "20"]),
+    ("goal4_s1", 4, 10, 45, ["--world", "thesis", "--seed", "1", "--eval-episodes", "20"]),
+    ("th_r8_s1", 8, 10, 8, ["--world", "thesis", "--seed", "1", "--eval-episodes", "20", "--exp-name", "th_r8"]),
 ]
-HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--seed", "1", "--eval-episodes", "20", "--exp-name", f"th_h{t}"])
+HISTORY_RUNS = [(f"th_h{t}_s1", 2, t, 4, ["--world", "thesis", "--seed", "1", "--eval-episodes", "20",
+                                         "--exp-name", f"th_h{t}"])
                 for t in (1, 2, 5, 10)]
 #: kilobot runs continued with ``--resume`` for this many more minutes (seed 2 had collapsed: not resumed)
 KILOBOT_RESUME = {"kb4_s1": 14}

@@ -1,6 +1,7 @@
 """``python -m sim`` / ``kiloforge sim``: run a policy in the simulator, print task metrics, write plots and a GIF.
 
-    python -m sim --world thesis --robots 4 --seed 0 --policy baseline --out runs/demo
+    python -m sim --robots 4 --seed 0 --policy baseline --out runs/demo            (the kilobot world)
+    python -m sim --world thesis --robots 4 --seed 0 --policy baseline --out runs/thesis
     python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
     python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
 
@@ -8,8 +9,8 @@
 path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
 ``coverage.png`` (all episodes) and ``metrics.json``. ``--suite robustness`` instead runs the policy
-in every world variant of :func:`sim.variants.robustness_suite` (default world: the kilobot
-preset, or the artifact's) at each ``--robots`` count and writes ``robustness.json`` and
+in every world variant of :func:`sim.variants.robustness_suite` (of the kilobot world, or the
+artifact's) at each ``--robots`` count and writes ``robustness.json`` and
 ``robustness.md`` (final coverage per variant, and as a fraction of nominal). User errors print
 one line and exit with 2.
 """
@@ -29,7 +30,7 @@ from kiloforge.interrupts import exit_status, terminate_raises
 from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
 from kiloforge.validate import int_arg, seed_arg
-from sim.config import MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset, run_steps
+from sim.config import DEFAULT_WORLD, MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset, run_steps
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sim", description="Run a swarm policy in the kiloforge simulator: metrics, "
                 "trajectory plot, coverage plot and an animated GIF.")
     world = p.add_argument("--world", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: "
-                           "thesis, kilobot with --suite, or the artifact's world)")
+                           f"{DEFAULT_WORLD}, or the artifact's world)")
     deprecated_alias(p, "--preset", world)
     p.add_argument("--robots", type=int_arg(1, MAX_ROBOTS), nargs="+", default=[4],
                    help="searching robots per env (default 4); with --suite, one or more counts")
@@ -84,7 +85,7 @@ def _load_policy(a: argparse.Namespace):
     """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy."""
     from sim.baselines import BASELINE_NAMES, make_policy
 
-    world = preset(a.world or ("kilobot" if a.suite else "thesis"))
+    world = preset(a.world or DEFAULT_WORLD)
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
     if a.policy in BASELINE_NAMES:

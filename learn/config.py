@@ -49,10 +49,10 @@ import tyro
 
 from kiloforge.errors import InputError
 from kiloforge.validate import check_int, check_real, check_str, check_typed, show
-from sim.config import BENCHMARK_STEPS, MAX_EPISODE_STEPS, MAX_ROBOTS
+from sim.config import BENCHMARK_STEPS, DEFAULT_WORLD, MAX_EPISODE_STEPS, MAX_ROBOTS
 from sim.config import PRESETS as WORLD_PRESETS
 from sim.config import WorldConfig
-from sim.variants import RANDOMISATIONS
+from sim.variants import RANDOMISATIONS as NAMED_RANDOMISATIONS
 from sim.config import preset as world_preset
 from sim.tasks import DEFAULT_TASK, Task, get_task
 
@@ -87,7 +87,7 @@ def choice(values: typing.Iterable[str]) -> Any:
 
 
 World = choice(sorted(WORLD_PRESETS))
-Randomise = choice(dict.fromkeys(["none", *RANDOMISATIONS]))
+Randomise = choice(dict.fromkeys(["none", *NAMED_RANDOMISATIONS]))
 DemoPolicy = choice(DEMO_POLICIES)
 
 
@@ -172,9 +172,9 @@ class ExperimentConfig(ConfigBase):
     algorithm: ClassVar[str] = ""
 
     # --- task --------------------------------------------------------------------------------
-    world: World = "thesis"  #: world preset (sim.config.PRESETS): thesis or kilobot
+    world: World = DEFAULT_WORLD  #: world preset (sim.config.PRESETS): kilobot (the robots') or thesis
     n_robots: Robots = (4,)  #: swarm sizes trained together (one env group and replay per size; > 1 needs --critic mean)
-    episode_steps: int = 0  #: control steps per episode; 0 = the world's (thesis: 200)
+    episode_steps: int = 0  #: control steps per episode; 0 = the world's (kilobot: 300, thesis: 200)
     randomise: Randomise = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
     randomise_eval: bool = False  #: also randomise the evaluation envs
     reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (coverage, not squared), potential (team + shaping)
@@ -421,7 +421,7 @@ class ESConfig(ConfigBase):
     algorithm: ClassVar[str] = "es"
 
     # --- task --------------------------------------------------------------------------------
-    world: World = "kilobot"  #: world preset (sim.config.PRESETS): thesis or kilobot
+    world: World = DEFAULT_WORLD  #: world preset (sim.config.PRESETS): kilobot (the robots') or thesis
     n_robots: Robots = (4, 16, 32)  #: swarm sizes; every generation plays each of them
     size_weights: tuple[int, ...] = ()  #: relative weight of each swarm size in the fitness (empty = equal)
     episode_steps: int = 0  #: control steps of a training episode; 0 = the world's (kilobot: 300)
@@ -550,6 +550,8 @@ def randomisation(name: str) -> Any:
     """``sim.variants.RANDOMISATIONS[name]`` (None for ``none``); one-line ConfigError otherwise."""
     if name == "none":
         return None
+    from sim.variants import RANDOMISATIONS  # looked up at each call (a test adds a randomisation of its own)
+
     if name not in RANDOMISATIONS:
         raise ConfigError(f"unknown randomise '{name}'; choose one of: {', '.join(dict.fromkeys(['none', *RANDOMISATIONS]))}")
     return RANDOMISATIONS[name]

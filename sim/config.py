@@ -299,6 +299,9 @@ KILOBOT = WorldConfig(
 )
 
 PRESETS: dict[str, WorldConfig] = {"thesis": THESIS, "kilobot": KILOBOT}
+#: the world of every command without ``--world`` (sim, learn train / train-recurrent / train-es): the robots'.
+#: ``--world thesis`` is the thesis's (the thesis reproduction, tests/bench/reproduce_thesis.py, names it)
+DEFAULT_WORLD = KILOBOT.name
 
 
 def preset(name: str, **overrides: Any) -> WorldConfig:

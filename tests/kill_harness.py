@@ -175,7 +175,7 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
 
 
 # --- trainings ---------------------------------------------------------------------------------------
-TRAIN_TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden",
+TRAIN_TINY = ["--world", "thesis", "--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden",
               "16", "--n-envs", "2", "--warmup-episodes", "2", "--batch-size", "8", "--replay-size", "400",
               "--updates-per-step", "0.5", "--eval-every", "40", "--eval-episodes", "2", "--checkpoint-every", "4",
               "--threads", "1", "--quiet"]

@@ -248,3 +248,22 @@ def test_training_errors_name_the_flag(argv, line, tmp_path, monkeypatch, capsys
     assert learn_main([*argv, "--out", "run"]) == 2
     assert capsys.readouterr().err == line + "\n"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_kilobot_world_is_every_commands_default(tmp_path):
+    """Without --world, sim and every trainer (train, train-recurrent, train-es) run the kilobot world; the thesis
+    world only on request."""
+    import json
+
+    from sim.config import DEFAULT_WORLD
+
+    assert DEFAULT_WORLD == "kilobot"
+    assert call(["sim", "--out", str(tmp_path / "o"), "--robots", "2", "--episodes", "1", "--steps", "3", "--quiet"]) == 0
+    assert json.loads((tmp_path / "o" / "metrics.json").read_text())["world"]["name"] == "kilobot"
+    pytest.importorskip("tyro")
+    from learn.cli import parse_train_args
+    from learn.config import ESConfig, RecurrentConfig, TrainConfig
+
+    for cls, preset in ((TrainConfig, "default"), (RecurrentConfig, "fast"), (ESConfig, "default")):
+        assert parse_train_args(["--out", "r"], cls, "p", preset)[0].world == "kilobot"
+        assert parse_train_args(["--out", "r", "--world", "thesis"], cls, "p", preset)[0].world == "thesis"

@@ -68,7 +68,7 @@ def test_several_swarm_sizes_train_one_actor_and_one_critic(tmp_path):
     """--robots 2 5 --critic mean: one run, a replay per size, eval columns per size; concat refuses several sizes."""
     with pytest.raises(ConfigError, match="critic mean"):
         TrainConfig(n_robots=(2, 5)).validate()
-    cfg = TrainConfig(n_robots=(2, 5), critic="mean", critic_embed=(8,), critic_hidden=(16,), t_prev=3,
+    cfg = TrainConfig(world="thesis", n_robots=(2, 5), critic="mean", critic_embed=(8,), critic_hidden=(16,), t_prev=3,
                       episode_steps=20, actor_hidden=(8,), n_envs=2, warmup_episodes=4, episodes=8, batch_size=8,
                       replay_size=400, updates_per_step=0.5, eval_every=80, eval_episodes=2, actor_robots=2, seed=1)
     res = train(cfg, tmp_path / "mix", progress=False, log=lambda m: None)
@@ -125,7 +125,7 @@ def test_randomise_reaches_training_envs_only(tmp_path, monkeypatch):
     monkeypatch.setattr(groups, "SwarmEnv", Recording)
     with pytest.raises(ConfigError, match="unknown randomise 'wide'"):
         TrainConfig(randomise="wide").validate()
-    base = dict(n_robots=2, t_prev=2, episode_steps=10, actor_hidden=(4,), critic_hidden=(8,), n_envs=2,
+    base = dict(world="thesis", n_robots=2, t_prev=2, episode_steps=10, actor_hidden=(4,), critic_hidden=(8,), n_envs=2,
                 warmup_episodes=2, episodes=0, batch_size=4, replay_size=200, eval_episodes=2, randomise="test")
     train(TrainConfig(**base), tmp_path / "a", progress=False, log=lambda m: None)
     assert seen == [marker, None]  # the training group, then the evaluator

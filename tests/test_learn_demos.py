@@ -275,7 +275,7 @@ def test_guided_mlp_cloning_reaches_the_demonstrator(tmp_path):
     from learn.config import TrainConfig
     from learn.train import train
     from sim.baselines import make_policy
-    cfg = TrainConfig(n_robots=2, t_prev=10, episode_steps=100, n_envs=16, demo_policy="searcher", demo_episodes=64,
+    cfg = TrainConfig(world="thesis", n_robots=2, t_prev=10, episode_steps=100, n_envs=16, demo_policy="searcher", demo_episodes=64,
                       bc_updates=300, warmup_episodes=0, episodes=0, batch_size=256, replay_size=1600,
                       eval_episodes=10, seed=1)
     train(cfg, tmp_path / "bc", progress=False, log=lambda m: None)
@@ -294,7 +294,7 @@ def test_guided_mlp_cli_clones_learns_and_resumes(tmp_path, capsys):
     """`learn train --preset guided`: demonstrations, cloning, critic pre-training, Q-filtered RL, resume."""
     from learn.__main__ import main
     out = tmp_path / "run"
-    argv = ["train", "--preset", "guided", "--robots", "2", "--history", "3", "--out", str(out), "--quiet",
+    argv = ["train", "--world", "thesis", "--preset", "guided", "--robots", "2", "--history", "3", "--out", str(out), "--quiet",
             "--episode-steps", "20", "--n-envs", "2", "--demo-episodes", "4", "--bc-updates", "20",
             "--critic-pretrain", "3", "--actor-delay", "5", "--warmup-episodes", "2", "--episodes", "4",
             "--eval-every", "40", "--eval-episodes", "2", "--replay-size", "400", "--batch-size", "8",

@@ -19,7 +19,7 @@ from tests import kill_harness as kh  # noqa: E402
 from tests.signal_delivery import deliver  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden", "16",
+TINY = ["--world", "thesis", "--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8", "--critic-hidden", "16",
         "--n-envs", "2", "--warmup-episodes", "2", "--batch-size", "8", "--replay-size", "400",
         "--updates-per-step", "0.5", "--eval-every", "40", "--eval-episodes", "2", "--quiet"]
 
@@ -126,7 +126,7 @@ def test_sigint_mid_episode_resumes_to_the_uninterrupted_run(tmp_path, monkeypat
     from learn.config import RecurrentConfig, TrainConfig
     from learn.train import train
 
-    tiny = dict(n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=10, eval_every=120,
+    tiny = dict(world="thesis", n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=10, eval_every=120,
                 eval_episodes=2, replay_size=400, seed=6, threads=1)
     cfg = (TrainConfig(**tiny, t_prev=3, actor_hidden=(8,), critic_hidden=(16,), batch_size=8, updates_per_step=0.5)
            if algorithm == "magddpg" else

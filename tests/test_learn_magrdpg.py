@@ -200,7 +200,7 @@ def test_one_loop_resumes_recurrent_runs_exactly(tmp_path, cell):
     equals one run; the artifact is of the cell's kind."""
     from learn.checkpoint import load_checkpoint
     from learn.train import train
-    tiny = dict(n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=4, eval_every=40, eval_episodes=2,
+    tiny = dict(world="thesis", n_robots=2, episode_steps=20, n_envs=2, warmup_episodes=2, episodes=4, eval_every=40, eval_episodes=2,
                 replay_size=400, batch_windows=4, unroll=4, burn_in=3, hidden=6, critic_hidden=(16,), seed=4, cell=cell)
     quiet = lambda m: None  # noqa: E731
     full = train(RecurrentConfig(**tiny), tmp_path / "full", progress=False, log=quiet)

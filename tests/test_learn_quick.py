@@ -13,7 +13,7 @@ from sim.rollout import HistoryActor, rollout  # noqa: E402
 
 def test_quick_preset_beats_random(tmp_path):
     """2 robots, thesis world, ~32k transitions: the trained actor's final coverage clearly beats random commands."""
-    cfg = from_preset("quick", n_robots=2, seed=1, episodes=128, max_minutes=0.0, eval_every=12_800,
+    cfg = from_preset("quick", world="thesis", n_robots=2, seed=1, episodes=128, max_minutes=0.0, eval_every=12_800,
                       eval_episodes=20, threads=1)
     res = train(cfg, tmp_path / "quick", progress=False, log=lambda m: None)
     assert res.counters.updates == 128 * 200 * cfg.updates_per_step

@@ -142,7 +142,7 @@ def test_check_notices_an_update_that_depends_on_threads():
     from learn.magddpg import MAGDDPG
     from learn.speed import same_tensors, threads_differ
 
-    cfg = TrainConfig(n_robots=[2], t_prev=3, actor_hidden=(8,), critic_hidden=(16,), batch_size=8)
+    cfg = TrainConfig(world="thesis", n_robots=[2], t_prev=3, actor_hidden=(8,), critic_hidden=(16,), batch_size=8)
     world = cfg.world_config()
     algo = MAGDDPG.from_config(cfg, world)
     rng = np.random.default_rng(0)
@@ -171,7 +171,7 @@ def test_resume_exact_with_fast_knobs_and_auto_threads(tmp_path):
     """fast's knobs (blocked updates, delayed actor, actor on a robot subset) on auto threads resume exactly."""
     from learn.checkpoint import load_checkpoint
 
-    knobs = dict(n_robots=[4], t_prev=3, episode_steps=20, actor_hidden=(8,), critic_hidden=(16, 16), n_envs=2,
+    knobs = dict(world="thesis", n_robots=[4], t_prev=3, episode_steps=20, actor_hidden=(8,), critic_hidden=(16, 16), n_envs=2,
                  warmup_episodes=2, batch_size=8, replay_size=400, updates_per_step=0.5, eval_every=40,
                  eval_episodes=2, update_every=4, policy_every=2, actor_robots=2, actor_others="replay", threads=0,
                  seed=7)

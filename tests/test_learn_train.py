@@ -19,11 +19,11 @@ from learn.train import read_metrics, train  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 #: a run of a few seconds: 20-step episodes, tiny networks
-TINY = dict(n_robots=2, t_prev=3, episode_steps=20, actor_hidden=(8,), critic_hidden=(16, 16), n_envs=2,
+TINY = dict(world="thesis", n_robots=2, t_prev=3, episode_steps=20, actor_hidden=(8,), critic_hidden=(16, 16), n_envs=2,
             warmup_episodes=2, episodes=4, batch_size=8, replay_size=400, updates_per_step=0.5,
             eval_every=40, eval_episodes=2, threads=1, tau=0.05)
 
-TINY_ARGS = ["--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8",
+TINY_ARGS = ["--world", "thesis", "--robots", "2", "--history", "3", "--episode-steps", "20", "--actor-hidden", "8",
              "--critic-hidden", "16", "16", "--n-envs", "2", "--warmup-episodes", "2", "--episodes", "4",
              "--batch-size", "8", "--replay-size", "400", "--updates-per-step", "0.5", "--eval-every", "40",
              "--eval-episodes", "2", "--threads", "1", "--quiet"]

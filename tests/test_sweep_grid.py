@@ -39,7 +39,7 @@ def test_trials_seed_major_with_stable_distinct_names():
         [(3, 1, 5), (3, 2, 5), (4, 1, 5), (4, 2, 5)]
     assert len({t.name for t in trials}) == 4 and len({t.config_id for t in trials}) == 2
     assert trials[0].config_id == trials[2].config_id
-    assert trials[0].name.startswith("thesis-m1-t5_s3_")
+    assert trials[0].name.startswith("kilobot-m1-t5_s3_")  # the default world
     assert [t.name for t in expand(build_grid(seeds=[3, 4], robots=[1, 2], history=[5], presets=["quick"]))] == \
         [t.name for t in trials]
     # the budget is not part of a trial's identity; a field is
@@ -87,7 +87,7 @@ def test_bad_grids_fail_in_one_line(kw, message):
 def test_magrdpg_grid():
     """The recurrent trainer's fields and presets form trials too (GRU size in the name)."""
     trials = expand(build_grid(trainer="magrdpg", presets=["guided"], robots=[2], grid=["hidden=16,32"]))
-    assert [t.name.split("_s1_")[0] for t in trials] == ["thesis-m2-gru16", "thesis-m2-gru32"]
+    assert [t.name.split("_s1_")[0] for t in trials] == ["kilobot-m2-gru16", "kilobot-m2-gru32"]
     assert trials[0].config["demo_policy"] == "searcher"
 
 

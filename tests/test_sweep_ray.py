@@ -16,8 +16,9 @@ from learn.train import read_metrics, train  # noqa: E402
 from learn.config import TrainConfig  # noqa: E402
 
 #: trials of a few seconds: 20-step episodes, 2 envs, 3 evaluations
-TINY = ["episode_steps=20", "n_envs=2", "warmup_episodes=2", "episodes=4", "eval_every=40", "eval_episodes=2",
-        "replay_size=400", "batch_size=8", "actor_hidden=8x8", "critic_hidden=16x16", "updates_per_step=0.5"]
+TINY = ["world=thesis", "episode_steps=20", "n_envs=2", "warmup_episodes=2", "episodes=4", "eval_every=40",
+        "eval_episodes=2", "replay_size=400", "batch_size=8", "actor_hidden=8x8", "critic_hidden=16x16",
+        "updates_per_step=0.5"]
 ARGS = ["--preset", "quick", "--seeds", "1", "2", "--grid", *TINY, "--quiet"]
 
 

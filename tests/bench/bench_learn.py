@@ -41,7 +41,7 @@ def throughput(seconds: float = 4.0) -> None:
     print(f"{'robots':>6} {'n_envs':>6} {'env steps/s':>12}")
     for M in (2, 4):
         for B in (1, 16, 64):
-            cfg = TrainConfig(n_robots=M, n_envs=B)
+            cfg = TrainConfig(world="thesis", n_robots=M, n_envs=B)
             world = cfg.world_config()
             torch.set_num_threads(1)
             agent = MAGDDPG(world.history_dim(cfg.t_prev), world.state_dim(M), M, cfg.actor_hidden,
@@ -69,7 +69,7 @@ def throughput(seconds: float = 4.0) -> None:
         for N in (32, 256):
             for threads in (1, 2):
                 torch.set_num_threads(threads)
-                cfg = TrainConfig(n_robots=M)
+                cfg = TrainConfig(world="thesis", n_robots=M)
                 world = cfg.world_config()
                 agent = MAGDDPG(world.history_dim(cfg.t_prev), world.state_dim(M), M, cfg.actor_hidden,
                                 cfg.critic_hidden, cfg.gamma, cfg.tau, cfg.lr_actor, cfg.lr_critic)
@@ -96,7 +96,7 @@ def train_goals(seeds: list[int], out: Path) -> list[Path]:
     runs = []
     for M, minutes in GOALS.items():
         for seed in seeds:
-            cfg = from_preset("fast", n_robots=M, seed=seed, max_minutes=minutes, threads=1)
+            cfg = from_preset("fast", world="thesis", n_robots=M, seed=seed, max_minutes=minutes, threads=1)
             run = out / f"goal{M}__fast__{seed}__{int(time.time())}"
             train(cfg, run, progress=True)
             runs.append(run)

@@ -50,9 +50,9 @@ def read_rows(run: Path) -> list[dict]:
 def train_both(minutes: float, seed: int, out: Path) -> tuple[Path, Path]:
     """Start the GRU and the matched MLP run together (one thread each); wait for both."""
     gru, mlp = out / f"gru32_2r_s{seed}", out / f"mlp26_2r_s{seed}"
-    cmds = [[sys.executable, "-m", "learn", "train-recurrent", "--robots", "2", "--hidden", "32", "--seed", str(seed),
-             "--max-minutes", str(minutes), "--threads", "1", "--out", str(gru), "--quiet"],
-            [sys.executable, "-m", "learn", "train", "--robots", "2", "--preset", "fast", "--history", "10",
+    cmds = [[sys.executable, "-m", "learn", "train-recurrent", "--world", "thesis", "--robots", "2", "--hidden", "32",
+             "--seed", str(seed), "--max-minutes", str(minutes), "--threads", "1", "--out", str(gru), "--quiet"],
+            [sys.executable, "-m", "learn", "train", "--world", "thesis", "--robots", "2", "--preset", "fast", "--history", "10",
              "--actor-hidden", "26", "26", "--eval-episodes", "20", "--threads", "1", "--seed", str(seed),
              "--max-minutes", str(minutes), "--exp-name", "mlp-matched", "--out", str(mlp), "--quiet"]]
     procs = [subprocess.Popen(c, cwd=ROOT) for c in cmds]
@@ -64,8 +64,8 @@ def train_both(minutes: float, seed: int, out: Path) -> tuple[Path, Path]:
 def train_guided(minutes: float, seed: int, out: Path) -> Path:
     """One guided MAGRDPG run (``--preset guided``, GRU 32, 2 robots), one torch thread."""
     run = out / f"gru32_guided_2r_s{seed}"
-    subprocess.run([sys.executable, "-m", "learn", "train-recurrent", "--preset", "guided", "--robots", "2", "--hidden", "32",
-                    "--seed", str(seed), "--max-minutes", str(minutes), "--threads", "1", "--out", str(run),
+    subprocess.run([sys.executable, "-m", "learn", "train-recurrent", "--world", "thesis", "--preset", "guided", "--robots", "2",
+                    "--hidden", "32", "--seed", str(seed), "--max-minutes", str(minutes), "--threads", "1", "--out", str(run),
                     "--quiet"], cwd=ROOT, check=True)
     return run
 
