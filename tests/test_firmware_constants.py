@@ -125,3 +125,16 @@ def test_no_literal_half_up_constant_or_accumulator_limit():
             code = "\n".join(ln for ln in p.read_text().splitlines() if not ln.lstrip().startswith("#"))
             code = re.sub(r'"""(?:.|\n)*?"""', "", code)  # docstrings may explain the rule
             assert not pattern.search(code), f"{p.relative_to(ROOT)} writes the constant again"
+
+
+def test_flashing_checklist_reads_the_leds_the_firmware_sets():
+    """docs/flashing.md's LED table names each LED_* colour of the contract with its meaning, and no other colour."""
+    colour = {(0, 0, 1): "blue", (0, 1, 0): "green", (1, 1, 0): "yellow", (0, 0, 0): "off"}
+    rows = dict(re.findall(r"^\s*\| (blue \(dim\)|green|yellow|off) \| (.+) \|$",
+                           (ROOT / "docs" / "flashing.md").read_text(), re.M))
+    expected = {fw.LED_BEACON: "beacon", fw.LED_SENSING: "heard the beacon", fw.LED_NBR_SENSING: "neighbour",
+                fw.LED_OFF: "neither"}
+    assert len(rows) == len(expected) == 4
+    for rgb_value, meaning in expected.items():
+        name = next(k for k in rows if k.split()[0] == colour[rgb_value])
+        assert meaning in rows[name], (name, rows[name])
