@@ -251,3 +251,19 @@ def test_default_cache_in_an_unwritable_temp_dir_is_one_line(tmp_path, monkeypat
     with pytest.raises(CacheError, match=CACHE_ENV) as e:
         cached_program("kf_test", "k1", _builder(tmp_path / "m"))
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("mode,ok", [(0o777, False), (0o775, False), (0o1777, True), (0o755, True)])
+def test_default_cache_needs_a_sticky_or_private_temp_dir(tmp_path, monkeypatch, mode, ok):
+    """A temp directory others may write without the sticky bit is refused (they could swap the cache); sticky or private is used."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, mode)
+    monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.setattr(buildcache.tempfile, "tempdir", str(shared))
+    monkeypatch.setattr(buildcache, "_FRESH", [])
+    if ok:
+        assert cached_program("kf_test", "k1", _builder(tmp_path / "m")).parent == shared / f"kiloforge-{os.geteuid()}"
+    else:
+        with pytest.raises(CacheError, match="not sticky"):
+            cached_program("kf_test", "k1", _builder(tmp_path / "m"))

@@ -9,7 +9,8 @@ A cached program is only ever run from a *private* directory and only after it i
   have written into it). ``$KILOFORGE_CACHE`` failing the check is refused with one line
   (:class:`CacheError`); the default location failing it (in a shared temp directory anybody can
   create that name first) is left alone and a fresh private directory (``tempfile.mkdtemp``) serves
-  this process and is removed at exit.
+  this process and is removed at exit. A temp directory that others may write without the sticky bit
+  (so they could rename our directory and put theirs in its place) is refused.
 * a program ``NAME-KEY`` (KEY: a hash of its source and flags) has a sidecar ``NAME-KEY.sha256``
   holding the sha256 of its bytes, written when it was built, before the program is renamed into
   place. Before it is returned the program is opened without following links and must be a regular
@@ -114,6 +115,10 @@ def cache_dir() -> Path:
         return d
     try:
         d = default_location()
+        st = os.stat(d.parent)
+        if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
+            raise CacheError(f"the temp directory {printable(d.parent)} is writable by others and not sticky: anybody "
+                             f"could swap the build cache inside it; set {CACHE_ENV} to a private directory of yours")
         if _make_private(d, parents=False) is None:
             return d
         if not _FRESH or not_private(_FRESH[0]) is not None:
