@@ -134,8 +134,9 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
             "world's bodies, range and arena); the 'of ceiling' column is left out")
     results: dict = {"task": {**task.ref.to_dict(), "primary_metric": task.primary_metric},
                      "world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
-                     "policies": {n: {"hash": p.hash, "t_prev": p.t_prev, "hidden": p.hidden,
-                                      "provenance": p.provenance} for n, p in policies.items()},
+                     "policies": {n: {"hash": p.hash, "kind": p.kind, "architecture": p.describe(),
+                                      "layer_sizes": list(p.layer_sizes), "provenance": p.provenance}
+                                  for n, p in policies.items()},
                      "robots": {}}
     if with_ceiling and world.collisions and world.robot_radius_mm > 0:
         results["packing"] = {"open_capacity": open_capacity(world), "mean_capacity": mean_capacity(world)}

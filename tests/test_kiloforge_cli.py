@@ -250,3 +250,16 @@ def test_learn_evaluate_labels_same_named_policies_apart(tmp_path):
     r = kiloforge_run(["evaluate", "--policy", a, a, *rest[:-1], "ev2"], tmp_path, code=NO_LEARN_EXTRA)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "twice" in r.stderr
     assert not (tmp_path / "ev2").exists()
+
+
+def test_learn_evaluate_takes_every_shipped_policy(tmp_path):
+    """`learn evaluate` runs every shipped policy file, hand-written kinds included, and records each one's kind."""
+    from export.shipped import load_task_policy, shipped_names
+    from learn.evaluate import evaluate_policies
+
+    pols = {name: load_task_policy(name) for name in shipped_names()}
+    (tmp_path / "ev").mkdir()
+    evaluate_policies(pols, [2], 1, 5, tmp_path / "ev", gif=False, progress=False, baselines=False)
+    recorded = json.loads((tmp_path / "ev" / "evaluation.json").read_text())["policies"]
+    assert {n: r["kind"] for n, r in recorded.items()} == {n: p.kind for n, p in pols.items()}
+    assert "searcher" in {p.kind for p in pols.values()}
