@@ -13,7 +13,7 @@ from typing import Sequence
 
 from kiloforge.actors.registry import KINDS
 from kiloforge.cliparse import deprecated_alias
-from sim.config import preset
+from sim.config import DEFAULT_WORLD, PRESETS, preset
 from sim.tasks import get_task
 
 from ..codegen import budget as bud
@@ -30,7 +30,8 @@ def budget_parser() -> argparse.ArgumentParser:
         for o in kind.budget_options:
             ap.add_argument(o.flag, dest=o.dest, type=positive if o.positive else str, nargs=o.nargs,
                             default=o.default, metavar=o.metavar, choices=o.choices, help=o.help)
-    deprecated_alias(ap, "--preset", ap.add_argument("--world", default="kilobot", help="world preset (default kilobot)"))
+    deprecated_alias(ap, "--preset", ap.add_argument("--world", default=DEFAULT_WORLD, choices=sorted(PRESETS),
+                                                     help=f"world preset (default {DEFAULT_WORLD})"))
     add_task(ap)
     return ap
 

@@ -18,7 +18,10 @@ from kiloforge.cliparse import ArgumentParser, error_line, program
 from kiloforge.interrupts import exit_status
 from kiloforge.validate import int_arg
 
-from ..config import ConfigError
+from sim.config import DEFAULT_WORLD
+from sim.config import PRESETS as WORLD_PRESETS
+
+from ..config import PRESETS, ConfigError
 from . import trial as tr
 from .aggregate import aggregate, write_manifest
 from .grid import Grid, Trial, build_grid, expand, read_grid_file
@@ -33,10 +36,12 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("grid (command-line options replace the --file's)")
     g.add_argument("--file", default=None, help="grid file (.json or .toml; see docs/sweeps.md)")
     g.add_argument("--trainer", choices=tr.TRAINERS, default=None, help="trainer (default magddpg)")
-    g.add_argument("--preset", nargs="+", default=None, help="training preset(s) (an axis when several)")
+    presets = "; ".join(f"{t}: {', '.join(PRESETS[t])}" for t in tr.TRAINERS)
+    g.add_argument("--preset", nargs="+", default=None, help=f"training preset(s) (an axis when several): {presets}")
     g.add_argument("--seeds", nargs="+", type=int_arg(), default=None, help="seeds (default 1)")
     g.add_argument("--robots", nargs="+", type=int_arg(), default=None, help="robots trained together (n_robots)")
-    g.add_argument("--world", nargs="+", default=None, help="world preset(s)")
+    g.add_argument("--world", nargs="+", default=None,
+                   help=f"world preset(s): {', '.join(sorted(WORLD_PRESETS))} (default {DEFAULT_WORLD})")
     g.add_argument("--task", nargs="+", default=None, help="task(s) (sim.tasks; default localisation)")
     g.add_argument("--history", nargs="+", type=int_arg(), default=None, help="history lengths (t_prev; magddpg)")
     g.add_argument("--grid", nargs="+", action="extend", default=None, metavar="KEY=V1,V2",
