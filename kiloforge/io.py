@@ -366,8 +366,9 @@ def _read_journal(stage: Path) -> list[str] | None:
 
 
 def _simple_name(name: object) -> bool:
-    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name \
-        and "\0" not in name and name != JOURNAL
+    """A name inside one directory: no separator of this system (a backslash is a plain character on POSIX)."""
+    return isinstance(name, str) and name not in ("", ".", "..") and os.sep not in name \
+        and (os.altsep is None or os.altsep not in name) and "\0" not in name and name != JOURNAL
 
 
 def _apply(directory: Path, stage: Path, names: Sequence[str]) -> None:

@@ -7,7 +7,9 @@
   128 + SIGPIPE, as a program killed by SIGPIPE would (what it had published stays complete);
 * **standard output that cannot be written** (``>/dev/full``) and any other ``OSError`` that reaches the
   program (a file name too long, a full disk, an unreadable directory) end in the one line
-  ``<program>: error: ...`` with exit status 2.
+  ``<program>: error: ...`` with exit status 2; when standard output failed after the command had
+  published files (:func:`kiloforge.io.published_since`) or completed, the line says so (those files are
+  complete sets).
 """
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ import sys
 from typing import Any, Callable
 
 from .cliparse import EXIT_USAGE, error_line
-from .errors import os_error_text
+from .errors import os_error_text, printable
+from .io import published_count, published_since
 
 EXIT_BROKEN_PIPE = 141  #: 128 + SIGPIPE: the reader of standard output went away
 
@@ -91,7 +94,7 @@ def guarded_output(prog: str, run: Callable[[], int]) -> int:
     tolerant_streams()
     watched = sys.stdout = _Watched(sys.stdout)
     try:
-        status = _run(prog, run, watched)
+        status = _run(prog, run, watched, published_count())
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) or e.code is None else EXIT_USAGE
         if sys.stdout is watched:
@@ -104,7 +107,7 @@ def guarded_output(prog: str, run: Callable[[], int]) -> int:
     return _flushed(prog, status)
 
 
-def _run(prog: str, run: Callable[[], int], watched: _Watched) -> int:
+def _run(prog: str, run: Callable[[], int], watched: _Watched, mark: int) -> int:
     try:
         return run()
     except BrokenPipeError:
@@ -113,7 +116,9 @@ def _run(prog: str, run: Callable[[], int], watched: _Watched) -> int:
     except OSError as e:
         if e is watched.failed:  # a print of the command
             _drop_stdout()
-            text = f"cannot write standard output ({os_error_text(e, name=False)})"
+            written = published_since(mark)
+            text = f"cannot write standard output ({os_error_text(e, name=False)})" + (
+                f"; {', '.join(printable(p) for p in written)} had been written completely" if written else "")
         else:
             text = os_error_text(e)
         print(error_line(prog, text), file=sys.stderr)

@@ -67,7 +67,8 @@ def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path:
         ax.grid(alpha=0.3)
         ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 4))
     axes[1].set_ylim(-0.02, 1.02)
-    axes[0].legend(fontsize=7, loc="lower right")
+    if axes[0].get_legend_handles_labels()[0]:  # runs without rows draw no line
+        axes[0].legend(fontsize=7, loc="lower right")
     if title:
         fig.suptitle(title, fontsize=9)
     return save_png(fig, path)

@@ -44,8 +44,8 @@ from kiloforge.errors import PolicyError
 from kiloforge.validate import read_npz
 from sim.config import WorldConfig, preset
 
-OUTCOMES = ("accepted", "rejected", "traceback", "partial_output", "accepted_corrupt", "bad_message")
-FAILURES = ("traceback", "partial_output", "accepted_corrupt", "bad_message")
+OUTCOMES = ("accepted", "rejected", "traceback", "hang", "partial_output", "accepted_corrupt", "bad_message")
+FAILURES = ("traceback", "hang", "partial_output", "accepted_corrupt", "bad_message")
 TOL = 1e-4  #: float32 runtime vs the float64 reference
 
 
@@ -60,7 +60,8 @@ class Tally:
         c = self.counts.setdefault(target, {o: 0 for o in OUTCOMES})
         c[outcome] += 1
         if outcome in FAILURES and len(self.failures) < 50:
-            self.failures.append(f"{target}: {outcome}: {detail[:2000]}")
+            cut = detail if len(detail) <= 2400 else f"{detail[:600]} ... {detail[-1800:]}"
+            self.failures.append(f"{target}: {outcome}: {cut}")
 
 
 def fuzz_settings(n: int) -> settings:
