@@ -12,7 +12,7 @@ becomes the pusher taking each turn's direction from that bit (:class:`CoinPushe
 the coin its demonstrator turned by. ``train-es`` is ``python -m learn train-es`` in that world; ``evaluate`` plays
 the given policies, the pusher and the pusher on the coin on the same held-out episodes at 4, 16 and 32 robots. The
 coin's stream (``--coin-seed``) is not tied to the episode seeds, so reruns move the results slightly.
-Results: docs/results.md ("a coin does not move them").
+Results: docs/results/localisation.md ("a coin does not move them").
 """
 from __future__ import annotations
 

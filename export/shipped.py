@@ -18,7 +18,7 @@ from sim.tasks import Task, check_policy_task, get_task
 
 #: task -> shipped name -> file in this package's data/
 SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
-    "default": "default_policy.npz",  #: learned by evolution strategies (README, docs/results.md)
+    "default": "default_policy.npz",  #: learned by evolution strategies (README, docs/results/localisation.md)
     "searcher": "searcher_policy.npz",  #: sim.baselines' hand-written searcher, TUNED["kilobot"]
     "pusher": "pusher_policy.npz",  #: the same with sim.baselines.PUSHER
 }}

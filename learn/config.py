@@ -438,7 +438,7 @@ class ESConfig(ConfigBase):
     init_policy: str = ""
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
     #: the demonstrator stops once it hears the beacon within this fraction of the range (0 = the searcher's tuned
-    #: value, 0.6 in the kilobot world; 0.94 crowds 32 robots better, docs/results.md)
+    #: value, 0.6 in the kilobot world; 0.94 crowds 32 robots better, docs/results/localisation.md)
     demo_stop_dist: float = 0.0
     bc_updates: int = 6000  #: behaviour-cloning Adam steps
     bc_lr: float = 1e-3  #: Adam learning rate of behaviour cloning

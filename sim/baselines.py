@@ -24,7 +24,7 @@ crowds at the target: it stops only within 0.94 of the range, at level 2 it coun
 the distance has grown by ``push_margin`` above its best since the last turn (so a robot blocked by the crowd
 keeps pushing straight instead of tumbling along its edge), and a settled robot pushed out beyond its stopping
 distance drives on (``hold_within``), counting its best from where it was pushed to. It packs 32 robots closer
-than the searcher (docs/results.md).
+than the searcher (docs/results/localisation.md).
 
 Commands are only ``(speed, speed)`` (straight), ``(1, 0)`` / ``(0, 1)`` (one turn period: ≈45°; in
 the thesis kinematics with 5 mm forward, in the kilobot preset a pivot) and ``(0, 0)`` (stop).

@@ -85,7 +85,7 @@ MAX_RBF_CENTRE_MM = 1000.0  #: distances are reported in whole mm up to 255: a c
 #: world's own episode (WorldConfig.episode_steps: thesis 200, kilobot 300), as the policy was trained
 BENCHMARK_STEPS = 500
 BENCHMARK_EPISODES = 500  #: episodes per policy and swarm size in that benchmark
-#: the episode seed of the held-out evaluations in docs/results.md: no training or model selection draws from it
+#: the episode seed of the held-out evaluations in docs/results/localisation.md: no training or model selection draws from it
 HELD_OUT_SEED = 20261202
 
 

@@ -29,3 +29,11 @@ def test_relative_links_resolve(page):
         if not dest.exists() or (anchor and dest.suffix == ".md" and anchor not in anchors(dest)):
             broken.append(target)
     assert broken == []
+
+
+def test_readme_is_the_front_door():
+    """The README stays short (<= 150 lines) and opens with the two Quick start commands."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 150
+    quick = text[text.index("## Quick start"):]
+    assert "pip install . && python -m export --out kilobot_policy.c\nbash tests/run.sh\n" in quick
