@@ -267,3 +267,36 @@ def test_default_cache_needs_a_sticky_or_private_temp_dir(tmp_path, monkeypatch,
     else:
         with pytest.raises(CacheError, match="not sticky"):
             cached_program("kf_test", "k1", _builder(tmp_path / "m"))
+
+
+def _tiny_firmware() -> str:
+    from export.codegen.render import POLICY_FILE, render_firmware
+    from kiloforge.actors.searcher import quantize_searcher, searcher_policy
+    from sim.config import preset
+    return render_firmware(quantize_searcher(searcher_policy(preset("kilobot"))), generator_version="t")[POLICY_FILE]
+
+
+def test_host_build_in_a_shared_directory_is_refused(tmp_path):
+    """build_host into a directory others may write (0777) refuses in one line instead of reusing what is there."""
+    from export.verify.hostbuild import build_host, compiler
+    if compiler() is None:
+        pytest.skip("no host C compiler")
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o777)
+    with pytest.raises(CacheError, match="build directory"):
+        build_host(_tiny_firmware(), shared)
+
+
+def test_host_build_planted_is_rebuilt(tmp_path):
+    """A host build replaced in its (private) build directory is rebuilt before build_host returns it."""
+    from export.verify.hostbuild import build_host, compiler
+    if compiler() is None:
+        pytest.skip("no host C compiler")
+    src = _tiny_firmware()
+    exe = build_host(src, tmp_path / "b")
+    good = exe.read_bytes()
+    marker = tmp_path / "m"
+    exe.write_text(_script(marker, "planted"))  # new bytes under the old sidecar
+    again = build_host(src, tmp_path / "b")
+    assert again == exe and again.read_bytes() == good and not marker.exists()

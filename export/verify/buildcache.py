@@ -200,10 +200,20 @@ def _locked(d: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def cached_program(name: str, key: str, build: Callable[[Path], None]) -> Path:
-    """The verified program ``NAME-KEY`` of the private cache; ``build(path)`` writes it (e.g. a
-    compiler's ``-o path``) when it is missing or fails verification. Never returns an unverified path."""
-    d = cache_dir()
+def private_dir(directory: str | os.PathLike) -> Path:
+    """``directory`` (created 0700 when missing) if it is private (:func:`not_private`), else :class:`CacheError`."""
+    d = Path(directory).absolute()
+    why = _make_private(d, parents=True)
+    if why:
+        raise CacheError(f"the build directory {printable(d)} {why}; build into a private directory of yours")
+    return d
+
+
+def cached_program(name: str, key: str, build: Callable[[Path], None], directory: str | os.PathLike | None = None) -> Path:
+    """The verified program ``NAME-KEY`` of the private cache (or of the private ``directory``: a caller's
+    own build directory, checked like the cache); ``build(path)`` writes it (e.g. a compiler's ``-o path``)
+    when it is missing or fails verification. Never returns an unverified path."""
+    d = cache_dir() if directory is None else private_dir(directory)
     program = d / f"{name}-{key}"
     if verified(program):
         return program

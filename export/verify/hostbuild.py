@@ -24,14 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from kiloforge.actors.base import QuantizedActor
-from kiloforge.io import atomic_path
 
 from ..codegen.render import POLICY_FILE, TARGET_FILE, runtime_defines
 from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..contract.firmware import EVENT_DTYPE, TICK_RECORD_BYTES
 from ..errors import ExportError
-from . import tools
+from . import buildcache, tools
 from .emulator import FirmwareEmulator, FirmwareInputs, FirmwareOutputs, n_control_steps
 
 HOST_DIR = TEMPLATE_DIR / "host"
@@ -67,27 +66,27 @@ def build_host(c_source: str, workdir: Path | str, name: str = "kilobot_policy",
     """Compile ``c_source`` with the stand-in and the harness; returns the executable's path.
 
     ``sanitize`` adds :data:`SANITIZE_CFLAGS` (ASan + UBSan, the first finding aborts the run). The
-    build is cached in ``workdir`` by the hash of the source, the flags and the stand-in files.
+    build is cached in ``workdir`` (a private directory: created 0700, else refused) by the hash of the
+    compiler, the source, the flags and the stand-in files, and verified before it is returned like the
+    simavr runner (:func:`export.verify.buildcache.cached_program`).
     """
     cc = tools.host_cc()
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
+    workdir = buildcache.private_dir(workdir)
     sources = [HOST_DIR / "kilolib_host.c", HOST_DIR / "harness.c"]
     flags = (*HOST_CFLAGS, *(SANITIZE_CFLAGS if sanitize else ()), *runtime_flags())
     h = hashlib.sha256(c_source.encode() + "\0".join([*cc, *flags]).encode())
     for p in sorted(HOST_DIR.parent.glob("kf_*.h")) + sorted(HOST_DIR.glob("*")):
         h.update(p.read_bytes())
-    exe = workdir / f"{name}-{h.hexdigest()[:16]}"
-    if exe.exists():
-        return exe
-    src = workdir / f"{name}.c"
-    src.write_text(c_source, encoding="utf-8")
-    with atomic_path(exe, executable=True) as tmp:
-        cmd = [*cc, *flags, "-I", str(HOST_DIR), "-o", str(tmp), str(src), *map(str, sources)]
+
+    def compile_to(out: Path) -> None:
+        src = workdir / f"{name}.c"
+        src.write_text(c_source, encoding="utf-8")
+        cmd = [*cc, *flags, "-I", str(HOST_DIR), "-o", str(out), str(src), *map(str, sources)]
         res = tools.run(cmd, "the host build", capture_output=True, text=True)
         if res.returncode != 0:
             raise HostBuildError(f"host build of {src.name} failed:\n{res.stderr.strip()}")
-    return exe
+
+    return buildcache.cached_program(name, h.hexdigest()[:16], compile_to, directory=workdir)
 
 
 # --- binary streams ---------------------------------------------------------------------------
