@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.config import OBS_RBF, WorldConfig
+from sim.config import WorldConfig
 from sim.radio import rbf_rows
 
 
@@ -43,5 +43,5 @@ class PhantomNeighbours:
         n = cfg.n_rbf
         slot = np.repeat(np.arange(B * M) * n, k)[:, None] + np.arange(n)  # (K, n_rbf) flat (robot, bin)
         hist = np.bincount(slot.ravel(), weights=rbf_rows(cfg, d).ravel(), minlength=B * M * n)  # sums in draw order
-        obs[..., OBS_RBF:] += hist.reshape(B, M, n).astype(obs.dtype)
+        obs[..., cfg.obs_slice("rbf")] += hist.reshape(B, M, n).astype(obs.dtype)
         return obs

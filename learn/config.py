@@ -130,10 +130,10 @@ class ConfigBase:
              "use --demo-policy none (random initial weights)")
 
     def world_config(self) -> WorldConfig:
-        """The world this run trains in (world preset, with ``episode_steps`` when set)."""
-        if self.episode_steps:
-            return world_preset(self.world, episode_steps=self.episode_steps)
-        return world_preset(self.world)
+        """The world this run trains in: the world preset (with ``episode_steps`` when set) with the task's beacon
+        and observation layout (:meth:`sim.tasks.Task.world`)."""
+        world = world_preset(self.world, episode_steps=self.episode_steps) if self.episode_steps else world_preset(self.world)
+        return self.task_spec().world(world)
 
     # --- (de)serialisation ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -32,7 +32,8 @@ from kiloforge.io import write_atomic
 from kiloforge.numfmt import ACTIVATIONS, act_float
 from kiloforge.policies import load_policy
 from kiloforge.validate import int_arg
-from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
+from sim.config import ACTION_DIM, WorldConfig
+from sim.features import input_names
 
 DEFAULT_OPSET = 17
 MIN_OPSET = 11  #: Clip takes its bounds as inputs from opset 11
@@ -53,11 +54,8 @@ def kiloforge_version() -> str:
 
 
 def obs_layout(world: WorldConfig) -> dict[str, Any]:
-    """Names of one history tuple's features, in input order (from the sim.config constants)."""
-    names = [""] * world.obs_dim
-    names[OBS_WALL], names[OBS_TARGET], names[OBS_NBR_SENSING] = "wall", "target_dist", "nbr_sensing"
-    for k in range(world.n_rbf):
-        names[OBS_RBF + k] = f"rbf_{k}"
+    """Names of one history tuple's features, in input order (the world's layout, sim.features)."""
+    names = input_names(world)
     return {"tuple": ["a_prev_left", "a_prev_right"] + names, "tuple_dim": world.tuple_dim,
             "order": "oldest tuple first", "action": ["u_left", "u_right"]}
 

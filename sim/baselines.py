@@ -39,7 +39,7 @@ import numpy as np
 
 from kiloforge.errors import InputError
 
-from .config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
+from .config import ACTION_DIM, WorldConfig
 
 
 class RandomPolicy:
@@ -196,11 +196,12 @@ class HandWrittenSearcher:
         p = self.p
         B, M, _ = obs.shape
         shape = (B, M)
-        wall = obs[..., OBS_WALL] > 0.5
-        tdist = obs[..., OBS_TARGET]  # distance / comm radius, -1 when not heard
+        w = self.cfg
+        wall = obs[..., w.obs_index("wall")] > 0.5
+        tdist = obs[..., w.obs_index("target")]  # distance / comm radius, -1 when not heard
         heard = tdist >= 0
-        nbr = obs[..., OBS_NBR_SENSING] > 0.5
-        prox = obs[..., OBS_RBF:] @ self.prox_w  # (B, M) neighbour proximity
+        nbr = obs[..., w.obs_index("nbr_sensing")] > 0.5
+        prox = obs[..., w.obs_slice("rbf")] @ self.prox_w  # (B, M) neighbour proximity
         level = np.where(heard, 2, np.where(nbr, 1, 0)).astype(np.int8)
         score = np.where(heard, -tdist, prox)
 

@@ -54,8 +54,11 @@ from kiloforge import numfmt
 from kiloforge.errors import InputError
 from kiloforge.validate import check_keys, check_str, check_typed, show
 
-# Observation layout (docs/design.md control-step contract, step 2; thesis §4.1). One definition, used
-# by the simulator, the trainer, the emulator and the renderer.
+from .features import FEATURES, LEGACY_FEATURES, parse_features
+
+# Localisation's observation layout (docs/design.md control-step contract, step 2; thesis §4.1), the
+# legacy default of WorldConfig.obs_features. Code that reads observations of any world uses
+# WorldConfig.obs_index(name) (sim/features.py holds the features).
 OBS_WALL = 0  #: 1.0 when the ambient-light reading says a wall is near, else 0.0
 OBS_TARGET = 1  #: distance to the target / comm radius in [0, 1] when heard this period, else -1
 OBS_NBR_SENSING = 2  #: 1.0 when a heard searcher's latest message says it senses the target
@@ -140,6 +143,11 @@ class WorldConfig:
     reward_scale: float = 5.0  #: thesis §4.2 factor 5
     action_penalty: float = 0.01  #: thesis §4.2 weight of the squared action norm
     spawn_margin_mm: float = 0.0  #: robots and target spawn this far inside the walls
+    #: True: a beacon robot (kilo_uid ``target_uid``) that only transmits stands in the world, and the firmware
+    #: has its beacon role; set by the task (:meth:`sim.tasks.Task.world`)
+    beacon: bool = True
+    #: the observation, comma-separated feature names of :mod:`sim.features` in input order; set by the task
+    obs_features: str = LEGACY_FEATURES
 
     def __post_init__(self) -> None:
         check_str(self.name, "WorldConfig name", max_len=64)
@@ -199,12 +207,37 @@ class WorldConfig:
              f"episode_steps must be in 1..{MAX_EPISODE_STEPS}, got {self.episode_steps}")
         if self.tick_level:
             need(self.msg_period_ticks >= 1, "tick-level worlds need msg_period_ticks >= 1")
+        check_str(self.obs_features, f"WorldConfig '{self.name}': obs_features", max_len=256)
+        object.__setattr__(self, "_features", parse_features(self.obs_features, self.beacon,
+                                                              f"WorldConfig '{self.name}'"))
 
     # --- derived constants (one definition each) --------------------------------------------
     @property
+    def features(self) -> tuple[str, ...]:
+        """The observation's feature names in input order (``obs_features``, parsed)."""
+        return self._features  # type: ignore[attr-defined]
+
+    def has_feature(self, name: str) -> bool:
+        return name in self.features
+
+    def obs_index(self, name: str) -> int:
+        """First input of feature ``name`` in this world's observation (KeyError naming the layout when absent)."""
+        i = 0
+        for n in self.features:
+            if n == name:
+                return i
+            i += FEATURES[n].width(self)
+        raise KeyError(f"world '{self.name}' observes {self.obs_features}, not {name!r}")
+
+    def obs_slice(self, name: str) -> slice:
+        """The inputs of feature ``name``."""
+        i = self.obs_index(name)
+        return slice(i, i + FEATURES[name].width(self))
+
+    @property
     def obs_dim(self) -> int:
-        """Length of one observation: wall, target distance, neighbour-sensing flag, RBF bins."""
-        return OBS_RBF + self.n_rbf
+        """Length of one observation: the sum of its features' widths (localisation: 3 + n_rbf)."""
+        return sum(FEATURES[n].width(self) for n in self.features)
 
     @property
     def tuple_dim(self) -> int:
@@ -262,7 +295,8 @@ class WorldConfig:
 
 
 #: fields added after policy artifacts were first written, and the value that older worlds had
-_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5}
+_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5,
+                                 "beacon": True, "obs_features": LEGACY_FEATURES}
 
 THESIS = WorldConfig()
 

@@ -34,7 +34,7 @@ import numpy as np
 
 from kiloforge.errors import InputError
 
-from .config import OBS_WALL, WorldConfig
+from .config import WorldConfig
 from .kinematics import Collider, thesis_move, tick_move, wrap_angle
 from .motion import action_to_u8
 from .variants import Randomisation, WorldDraw
@@ -235,7 +235,7 @@ class SwarmEnv:
         if self.spawn_box() <= 0:
             raise ValueError(f"no room to spawn: arena_half_mm {cfg.arena_half_mm} <= spawn margin / robot radius")
         if cfg.collisions and cfg.robot_radius_mm > 0:
-            discs = self.n_robots + int(self.task.beacon)
+            discs = self.n_robots + int(self.cfg.beacon)
             frac = discs * math.pi * cfg.robot_radius_mm ** 2 / (2 * self.spawn_box()) ** 2
             if frac > MAX_PACKING:
                 side = math.sqrt(discs * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
@@ -388,7 +388,8 @@ class SwarmEnv:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
         self.sensing = flags
-        self._prev_wall = obs[..., OBS_WALL].copy()
+        if self.cfg.has_feature("wall"):
+            self._prev_wall = obs[..., self.cfg.obs_index("wall")].copy()
         info = StepInfo({"events": period.events}, light=light, **self.task.step_info(self))
         return obs, info
 

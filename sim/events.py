@@ -15,12 +15,9 @@ Per receiver and control period (semantics shared with the firmware):
    full, messages from senders without an entry are dropped for the rest of the period. Each later
    message of a sender that has an entry overwrites its distance and sensing flag (latest wins), so
    each sender counts once per period.
-4. At the end of the period the observation is formed and the table is cleared:
-   - wall: ``light >= cfg.light_threshold``; a reading of -1 (busy receiving) keeps the last flag;
-   - target: ``min(d / comm_radius, 1)`` when the target was heard this period, else -1;
-   - neighbour senses target: 1 when any table entry's latest flag is set;
-   - RBF bin k: ``Σ ψ_k(d) / rbf_norm`` over table entries with ``d <= comm_radius``, where
-     ``ψ_k(d) = exp(-(d - μ_k)² / (2σ²))`` (summed in sender order; the firmware sums integers).
+4. At the end of the period the observation is formed and the table is cleared: the world's features
+   (``cfg.obs_features``, chosen by the task) in order, each as :func:`sim.features.reference` defines it
+   (localisation: wall flag, target distance, "a neighbour senses the target", the RBF histogram).
 5. The robot's own "I sense the target" flag for the next period's messages is
    ``target was heard this period``.
 """
@@ -30,7 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_TARGET, WorldConfig
+from .config import ROLE_TARGET, WorldConfig
+from .features import rbf, reference
+
+__all__ = ["HeardEvents", "PeriodSummary", "observe", "rbf", "summarise"]
 
 
 @dataclass
@@ -68,13 +68,6 @@ class HeardEvents:
     def arrival_order(self, n_robots: int) -> np.ndarray:
         """Indices that sort events by (env, rx, tick), ties kept in array order."""
         return np.lexsort((self.tick, self.env.astype(np.int64) * n_robots + self.rx))
-
-
-def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
-    """ψ_k(d) / rbf_norm for every k, zero beyond the communication radius. Shape d.shape + (n_rbf,)."""
-    d = np.asarray(d_mm, dtype=np.float64)[..., None]
-    psi = np.exp(-((d - cfg.rbf_centres_mm) ** 2) / (2.0 * cfg.rbf_sigma_mm ** 2)) / cfg.rbf_norm
-    return np.where(d <= cfg.comm_radius_mm, psi, 0.0)
 
 
 @dataclass
@@ -147,16 +140,8 @@ def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: 
     assert prev_wall.shape == (B, M), f"prev_wall shape {prev_wall.shape} != light shape {(B, M)}"
     summ = summarise(events, cfg, B, M)
     obs = np.zeros((B, M, cfg.obs_dim), np.float64)
-    wall = (light >= cfg.light_threshold).astype(np.float64)
-    obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall)
-    obs[..., OBS_TARGET] = np.where(summ.target_heard,
-                                    np.minimum(summ.target_dist_mm / cfg.comm_radius_mm, 1.0), -1.0)
-    sensing_nbr = np.zeros(B * M)
-    np.maximum.at(sensing_nbr, summ.table_env * M + summ.table_rx, summ.table_flag.astype(np.float64))
-    obs[..., OBS_NBR_SENSING] = sensing_nbr.reshape(B, M)
-    hist = np.zeros((B * M, cfg.n_rbf))
-    np.add.at(hist, summ.table_env * M + summ.table_rx, rbf(cfg, summ.table_dist_mm))
-    obs[..., OBS_RBF:] = hist.reshape(B, M, cfg.n_rbf)
+    for name in cfg.features:
+        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg)
     return obs.astype(np.float32), summ.target_heard.astype(np.uint8)
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig, preset
+from .config import ACTION_DIM, WorldConfig, preset
 
 try:
     import gymnasium
@@ -40,10 +40,11 @@ def observation_bounds(cfg: WorldConfig, n_robots: int) -> tuple[np.ndarray, np.
     """
     lo = np.zeros(cfg.obs_dim, np.float32)
     hi = np.ones(cfg.obs_dim, np.float32)
-    lo[OBS_TARGET] = -1.0
-    lo[OBS_WALL] = lo[OBS_NBR_SENSING] = 0.0
+    if cfg.has_feature("target"):
+        lo[cfg.obs_index("target")] = -1.0
     # each table entry adds at most 1 / rbf_norm to a bin
-    hi[OBS_RBF:] = min(max(n_robots - 1, 0), cfg.neighbour_table_size) / cfg.rbf_norm
+    if cfg.has_feature("rbf"):
+        hi[cfg.obs_slice("rbf")] = min(max(n_robots - 1, 0), cfg.neighbour_table_size) / cfg.rbf_norm
     return lo, hi
 
 

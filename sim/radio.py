@@ -46,7 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from . import compiled, grid
-from .config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_SEARCHER, ROLE_TARGET, WorldConfig
+from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
 
 
@@ -389,8 +389,9 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         ui = ui[keep] if ui is not None else None
         counts = np.minimum(counts, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
-    wall = (light >= cfg.light_threshold).astype(np.float64)
-    obs[..., OBS_WALL] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
+    if cfg.has_feature("wall"):
+        wall = (light >= cfg.light_threshold).astype(np.float64)
+        obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
     heard = np.zeros(B * M, bool)
     tdist = np.zeros(B * M)
     tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
@@ -398,20 +399,24 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         _, t_last = _run_ends(tg) if not period.single else (None, np.arange(tg.size))
         heard[tg] = True
         tdist[tg.take(t_last)] = period.t_dist.take(t_last)
-    obs[..., OBS_TARGET] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0), -1.0).reshape(B, M)
+    if cfg.has_feature("target"):
+        obs[..., cfg.obs_index("target")] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0),
+                                                     -1.0).reshape(B, M)
     if d.size:
         rcv = np.flatnonzero(counts)  # receivers with table entries
         cnt = counts[rcv]
         starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)
         flat = obs.reshape(B * M, cfg.obs_dim)
-        # max of the table's 0/1 flags = (their count > 0); one bincount instead of reduceat + scatter
-        n_flags = np.bincount(g, weights=f, minlength=B * M)
-        flat[:, OBS_NBR_SENSING] = n_flags > 0
-        if ui is None:
-            hist, o = _segment_sums(rbf_rows(cfg, d), starts, cnt, None)
-        else:  # symmetric distances: ψ once per unordered pair
-            hist, o = _segment_sums(rbf_rows(cfg, period.s_udist), starts, cnt, ui)
-        flat[rcv.take(o), OBS_RBF:] = hist
+        if cfg.has_feature("nbr_sensing"):
+            # max of the table's 0/1 flags = (their count > 0); one bincount instead of reduceat + scatter
+            n_flags = np.bincount(g, weights=f, minlength=B * M)
+            flat[:, cfg.obs_index("nbr_sensing")] = n_flags > 0
+        if cfg.has_feature("rbf"):
+            if ui is None:
+                hist, o = _segment_sums(rbf_rows(cfg, d), starts, cnt, None)
+            else:  # symmetric distances: ψ once per unordered pair
+                hist, o = _segment_sums(rbf_rows(cfg, period.s_udist), starts, cnt, ui)
+            flat[rcv.take(o), cfg.obs_slice("rbf")] = hist
     return obs, heard.reshape(B, M).astype(np.uint8)
 
 

@@ -137,7 +137,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
     rewards = np.zeros((n_batches * B, T))
     coverage = np.zeros((n_batches * B, T))
-    has_beacon = env.task.beacon
+    has_beacon = env.cfg.beacon
     beacon = np.zeros((n_batches * B, 2)) if has_beacon else None
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)

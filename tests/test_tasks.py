@@ -174,13 +174,13 @@ def test_aggregation_world_has_no_beacon():
     """Aggregation spawns no beacon: no beacon disc, no beacon messages, success from the robots alone."""
     from sim.tasks.aggregation import largest_cluster, link_mm
 
-    cfg = preset("kilobot")
+    cfg = get_task("aggregation").world(preset("kilobot"))
     env = SwarmEnv(cfg, 3, 12, seed=5, task="aggregation")
     obs, info = env.reset()
     assert env.target is None and env.target_dist is None and env.state().shape == (3, 36)
     for _ in range(3):
         obs, r, _, _, info = env.step(np.full((3, 12, 2), 0.7))
-        assert not np.any(info["events"].role) and np.all(obs[..., 1] == -1)  # the target input is never set
+        assert not np.any(info["events"].role) and obs.shape[-1] == 1 + cfg.n_rbf  # wall and RBF only
         np.testing.assert_array_equal(info["success"], largest_cluster(env.pos, link_mm(cfg), cfg.arena_half_mm)[0])
 
 
@@ -189,7 +189,7 @@ def test_hand_written_aggregator_beats_random():
     from sim.rollout import rollout
 
     task = get_task("aggregation")
-    cfg = dataclasses.replace(preset("kilobot"), episode_steps=300)
+    cfg = task.world(dataclasses.replace(preset("kilobot"), episode_steps=300))
     env = SwarmEnv(cfg, 8, 16, seed=0, task=task)
     final = {name: rollout(env, task.make_baseline(name, cfg), 8, seed=3).metrics().summary()["final_cluster"].mean
              for name in ("aggregator", "random")}

@@ -27,7 +27,7 @@ def main() -> None:
     ap.add_argument("--robots", type=int, default=16)
     ap.add_argument("--episodes", type=int, default=20)
     a = ap.parse_args()
-    world = dataclasses.replace(preset("kilobot"), episode_steps=BENCHMARK_STEPS)
+    world = Aggregation().world(dataclasses.replace(preset("kilobot"), episode_steps=BENCHMARK_STEPS))
     env = SwarmEnv(world, min(a.episodes, 20), a.robots, seed=0, task=Aggregation())
     rows = []
     for values in itertools.product(*GRID.values()):

@@ -40,8 +40,9 @@ def run_budget(argv: Sequence[str]) -> int:
     args = budget_parser().parse_args(list(argv))
     values = vars(args)
     try:
-        world = preset(args.world)
-        get_task(args.task).check_world(world)
+        task = get_task(args.task)
+        world = task.world(preset(args.world))
+        task.check_world(world)
     except ValueError as e:
         raise ExportError(str(e)) from None
     chosen = [k for k in KINDS.values()

@@ -53,7 +53,7 @@ from typing import Any, ClassVar, Mapping
 import numpy as np
 
 from sim.baselines import COUNTER_MAX, TUNED, HandWrittenSearcher, SearcherParams, make_policy, run_lengths
-from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, WorldConfig
+from sim.config import ACTION_DIM, WorldConfig
 from sim.motion import action_to_u8
 from sim.tasks.base import TaskRef
 
@@ -291,12 +291,13 @@ class QuantizedSearcher(QuantizedActor):
         p, one = self.params, int(self.one_q)
         x = np.asarray(x, np.int64)
         o = x[:, ACTION_DIM:]
-        n = self.world.n_rbf
-        wall = 2 * o[:, OBS_WALL] > one
-        tq = o[:, OBS_TARGET]
+        w = self.world
+        n = w.n_rbf
+        wall = 2 * o[:, w.obs_index("wall")] > one
+        tq = o[:, w.obs_index("target")]
         heard = tq >= 0
-        nbr = 2 * o[:, OBS_NBR_SENSING] > one
-        prox = o[:, OBS_RBF:OBS_RBF + n] @ (n - np.arange(n))
+        nbr = 2 * o[:, w.obs_index("nbr_sensing")] > one
+        prox = o[:, w.obs_slice("rbf")] @ (n - np.arange(n))
         level = np.where(heard, 2, np.where(nbr, 1, 0))
         score = np.where(heard, -tq, prox)
         word = xorshift32(state.rng)

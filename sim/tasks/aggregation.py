@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ACTION_DIM, OBS_RBF, OBS_WALL, WorldConfig
+from ..config import ACTION_DIM, WorldConfig
 from ..kinematics import wrap_angle
 from .base import Metric, Task
 
@@ -82,6 +82,7 @@ class Aggregation(Task):
                Metric("return", "return"))
     baselines = {"hand-written": "aggregator", "random": "random"}
     beacon = False
+    features = ("wall", "rbf")
 
     def spawn(self, env) -> tuple[None, np.ndarray, np.ndarray]:
         B, M = env.n_envs, env.n_robots
@@ -156,7 +157,7 @@ class ProbabilisticAggregator:
 
     def neighbours(self, obs: np.ndarray) -> np.ndarray:
         """(B, M) estimated neighbours heard this period."""
-        return obs[..., OBS_RBF:OBS_RBF + self.cfg.n_rbf].sum(axis=-1) / self.per_neighbour
+        return obs[..., self.cfg.obs_slice("rbf")].sum(axis=-1) / self.per_neighbour
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         assert self.rng is not None, "ProbabilisticAggregator.act before reset"
@@ -168,7 +169,7 @@ class ProbabilisticAggregator:
         self.resting = (self.resting | stop) & ~leave
         walking = ~self.resting
         idle = walking & (self.turn_left == 0)
-        wall = idle & (obs[..., OBS_WALL] > 0.5)
+        wall = idle & (obs[..., self.cfg.obs_index("wall")] > 0.5)
         tumble = idle & ~wall & (u[1] < 1.0 / p.run_steps)
         steps = rng.integers(1, p.turn_max_steps + 1, n.shape)
         left = rng.random(n.shape) < 0.5

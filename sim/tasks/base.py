@@ -17,6 +17,7 @@ task it was trained for, and the tools refuse a policy of another task.
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -92,13 +93,27 @@ class Task(ABC):
     #: True: a beacon robot (kilo_uid ``cfg.target_uid``) that only transmits stands in the world (a disc in
     #: collision worlds), and the firmware gets its beacon role; False: only the M robots
     beacon: ClassVar[bool] = False
+    #: the observation: features of :mod:`sim.features` in input order (the world's ``obs_features``)
+    features: ClassVar[tuple[str, ...]] = ("wall", "rbf")
 
     @property
     def ref(self) -> TaskRef:
         return TaskRef(self.name, self.version)
 
+    def world(self, cfg: WorldConfig) -> WorldConfig:
+        """``cfg`` with this task's beacon and observation layout (every world a task runs in is made so)."""
+        spec = ",".join(self.features)
+        if cfg.beacon == self.beacon and cfg.obs_features == spec:
+            return cfg
+        return dataclasses.replace(cfg, beacon=self.beacon, obs_features=spec)
+
     def check_world(self, cfg: WorldConfig) -> None:
-        """Raise InputError when the task cannot run in ``cfg`` (default: every world)."""
+        """Raise InputError when the task cannot run in ``cfg``: a beacon or observation layout other than the
+        task's (:meth:`world`). A subclass that adds conditions calls this first."""
+        spec = ",".join(self.features)
+        if cfg.beacon != self.beacon or cfg.obs_features != spec:
+            raise InputError(f"world '{cfg.name}' has beacon {cfg.beacon} and observation {cfg.obs_features}; task "
+                             f"'{self.name}' needs beacon {self.beacon} and observation {spec} (Task.world(cfg) makes it)")
 
     @abstractmethod
     def spawn(self, env: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

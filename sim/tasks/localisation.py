@@ -37,6 +37,7 @@ class Localisation(Task):
     )
     baselines = {"hand-written": "baseline", "hand-written pusher": "pusher", "random": "random"}
     beacon = True
+    features = ("wall", "target", "nbr_sensing", "rbf")
 
     def spawn(self, env) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         B, M = env.n_envs, env.n_robots

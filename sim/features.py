@@ -1,0 +1,123 @@
+"""Observation features: the registry of what a robot can compute from one control period.
+
+A world's observation (``WorldConfig.obs_features``, chosen by its task: :meth:`sim.tasks.Task.world`) is
+a list of these features, concatenated in the listed order; ``WorldConfig.obs_index(name)`` is a
+feature's first input. Each feature has
+
+* a width (1, or ``n_rbf`` for the RBF histogram);
+* a float reference (:func:`reference`, on :class:`sim.events.PeriodSummary`, the receive rules'
+  result) that :func:`sim.events.observe` writes; :func:`sim.radio.observe_fast` computes the same bits
+  straight from the message arrays;
+* its integer firmware block, ``firmware_templates/features/<name>.c.j2`` (rendered into ``kf_observe``),
+  and the block's bit-exact emulator twin (:data:`export.verify.emulator.INT_FEATURES`);
+* what it needs of the world and the message: ``target`` the beacon (a target slot, the beacon role),
+  ``nbr_sensing`` the beacon and the message's "I sense the target" bit.
+
+``wall``: 1 when the ambient light is at least ``light_threshold`` (a reading of -1 keeps the last flag).
+``target``: ``min(d / comm_radius, 1)`` when the beacon was heard this period, else -1.
+``nbr_sensing``: 1 when a table entry's latest message says its sender senses the target.
+``rbf``: bin k is ``Σ ψ_k(d) / rbf_norm`` over the table entries within the communication radius,
+``ψ_k(d) = exp(-(d - μ_k)² / (2σ²))`` (summed in sender order).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from kiloforge.errors import InputError
+
+#: annotations only: sim.config imports this module, so it cannot import sim.config or sim.events
+WorldConfig = PeriodSummary = Any
+
+@dataclass(frozen=True)
+class Feature:
+    """One observation feature (see the module doc)."""
+
+    name: str
+    doc: str  #: one line: what the input says
+    needs_beacon: bool = False  #: reads the beacon's messages: only in worlds with a beacon
+    uses_flag: bool = False  #: reads the message's "I sense the target" bit
+    per_rbf: bool = False  #: ``n_rbf`` inputs, else one
+    input_name: str = ""  #: the input's name in ONNX metadata (default: the feature's name)
+
+    def width(self, cfg: WorldConfig) -> int:
+        return cfg.n_rbf if self.per_rbf else 1
+
+
+FEATURES: dict[str, Feature] = {f.name: f for f in (
+    Feature("wall", "1 when the ambient light says a wall is near, else 0"),
+    Feature("target", "distance to the beacon / comm radius in [0, 1] when heard this period, else -1",
+            needs_beacon=True, input_name="target_dist"),
+    Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the beacon, else 0",
+            needs_beacon=True, uses_flag=True),
+    Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True),
+)}
+
+#: localisation's layout (the thesis's 14 inputs), the layout of every world written before layouts were chosen
+LEGACY_FEATURES = "wall,target,nbr_sensing,rbf"
+
+
+def parse_features(spec: str, beacon: bool, where: str) -> tuple[str, ...]:
+    """The feature names of ``spec`` (comma-separated, in input order), checked: known, each once, and
+    beacon features only with a beacon. InputError naming ``where`` otherwise."""
+    names = tuple(spec.split(",")) if spec else ()
+    if not names:
+        raise InputError(f"{where}: obs_features is empty; choose from: {', '.join(FEATURES)}")
+    unknown = [n for n in names if n not in FEATURES]
+    if unknown:
+        raise InputError(f"{where}: unknown observation feature(s) {', '.join(map(repr, unknown[:4]))}; "
+                         f"choose from: {', '.join(FEATURES)}")
+    if len(set(names)) != len(names):
+        raise InputError(f"{where}: obs_features lists a feature twice: {spec!r}")
+    if not beacon:
+        need = [n for n in names if FEATURES[n].needs_beacon]
+        if need:
+            raise InputError(f"{where}: observation feature(s) {', '.join(need)} need a beacon (beacon is False)")
+    return names
+
+
+def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
+    """ψ_k(d) / rbf_norm for every k, zero beyond the communication radius. Shape d.shape + (n_rbf,)."""
+    d = np.asarray(d_mm, dtype=np.float64)[..., None]
+    psi = np.exp(-((d - cfg.rbf_centres_mm) ** 2) / (2.0 * cfg.rbf_sigma_mm ** 2)) / cfg.rbf_norm
+    return np.where(d <= cfg.comm_radius_mm, psi, 0.0)
+
+
+def wall_flag(light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig) -> np.ndarray:
+    """(B, M) float64 wall flag: ``light >= light_threshold``; a reading of -1 keeps ``prev_wall``."""
+    wall = (light >= cfg.light_threshold).astype(np.float64)
+    return np.where(light < 0, prev_wall, wall)
+
+
+def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
+              ) -> np.ndarray:
+    """Feature ``name`` of every robot in float64, shape (B, M, width): the definition the firmware block
+    and the fast path follow."""
+    B, M = light.shape
+    if name == "wall":
+        return wall_flag(light, prev_wall, cfg)[..., None]
+    if name == "target":
+        return np.where(summ.target_heard, np.minimum(summ.target_dist_mm / cfg.comm_radius_mm, 1.0), -1.0)[..., None]
+    if name == "nbr_sensing":
+        sensing_nbr = np.zeros(B * M)
+        np.maximum.at(sensing_nbr, summ.table_env * M + summ.table_rx, summ.table_flag.astype(np.float64))
+        return sensing_nbr.reshape(B, M, 1)
+    if name == "rbf":
+        hist = np.zeros((B * M, cfg.n_rbf))
+        np.add.at(hist, summ.table_env * M + summ.table_rx, rbf(cfg, summ.table_dist_mm))
+        return hist.reshape(B, M, cfg.n_rbf)
+    raise KeyError(name)
+
+
+def input_names(cfg: WorldConfig) -> list[str]:
+    """A name per observation input, in order (``rbf_0`` .. for the histogram)."""
+    out: list[str] = []
+    for n in cfg.features:
+        f = FEATURES[n]
+        name = f.input_name or f.name
+        out += [f"{name}_{k}" for k in range(cfg.n_rbf)] if f.per_rbf else [name]
+    return out
+
+
