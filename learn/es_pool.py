@@ -96,6 +96,10 @@ class LocalPool:
     """Every member in this process, one batch per part (``--workers 1``)."""
 
     workers = 1
+    start_s = 0.0
+
+    def warm(self, fitness: Fitness, theta: torch.Tensor) -> None:
+        """Nothing to start: this process is warm once the run has evaluated its weights."""
 
     def evaluate(self, fitness: Fitness, theta: torch.Tensor, sigma: float, pairs: int,
                  seed: np.random.SeedSequence, stop: Stop) -> np.ndarray:
@@ -180,6 +184,7 @@ class RayPool:
         self._fitness: Fitness | None = None
         self._fitness_ref = None
         self._restarting: dict = {}
+        t0 = time.perf_counter()
         try:
             if self.own:
                 init_ray(ray, address, workers, "--ray-address")
@@ -189,6 +194,23 @@ class RayPool:
         except BaseException:
             self.close()
             raise
+        self.start_s = time.perf_counter() - t0  #: seconds to start Ray and the workers, and to warm them
+
+    def warm(self, fitness: Fitness, theta: torch.Tensor) -> None:
+        """Every worker plays one member on every part once (its first call loads the simulator's compiled code
+        and torch's kernels, seconds that belong to the start-up, not to a generation); the results are dropped."""
+        t0 = time.perf_counter()
+        self._fitness, self._fitness_ref = fitness, self.ray.put(fitness)
+        theta_ref, seed = self.ray.put(theta), np.random.SeedSequence(0)
+        calls = [(a, a.evaluate.remote(self._fitness_ref, theta_ref, 0.0, 1, seed, part, 0, 1))
+                 for a in self.actors for part in range(fitness.parts)]
+        for actor, ref in calls:
+            try:
+                self.ray.get(ref)
+            except self.ray.exceptions.RayActorError:  # died: restarted by Ray, probed before it gets members
+                now = time.monotonic()
+                self._restarting[actor] = (now, now)
+        self.start_s += time.perf_counter() - t0
 
     def evaluate(self, fitness: Fitness, theta: torch.Tensor, sigma: float, pairs: int,
                  seed: np.random.SeedSequence, stop: Stop) -> np.ndarray:

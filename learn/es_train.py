@@ -192,6 +192,8 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
                         f"(demonstrator {np.mean(list(demo.values())):.3f})")
                 log_row(evaluate(), float("nan"))
                 save()
+            if gen < cfg.generations:
+                pool.warm(task_fitness(cfg, world, pop, randomise), theta)  # Ray workers: start-up, not generations
             wall_at_start = c.wall_s
             session_start = time.perf_counter()
             gen_at_start, episodes_at_start, session_gen_s = gen, c.episodes, 0.0  # this session's rates
@@ -245,7 +247,8 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
         save()
     c.wall_s = wall_at_start + (time.perf_counter() - session_start)
     write_summary(run_dir, cfg, c, result.stopped,
-                  {"generations": gen, "generation_s": round(c.env_s, 3), "workers": pool.workers})
+                  {"generations": gen, "generation_s": round(c.env_s, 3), "workers": pool.workers,
+                   "workers_start_s": round(pool.start_s, 2)})
     return result
 
 
@@ -350,6 +353,12 @@ class TaskFitness:
         return get_task(self.task)
 
 
+def task_fitness(cfg: ESConfig, world, pop: PopulationMLP, randomise: list) -> TaskFitness:
+    """The fitness of ``cfg``'s task on its swarm sizes (``randomise``: each size's domain randomisation or None)."""
+    return TaskFitness(cfg.task, pop, world, cfg.t_prev, tuple(cfg.n_robots), tuple(randomise),
+                       tuple(cfg.size_episode_counts()))
+
+
 def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss: np.random.SeedSequence,
                weights: list[float], randomise: list, c: Counters, stop: StopRequest, pool) -> tuple[dict, np.ndarray]:
     """One generation's antithetic population on every swarm size (``randomise``: each size's domain
@@ -357,12 +366,10 @@ def generation(cfg: ESConfig, world, pop: PopulationMLP, theta: torch.Tensor, ss
 
     A stop request abandons the generation (the weights stay those of the last one)."""
     eps = noise(ss, cfg.pairs, pop.n_params)
-    counts = tuple(cfg.size_episode_counts())
-    fitness = TaskFitness(cfg.task, pop, world, cfg.t_prev, tuple(cfg.n_robots), tuple(randomise), counts)
-    f_parts = pool.evaluate(fitness, theta, cfg.sigma, cfg.pairs, ss, stop)  # (2 pairs, sizes)
+    f_parts = pool.evaluate(task_fitness(cfg, world, pop, randomise), theta, cfg.sigma, cfg.pairs, ss, stop)  # (2 pairs, sizes)
     utility = sum(w * centred_ranks(f_parts[:, i]) for i, w in enumerate(weights))
     fit = sum(w * f_parts[:, i] for i, w in enumerate(weights))
-    episodes = 2 * cfg.pairs * sum(counts)
+    episodes = 2 * cfg.pairs * sum(cfg.size_episode_counts())
     c.episodes += episodes
     c.env_steps += episodes * world.episode_steps
     return {"mean": float(fit.mean()), "max": float(fit.max()), "eps": eps}, utility

@@ -19,7 +19,7 @@ from kiloforge.policies import load_policy  # noqa: E402
 from learn.__main__ import main  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 from learn.config import ESConfig  # noqa: E402
-from learn.es_pool import LocalPool, blocks, members, noise  # noqa: E402
+from learn.es_pool import LocalPool, RayPool, blocks, members, noise  # noqa: E402
 from learn.es_train import train_es  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,12 +89,20 @@ def _worker_pids(title: bytes) -> list[int]:
     return pids
 
 
-def test_a_killed_worker_has_its_members_run_again(ray_session, reference, tmp_path):
+def test_a_killed_worker_has_its_members_run_again(ray_session, reference, tmp_path, monkeypatch):
     """SIGKILL of a worker in the middle of evaluating members: they run again and the weights are the
     uninterrupted run's."""
-    killed, done = [], threading.Event()
+    killed, done, warmed = [], threading.Event(), threading.Event()
+    warm = RayPool.warm
+
+    def warm_then_say(self, *args):
+        warm(self, *args)
+        warmed.set()
+
+    monkeypatch.setattr(RayPool, "warm", warm_then_say)  # the kill is to land in a generation, after the warm-up
 
     def killer():
+        warmed.wait(240)
         seen: dict[int, int] = {}
         while not done.is_set() and not killed:
             for pid in _worker_pids(b"ray::_Worker.evaluate"):
