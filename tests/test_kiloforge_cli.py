@@ -219,7 +219,7 @@ def test_learn_plot_without_learn_extra(tmp_path, monkeypatch):
     from learn.__main__ import build_parser, cmd_plot
 
     seen = {}  # the title names the runs' trainer
-    monkeypatch.setattr(learn.plots, "plot_learning_curves", lambda groups, out, title: seen.setdefault("title", title))
+    monkeypatch.setattr(learn.plots, "plot_learning_curves", lambda groups, out, title, **kw: seen.setdefault("title", title))
     monkeypatch.chdir(tmp_path)
     cmd_plot(build_parser().parse_args(["plot", "es_s1", "--out", "t.png"]))
     assert seen["title"].startswith("ES learning curves")
