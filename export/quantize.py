@@ -27,9 +27,10 @@ from sim.env import SwarmEnv
 
 
 def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Sequence[int] = (4, 16), seed: int = 0,
-                     steps: int | None = None, n_envs: int = 1, progress: bool = False
+                     steps: int | None = None, n_envs: int = 1, progress: bool = False, task: Any = None
                      ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Roll the float policy out in its own world: (input tuples (S, T, D) float32, info).
+    """Roll the float policy out in its own world on episodes of ``task`` (a :class:`sim.tasks.Task` or name;
+    default localisation): (input tuples (S, T, D) float32, info).
 
     ``episodes`` episodes of ``steps`` control periods (default ``world.episode_steps``) for each
     robot count in ``n_robots``, ``n_envs`` parallel envs each; one row per robot-episode. The tuple
@@ -53,7 +54,7 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
     try:
         for ci, m in enumerate(counts):
             for ep in range(episodes):
-                env = SwarmEnv(run_world, n_envs, m, seed=int(seeds[ci * episodes + ep].generate_state(1)[0]))
+                env = SwarmEnv(run_world, n_envs, m, seed=int(seeds[ci * episodes + ep].generate_state(1)[0]), task=task)
                 obs, _ = env.reset()  # (B, M, obs_dim)
                 actor = kind.swarm_policy(policy, run_world)
                 actor.reset(n_envs, m)
@@ -75,9 +76,9 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
 
 
 def calibrate(policy: FloatPolicy, episodes: int = 1, n_robots: int | Sequence[int] = (4, 16), seed: int = 0,
-              steps: int | None = None, n_envs: int = 1, progress: bool = False) -> Any:
-    """The kind's calibration of ``policy`` over :func:`record_sequences` rollouts."""
-    seqs, info = record_sequences(policy, episodes, n_robots, seed, steps, n_envs, progress)
+              steps: int | None = None, n_envs: int = 1, progress: bool = False, task: Any = None) -> Any:
+    """The kind's calibration of ``policy`` over :func:`record_sequences` rollouts (episodes of ``task``)."""
+    seqs, info = record_sequences(policy, episodes, n_robots, seed, steps, n_envs, progress, task)
     return kind_of(policy).calibration(policy, seqs, info)
 
 

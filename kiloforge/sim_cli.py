@@ -25,12 +25,13 @@ from pathlib import Path
 
 from kiloforge import io
 from kiloforge.cliparse import ArgumentParser, deprecated_alias, error_line, program
-from kiloforge.errors import InputError, KiloforgeError, PolicyError, printable
+from kiloforge.errors import InputError, KiloforgeError, printable
 from kiloforge.interrupts import exit_status, terminate_raises
 from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
 from kiloforge.validate import int_arg, seed_arg
 from sim.config import DEFAULT_WORLD, MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset, run_steps
+from sim.tasks import TASK_HELP, Task, check_policy_task, get_task
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000
@@ -69,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
                             help="envs simulated at once (default: min(episodes, 32))")
     deprecated_alias(p, "--envs", n_envs)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--task", default=None, metavar="TASK", help=TASK_HELP)
     p.add_argument("--suite", choices=SUITES, default=None,
                    help="robustness: final coverage in every world variant (sim.variants) instead of one run")
     return p
@@ -81,24 +83,27 @@ def _check_args(a: argparse.Namespace) -> None:
         raise UserError(f"--robots takes one count without --suite, got {len(a.robots)}")
 
 
-def _load_policy(a: argparse.Namespace):
-    """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy."""
-    from sim.baselines import BASELINE_NAMES, make_policy
+def _load_policy(a: argparse.Namespace, task: Task):
+    """(world, policy factory (world -> SwarmPolicy), description dict, note or None) for --policy: one of the
+    task's baselines, or a policy file trained for the task."""
+    names = list(task.baselines.values())
 
     world = preset(a.world or DEFAULT_WORLD)
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
-    if a.policy in BASELINE_NAMES:
+    if a.policy in names:
         desc: dict = {"kind": a.policy}
-        if a.policy != "random":
-            desc["params"] = dataclasses.asdict(make_policy(a.policy, world).p)
-        return world, lambda w: make_policy(a.policy, w), desc, None
+        params = getattr(task.make_baseline(a.policy, world), "p", None)
+        if dataclasses.is_dataclass(params):
+            desc["params"] = dataclasses.asdict(params)
+        return world, lambda w: task.make_baseline(a.policy, w), desc, None
     path = Path(a.policy)
     if not os.path.lexists(path):
-        raise UserError(f"--policy must be one of {', '.join(BASELINE_NAMES)} or a policy file; '{a.policy}' is neither")
+        raise UserError(f"--policy must be one of {', '.join(names)} or a policy file; '{a.policy}' is neither")
     try:
         art = load_policy(path)
-    except PolicyError as e:
+        check_policy_task(art.task_ref, task, f"policy file {printable(path.name)}")
+    except InputError as e:
         raise UserError(str(e)) from None
     try:
         art_world = dataclasses.replace(art.world, episode_steps=run_steps(art.world, a.steps, "--steps"))
@@ -126,11 +131,15 @@ def run(a: argparse.Namespace) -> dict:
     """Run the command; returns the metrics.json content. Raises :class:`UserError` for user mistakes."""
     _check_args(a)
     io.check_name_lengths(a.out, temp=False)  # before any work
-    world, factory, desc, note = _load_policy(a)
+    try:
+        task = get_task(a.task)
+    except InputError as e:
+        raise UserError(str(e)) from None
+    world, factory, desc, note = _load_policy(a, task)
     if note:
         print(note, file=sys.stderr)
     if a.suite:
-        return _run_suite(a, world, factory, desc)
+        return _run_suite(a, world, factory, desc, task)
     policy = factory(world)
     robots = a.robots[0]
     from sim import render
@@ -140,7 +149,7 @@ def run(a: argparse.Namespace) -> dict:
 
     n_envs = a.n_envs or min(a.episodes, 32)
     try:
-        env = SwarmEnv(world, n_envs, robots, seed=a.seed)
+        env = SwarmEnv(world, n_envs, robots, seed=a.seed, task=task)
     except ValueError as e:  # e.g. too many discs for the arena
         raise UserError(str(e)) from None
     out = Path(a.out)
@@ -152,6 +161,7 @@ def run(a: argparse.Namespace) -> dict:
             "tool": "kiloforge sim",
             "argv": list(a.argv),
             "policy": desc,
+            "task": task.ref.to_dict(),
             "world": world.to_dict(),
             "robots": robots,
             "seed": a.seed,
@@ -161,18 +171,19 @@ def run(a: argparse.Namespace) -> dict:
         }
         tr = res.trajectories
         title = f"{world.name}: {robots} robots, {name}, seed {a.seed}, episode 0"
-        render.plot_trajectories(tr.positions[0], tr.target[0], world, staging / "trajectories.png", title=title)
-        render.animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
-                               staging / "episode.gif", title=title)
+        target = None if tr.target is None else tr.target[0]
+        render.plot_trajectories(tr.positions[0], target, world, staging / "trajectories.png", title=title)
+        render.animate_episode(tr.positions[0], tr.headings[0], target, tr.in_range[0], world,
+                               staging / "episode.gif", title=title, label=task.robot_label)
         render.plot_coverage({name: res.coverage}, staging / "coverage.png",
-                             title=f"{world.name}: {robots} robots, {a.episodes} episodes")
+                             title=f"{world.name}: {robots} robots, {a.episodes} episodes", ylabel=task.success_label)
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
-    print(compare({name: m}))
+    print(compare({name: m}, task.columns))
     print(f"wrote {printable(out)}/: {' '.join(OUTPUT_FILES)}")
     return report
 
 
-def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
+def _run_suite(a: argparse.Namespace, world, factory, desc: dict, task: Task) -> dict:
     """``--suite robustness``: every variant at every robot count; robustness.json and .md."""
     from sim.env import SwarmEnv
     from sim.robustness import run_suite
@@ -181,13 +192,13 @@ def _run_suite(a: argparse.Namespace, world, factory, desc: dict) -> dict:
     try:
         suite = robustness_suite(world)
         for M in a.robots:  # every variant has the nominal arena: too many discs fail here, before any output
-            SwarmEnv(world, 1, M, seed=0)
+            SwarmEnv(world, 1, M, seed=0, task=task)
     except ValueError as e:
         raise UserError(str(e)) from None
     out = Path(a.out)
     with _staged_output(out, SUITE_FILES) as staging:
         table = run_suite(factory, world, a.robots, a.episodes, world.episode_steps, a.seed, suite, a.n_envs,
-                          progress=not a.quiet)
+                          progress=not a.quiet, task=task)
         name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
         report = {"tool": "kiloforge sim", "argv": list(a.argv), "suite": a.suite, "policy": desc,
                   "world": world.to_dict(), "variants": {v: {"world": w.to_dict(), "randomisation":

@@ -149,10 +149,10 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
                 log(f"evaluating {c.name} with {M} robots: {episodes} episodes of {steps} steps")
             runs[c.name] = rollout(env, c.make(), episodes, seed=seed, record=1, progress=progress)
         metrics = {n: r.metrics(ceiling=with_ceiling) for n, r in runs.items()}
-        table = compare(metrics)
+        table = compare(metrics, task.columns)
         log(f"\n{M} robots, {steps} steps, {episodes} episodes (mean ± 95 % CI)\n{table}\n")
         if out_dir is not None:
-            _plot_size(runs, contenders[0].name if gif and contenders else None, world, M, steps, out_dir)
+            _plot_size(runs, contenders[0].name if gif and contenders else None, world, M, steps, out_dir, task)
         results["robots"][str(M)] = {
             "table": table,
             "metrics": {n: m.to_dict(per_episode=False) for n, m in metrics.items()},
@@ -168,7 +168,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
 
 
 def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldConfig, M: int, steps: int,
-               out_dir: Path) -> None:
+               out_dir: Path, task: Task) -> None:
     """One swarm size's plots in ``out_dir`` (and the GIF of contender ``gif_of``'s first episode, if any)."""
     from .plots import plot_returns_box, plot_reward_over_time
     from sim.render import animate_episode, plot_coverage
@@ -178,11 +178,12 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
     plot_returns_box({n: r.rewards.sum(axis=1) for n, r in runs.items()}, out_dir / f"returns_box_{M}.png",
                      title=f"returns, {M} robots, {steps} steps ({world.name} world)")
     plot_coverage({n: r.coverage for n, r in runs.items()}, out_dir / f"coverage_{M}.png",
-                  title=f"coverage of the target, {M} robots")
+                  title=f"{task.name}: {task.success_label}, {M} robots", ylabel=task.success_label)
     if gif_of is not None:
         tr = runs[gif_of].trajectories
-        animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], world,
-                        out_dir / f"episode_{file_stem(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots")
+        animate_episode(tr.positions[0], tr.headings[0], None if tr.target is None else tr.target[0], tr.in_range[0],
+                        world, out_dir / f"episode_{file_stem(gif_of)}_{M}.gif", title=f"{gif_of}: {M} robots",
+                        label=task.robot_label)
 
 
 def metrics_row(m: EpisodeMetrics, task: "Task | str | None" = None) -> dict[str, float]:

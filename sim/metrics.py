@@ -135,6 +135,11 @@ class EpisodeMetrics(EpisodeSteps):
             s["ceiling"] = summarise(self.ceiling)
         return s
 
+    def per_episode(self, key: str) -> np.ndarray:
+        """(E,) values of one metric (``return``, ``final_coverage``, ``mean_coverage``, ``time_to_find``, ``found_rate``)."""
+        return {"return": self.returns, "final_coverage": self.final_coverage, "mean_coverage": self.coverage.mean(axis=1),
+                "time_to_find": self.time_to_find.astype(np.float64), "found_rate": self.found.astype(np.float64)}[key]
+
     def to_dict(self, per_episode: bool = True) -> dict:
         """JSON-ready: summaries, plus per-episode values when asked."""
         d: dict = {"episodes": self.episodes, "steps": self.steps,
@@ -179,6 +184,10 @@ class SuccessMetrics(EpisodeSteps):
     final_key: str = "final_success"
     mean_key: str = "mean_success"
     ceiling: np.ndarray | None = None  # no upper bound known
+
+    def per_episode(self, key: str) -> np.ndarray:
+        """(E,) values of one metric (``return``, the final or the mean key)."""
+        return {"return": self.returns, self.final_key: self.final, self.mean_key: self.coverage.mean(axis=1)}[key]
 
     def summary(self) -> dict[str, Summary]:
         return {self.final_key: summarise(self.final), self.mean_key: summarise(self.coverage.mean(axis=1)),

@@ -93,7 +93,8 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray | None, cfg: Wor
     return save_png(fig, path)
 
 
-def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None) -> Path:
+def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None,
+                  ylabel: str = "fraction of robots in range") -> Path:
     """Coverage over time to PNG: per name, ``(E, T)`` fractions → mean line and 95 % CI band."""
     assert curves, "plot_coverage needs at least one curve"
     fig = figure(6.0, 3.6)
@@ -110,7 +111,7 @@ def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title:
     ax.set_xlim(0, max(np.atleast_2d(c).shape[1] for c in curves.values()))
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("step")
-    ax.set_ylabel("fraction of robots in range")
+    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title(title or "coverage of the target", fontsize=9)

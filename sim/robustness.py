@@ -19,6 +19,7 @@ from .config import WorldConfig
 from .env import SwarmEnv
 from .metrics import Summary, summarise
 from .rollout import SwarmPolicy, rollout
+from .tasks import Task, get_task
 from .variants import Randomisation, robustness_suite
 
 Suite = dict[str, tuple[WorldConfig, "Randomisation | None"]]
@@ -26,13 +27,16 @@ Suite = dict[str, tuple[WorldConfig, "Randomisation | None"]]
 
 @dataclass
 class SuiteTable:
-    """Final coverage per (variant, robots): ``cells[variant][robots]`` and each one's ratio to nominal."""
+    """The task's primary metric (localisation: final coverage) per (variant, robots): ``cells[variant][robots]``
+    and each one's ratio to nominal."""
 
     robots: tuple[int, ...]
     episodes: int
     steps: int
     seed: int
     cells: dict[str, dict[int, Summary]] = field(default_factory=dict)
+    metric: str = "final_coverage"  #: the metric's key
+    label: str = "final coverage"  #: the metric's name in the table
 
     def fraction(self, variant: str, robots: int) -> float | None:
         """Mean final coverage of ``variant`` as a fraction of the nominal world's (None when that is 0)."""
@@ -46,12 +50,12 @@ class SuiteTable:
 
     def to_dict(self) -> dict:
         return {"robots": list(self.robots), "episodes": self.episodes, "steps": self.steps, "seed": self.seed,
-                "final_coverage": {v: {str(m): dict(s.to_dict(), fraction_of_nominal=self.fraction(v, m))
+                self.metric: {v: {str(m): dict(s.to_dict(), fraction_of_nominal=self.fraction(v, m))
                                        for m, s in row.items()} for v, row in self.cells.items()}}
 
     def format(self) -> str:
-        """A markdown table: one row per variant, per robot count final coverage and % of nominal."""
-        head = "| variant | " + " | ".join(f"{m} robots: final coverage | % of nominal" for m in self.robots) + " |"
+        """A markdown table: one row per variant, per robot count the metric and % of nominal."""
+        head = "| variant | " + " | ".join(f"{m} robots: {self.label} | % of nominal" for m in self.robots) + " |"
         lines = [head, "|---|" + "---:|---:|" * len(self.robots)]
         for v, row in self.cells.items():
             cells = " | ".join(f"{row[m]} | {_percent(self.fraction(v, m))}" for m in self.robots)
@@ -65,14 +69,17 @@ def _percent(f: float | None) -> str:
 
 def run_suite(policy_factory: Callable[[WorldConfig], SwarmPolicy], cfg: WorldConfig,
               robots: Sequence[int] = (4, 16), episodes: int = 50, steps: int | None = None, seed: int = 0,
-              suite: Suite | None = None, n_envs: int | None = None, progress: bool = False) -> SuiteTable:
-    """Evaluate ``policy_factory(world)`` in every variant of ``suite`` (default
-    :func:`sim.variants.robustness_suite` of ``cfg``) at each robot count."""
+              suite: Suite | None = None, n_envs: int | None = None, progress: bool = False,
+              task: "Task | str | None" = None) -> SuiteTable:
+    """Evaluate ``policy_factory(world)`` on ``task`` (default localisation) in every variant of ``suite``
+    (default :func:`sim.variants.robustness_suite` of ``cfg``) at each robot count: the task's primary metric."""
+    task = get_task(task)
     assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
     suite = robustness_suite(cfg) if suite is None else suite
     assert "nominal" in suite, "a suite needs a 'nominal' entry (the ratios are relative to it)"
     T = cfg.episode_steps if steps is None else int(steps)
-    table = SuiteTable(tuple(int(m) for m in robots), int(episodes), T, int(seed))
+    table = SuiteTable(tuple(int(m) for m in robots), int(episodes), T, int(seed), metric=task.primary_metric,
+                       label=task.metric(task.primary_metric).long)
     bar = None
     if progress:
         from kiloforge.progress import progress_bar
@@ -82,9 +89,9 @@ def run_suite(policy_factory: Callable[[WorldConfig], SwarmPolicy], cfg: WorldCo
         for name, (world, rand) in suite.items():
             world = dataclasses.replace(world, episode_steps=T)
             for M in table.robots:
-                env = SwarmEnv(world, n_envs or min(episodes, 50), M, seed=seed, randomise=rand)
+                env = SwarmEnv(world, n_envs or min(episodes, 50), M, seed=seed, randomise=rand, task=task)
                 res = rollout(env, policy_factory(world), episodes, seed=seed)
-                table.cells.setdefault(name, {})[M] = summarise(res.metrics().final_coverage)
+                table.cells.setdefault(name, {})[M] = res.metrics().summary()[task.primary_metric]
                 if bar is not None:
                     bar.update(1)
     finally:

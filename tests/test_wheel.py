@@ -160,3 +160,40 @@ def test_hostile_inputs_outside_the_repository(installed):
     assert res.returncode == 0 and len(rows) >= 8 and not bad, (bad or res.stdout + res.stderr)[-3000:]
     if os.environ.get("CI") or avr.missing_tools(simulate=True) is None:
         assert any(r["case"].startswith("planted runner") for r in rows), "the planted-runner case did not run"
+
+
+def test_example_task_round_trip_outside_the_repository(installed):
+    """examples/dispersion.py, a user's task in one file, through the installed package outside the repository:
+    train-es from random weights, evaluate, export --verify host and export verify, each naming the task."""
+    torch = pytest.importorskip("torch", reason="training needs the learn extra (torch)")
+    cwd = _workdir(installed, "task")
+    shutil.copy(ROOT / "examples" / "dispersion.py", cwd / "dispersion.py")
+    # the fresh venv has the core only: let it import this interpreter's torch and tyro (appended, so the wheel's
+    # kiloforge and the venv's packages come first)
+    site = next((installed.tmp / "venv").glob("lib/python*/site-packages"))
+    pth = site / "zz_learn_extra.pth"
+    pth.write_text(str(Path(torch.__file__).resolve().parents[1]) + "\n")
+    task = ["--task", "dispersion.py:Dispersion"]
+    try:
+        steps = [
+            ["learn", "train-es", *task, "--demo-policy", "none", "--robots", "4", "--generations", "2", "--pairs", "4",
+             "--eval-episodes", "2", "--eval-every", "1", "--quiet", "--out", "run"],
+            ["learn", "evaluate", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "4",
+             "--steps", "60", "--quiet", "--out", "eval"],
+            ["export", *task, "--policy", "run/policy_best.npz", "--out", "disp.c", "--verify", "host", "--no-avr",
+             "--quiet"],
+            ["export", "verify", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "2", "--quiet"],
+        ]
+        out = []
+        for cmd in steps:
+            res = _run([installed.bin / "kiloforge", *cmd], cwd=cwd, env=installed.env)
+            assert res.returncode in (0, 1), (cmd, res.stdout[-2000:], res.stderr[-2000:])  # verify: 1 = FAIL
+            out.append(res.stdout)
+    finally:
+        pth.unlink()
+    meta = json.loads(bytes(__import__("numpy").load(cwd / "run" / "policy_best.npz")["meta"]).decode())
+    assert meta["task"] == {"name": "dispersion", "version": 1}
+    ev = json.loads((cwd / "eval" / "evaluation.json").read_text())
+    assert ev["task"]["primary_metric"] == "final_alone" and {"hand-written", "random"} <= set(ev["robots"]["4"]["metrics"])
+    assert "bit-exact" in out[2] and (cwd / "disp.c").is_file()
+    assert "final fraction of robots alone int8/float" in out[3]

@@ -74,7 +74,7 @@ def quantise(policy: FloatPolicy, args: argparse.Namespace, seed: int, steps: in
     """(calibration, int8 actor, float-vs-int8 error report) of ``policy`` as the flags of :func:`add_calibration`
     say, calibrated from ``seed`` on episodes of ``steps`` control periods."""
     calib = calibrate(policy, episodes=args.calib_episodes, n_robots=args.robots_calib, seed=seed, steps=steps,
-                      progress=progress)
+                      progress=progress, task=args.task)
     qp = quantize_policy(policy, calib, percentile=args.percentile)
     return calib, qp, error_report(policy, qp, calib)
 

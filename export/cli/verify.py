@@ -28,6 +28,7 @@ from kiloforge.errors import OutputError, printable
 from kiloforge.io import check_name_lengths, check_writable, write_files_atomic
 from kiloforge.validate import float_arg, seed_arg
 from sim.config import run_steps
+from sim.tasks import Task, get_task
 
 from ..verify.closed_loop import GOAL_RATIO, compare_many
 from .common import (EXIT_FAIL, EXIT_OK, Parser, add_calibration, add_quiet, add_task, check_robots, describe,
@@ -60,7 +61,7 @@ def verify_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
+def _plots(comps: list, title: str, task: Task) -> tuple[bytes, bytes]:
     """(coverage.png, returns_box.png) as bytes."""
     import numpy as np
     from matplotlib.patches import Rectangle
@@ -79,11 +80,11 @@ def _plots(comps: list, title: str) -> tuple[bytes, bytes]:
             ax.fill_between(t, np.clip(mean - half, 0, 1), np.clip(mean + half, 0, 1), color=colours[label],
                             alpha=0.25, lw=0)
         ratio = f"{c.ratio:.3f}" if np.isfinite(c.ratio) else "n/a"
-        ax.set_title(f"{c.n_robots} robots: int8/float final cov {ratio} "
+        ax.set_title(f"{c.n_robots} robots: int8/float {task.metric(task.primary_metric).label} {ratio} "
                      f"({'PASS' if c.passed else 'FAIL'})", fontsize=9)
         ax.set_xlabel("control step")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("coverage (fraction within comm radius)")
+    axes[0][0].set_ylabel(task.success_label)
     axes[0][0].legend(loc="lower right", fontsize=8)
     fig.suptitle(f"{title}: mean and 95% CI over {comps[0].episodes} episodes", fontsize=10)
     cov = png_bytes(fig)
@@ -138,21 +139,23 @@ def run_verify(argv: Sequence[str]) -> int:
           f"e_in {qp.e_in}, mean |du| {report.du_mean:.5f}, max |du| {report.du_max:.5f}, "
           f"same uint8 command {100 * report.same_command:.1f}%")
 
+    task = get_task(args.task)
     comps = compare_many(policy, qp, args.robots, args.episodes, args.seed,
                          steps=steps, goal=args.goal,
-                         progress=progress)
+                         progress=progress, task=task)
     print()
     for c in comps:
         print(c.table())
         print()
     passed = all(c.passed for c in comps)
     verdict = "PASS" if passed else "FAIL"
-    print(f"closed loop: {verdict} (goal: int8 final coverage >= {args.goal:.2f} x float at "
+    print(f"closed loop: {verdict} (goal: int8 {task.metric(task.primary_metric).long} >= {args.goal:.2f} x float at "
           f"{', '.join(str(c.n_robots) for c in comps)} robots)")
 
     if out is not None:
         doc: dict[str, Any] = {
             "policy_hash": policy.hash, "policy": str(args.policy or "default"), "world": policy.world.name,
+            "task": task.ref.to_dict(),
             "quantisation": {"e_in": qp.e_in, "robots_calib": list(args.robots_calib),
                              "calib_episodes": args.calib_episodes, "calib_steps": args.calib_steps,
                              "calib_seed": args.calib_seed,
@@ -161,7 +164,7 @@ def run_verify(argv: Sequence[str]) -> int:
             "comparisons": [c.to_dict() for c in comps],
         }
         title = f"policy {policy.hash[:8]} ({policy.world.name})"
-        cov, box = _plots(comps, title)
+        cov, box = _plots(comps, title, task)
         files = {out / COVERAGE_PNG: cov, out / RETURNS_PNG: box,
                  out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}  # the record last
         write_files_atomic(files, create=True)

@@ -42,7 +42,8 @@ from kiloforge.policies import swarm_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.events import HeardEvents
-from sim.metrics import EpisodeMetrics, EpisodeSteps, Summary, episode_metrics, summarise
+from sim.metrics import EpisodeSteps, Summary, summarise
+from sim.tasks import Task, get_task
 
 from .emulator import FirmwareEmulator, events_from_sim
 
@@ -173,24 +174,27 @@ class LoopResult(EpisodeSteps):
     seed: int
     n_envs: int  #: envs per batch (the seeds depend on it; both runs of a comparison share it)
     rewards: np.ndarray  #: (E, T) team reward per step
-    coverage: np.ndarray  #: (E, T) fraction of robots within the comm radius after each step
+    coverage: np.ndarray  #: (E, T) the task's success after each step (localisation: coverage)
     wall_s: float  #: seconds the run took
     positions: np.ndarray | None = None  #: (E, T + 1, M, 2) float64 mm when recorded
     headings: np.ndarray | None = None  #: (E, T + 1, M) float64 rad when recorded
     commands: np.ndarray | None = None  #: (E, T, M, 2) the commands sent (float32 u or uint8 q)
+    task: Any = None  #: the task (sim.tasks.Task) the episodes were played for; None: localisation
 
     @property
     def episodes_per_s(self) -> float:
         return self.episodes / max(self.wall_s, 1e-9)
 
-    def metrics(self) -> EpisodeMetrics:
-        """Return, final coverage, time to find and the coverage curves (:mod:`sim.metrics`)."""
-        return episode_metrics(self.rewards, self.coverage)
+    def metrics(self) -> Any:
+        """The task's metrics of the episodes (:meth:`sim.tasks.Task.episode_metrics`; localisation: return, final
+        coverage, time to find and the coverage curves)."""
+        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage, None)
 
 
 def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, n_envs: int | None,
-         record: bool, bar) -> LoopResult:
+         record: bool, bar, task: Task | None) -> LoopResult:
     assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
+    task = get_task(task)
     M = int(n_robots)
     assert not 1 <= cfg.target_uid <= M, (
         f"target_uid {cfg.target_uid} is also searcher {cfg.target_uid - 1}'s uid; use target_uid 0 or > {M}")
@@ -205,7 +209,7 @@ def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, 
         pos = np.zeros((E, T + 1, M, 2))
         head = np.zeros((E, T + 1, M))
         cmds = None
-    env = SwarmEnv(cfg, B, M, seed=seeds[0])
+    env = SwarmEnv(cfg, B, M, seed=seeds[0], task=task)
     t0 = time.perf_counter()
     for k, env_seed in enumerate(seeds):
         rows = slice(k * B, (k + 1) * B)
@@ -230,7 +234,7 @@ def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, 
     keep = slice(0, episodes)
     return LoopResult(controller.label, cfg, M, int(seed), B, rewards[keep], coverage[keep], wall,
                       None if pos is None else pos[keep], None if head is None else head[keep],
-                      None if cmds is None else cmds[keep])
+                      None if cmds is None else cmds[keep], task)
 
 
 def _world(world: WorldConfig, steps: int | None) -> WorldConfig:
@@ -241,33 +245,31 @@ def _world(world: WorldConfig, steps: int | None) -> WorldConfig:
 
 
 def run_float(policy: FloatPolicy, n_robots: int, episodes: int, seed: int = 0, *, steps: int | None = None,
-              n_envs: int | None = None, record: bool = False, bar=None) -> LoopResult:
-    """The float actor in its own world: ``episodes`` episodes of ``steps`` (default: the world's)."""
+              n_envs: int | None = None, record: bool = False, bar=None, task: Task | None = None) -> LoopResult:
+    """The float actor in its own world: ``episodes`` episodes of ``steps`` (default: the world's) of ``task``
+    (default localisation)."""
     cfg = _world(policy.world, steps)
-    return _run(_FloatController(policy, cfg), cfg, n_robots, episodes, seed, n_envs, record, bar)
+    return _run(_FloatController(policy, cfg), cfg, n_robots, episodes, seed, n_envs, record, bar, task)
 
 
 def run_firmware(qp: QuantizedActor, n_robots: int, episodes: int, seed: int = 0, *,
                  steps: int | None = None, n_envs: int | None = None, record: bool = False,
-                 bar=None, spread: bool | None = None) -> LoopResult:
+                 bar=None, spread: bool | None = None, task: Task | None = None) -> LoopResult:
     """The int8 firmware (emulator) in the quantised policy's world, same episodes as :func:`run_float`.
 
     ``spread``: spread each period's messages over its ticks (default: only for radios without a
     tick model, see the module doc).
     """
     cfg = _world(qp.world, steps)
-    return _run(_FirmwareController(qp, cfg, spread), cfg, n_robots, episodes, seed, n_envs, record, bar)
+    return _run(_FirmwareController(qp, cfg, spread), cfg, n_robots, episodes, seed, n_envs, record, bar, task)
 
 
 # --------------------------------------------------------------------------------------------
 # Paired comparison
 # --------------------------------------------------------------------------------------------
-METRICS = (("return", "return"), ("final_coverage", "final coverage"), ("time_to_find", "time to find"))
-
-
-def _per_episode(m: EpisodeMetrics, key: str) -> np.ndarray:
-    return {"return": m.returns, "final_coverage": m.final_coverage,
-            "time_to_find": m.time_to_find.astype(np.float64)}[key]
+def loop_metrics(task: Task) -> tuple[tuple[str, str], ...]:
+    """(key, name) of what a comparison reports: the return, then the task's evaluation metrics (primary first)."""
+    return (("return", "return"),) + tuple((k, task.metric(k).long) for k in task.eval_keys)
 
 
 def ratio_ci(num: np.ndarray, den: np.ndarray, seed: int = 0, n: int = BOOTSTRAP) -> tuple[float, float]:
@@ -302,13 +304,15 @@ class Comparison:
         f, q = self.float_run, self.int8_run
         assert f.rewards.shape == q.rewards.shape, "the two runs must cover the same episodes"
         assert f.n_envs == q.n_envs and f.seed == q.seed, "the two runs must use the same seeds"
+        self.task = get_task(f.task)
+        self.primary = self.task.primary_metric
         mf, mq = f.metrics(), q.metrics()
-        for key, _ in METRICS:
-            a, b = _per_episode(mf, key), _per_episode(mq, key)
+        for key, _ in loop_metrics(self.task):
+            a, b = mf.per_episode(key), mq.per_episode(key)
             self.stats[key] = {"float": summarise(a), "int8": summarise(b), "diff": summarise(b - a)}
-        self.ratio = (mq.final_coverage.mean() / mf.final_coverage.mean()
-                      if mf.final_coverage.mean() > 0 else float("nan"))
-        self.ratio_ci = ratio_ci(mq.final_coverage, mf.final_coverage, seed=f.seed)
+        pf, pq = mf.per_episode(self.primary), mq.per_episode(self.primary)
+        self.ratio = pq.mean() / pf.mean() if pf.mean() > 0 else float("nan")
+        self.ratio_ci = ratio_ci(pq, pf, seed=f.seed)
 
     @property
     def episodes(self) -> int:
@@ -316,8 +320,9 @@ class Comparison:
 
     @property
     def passed(self) -> bool:
-        """int8 mean final coverage >= goal * float mean final coverage (point estimates; 0 >= 0 passes)."""
-        f = self.stats["final_coverage"]
+        """int8 mean of the task's primary metric (localisation: final coverage) >= goal * the float's (point
+        estimates; 0 >= 0 passes)."""
+        f = self.stats[self.primary]
         return bool(f["int8"].mean >= self.goal * f["float"].mean - 1e-12)
 
     def curves(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -334,15 +339,19 @@ class Comparison:
         f, q = self.float_run, self.int8_run
         lines = [f"{self.n_robots} robots, {self.episodes} episodes x {f.steps} steps "
                  f"(world '{f.cfg.name}', seed {f.seed}, {f.n_envs} envs per batch)",
-                 f"  {'metric':<15} {'float actor':>17} {'int8 firmware':>17} {'int8 - float (paired)':>22}"]
-        for key, label in METRICS:
+                 ]
+        rows = loop_metrics(self.task)
+        w = max(15, *(len(label) for _, label in rows))
+        lines.append(f"  {'metric':<{w}} {'float actor':>17} {'int8 firmware':>17} {'int8 - float (paired)':>22}")
+        for key, label in rows:
             s = self.stats[key]
-            lines.append(f"  {label:<15} {_pm(s['float']):>17} {_pm(s['int8']):>17} {_pm(s['diff'], signed=True):>22}")
+            lines.append(f"  {label:<{w}} {_pm(s['float']):>17} {_pm(s['int8']):>17} {_pm(s['diff'], signed=True):>22}")
         lo, hi = self.ratio_ci
         verdict = "PASS" if self.passed else "FAIL"
+        name = self.task.metric(self.primary).long
         ratio = (f"{self.ratio:.4f} (95% CI {lo:.4f}..{hi:.4f})" if np.isfinite(self.ratio)
-                 else "n/a (the float actor never covers the target)")
-        lines.append(f"  final coverage int8/float = {ratio}; goal >= {self.goal:.2f}: {verdict}")
+                 else f"n/a (the float actor's {name} is 0)")
+        lines.append(f"  {name} int8/float = {ratio}; goal >= {self.goal:.2f}: {verdict}")
         lines.append(f"  speed: float {f.episodes_per_s:.1f} episodes/s, int8 {q.episodes_per_s:.1f} episodes/s")
         return "\n".join(lines)
 
@@ -353,16 +362,13 @@ class Comparison:
             "n_robots": self.n_robots, "episodes": self.episodes, "steps": f.steps, "seed": f.seed,
             "n_envs": f.n_envs, "world": f.cfg.name,
             "metrics": {k: {side: s.to_dict() for side, s in v.items()} for k, v in self.stats.items()},
-            "final_coverage_ratio": _num(self.ratio), "final_coverage_ratio_ci95": [_num(x) for x in self.ratio_ci],
+            f"{self.primary}_ratio": _num(self.ratio), f"{self.primary}_ratio_ci95": [_num(x) for x in self.ratio_ci],
             "goal_ratio": self.goal, "passed": self.passed,
             "episodes_per_s": {"float": f.episodes_per_s, "int8": q.episodes_per_s},
             "wall_s": {"float": f.wall_s, "int8": q.wall_s},
             "coverage_curve": {k: {"mean": m.tolist(), "ci95": h.tolist()} for k, (m, h) in curves.items()},
-            "per_episode": {
-                side: {"return": _per_episode(run.metrics(), "return").tolist(),
-                       "final_coverage": run.metrics().final_coverage.tolist(),
-                       "time_to_find": run.metrics().time_to_find.tolist()}
-                for side, run in (("float", f), ("int8", q))},
+            "per_episode": {side: {k: run.metrics().per_episode(k).tolist() for k, _ in loop_metrics(self.task)}
+                            for side, run in (("float", f), ("int8", q))},
         }
 
 
@@ -376,18 +382,21 @@ def _pm(s: Summary, signed: bool = False) -> str:
 
 
 def compare(policy: FloatPolicy, qp: QuantizedActor, n_robots: int, episodes: int, seed: int = 0, *,
-            steps: int | None = None, n_envs: int | None = None, goal: float = GOAL_RATIO, bar=None) -> Comparison:
-    """Float actor vs int8 firmware, same ``episodes`` (same env seeds), one robot count."""
+            steps: int | None = None, n_envs: int | None = None, goal: float = GOAL_RATIO, bar=None,
+            task: Task | None = None) -> Comparison:
+    """Float actor vs int8 firmware, same ``episodes`` (same env seeds) of ``task`` (default localisation), one
+    robot count."""
     if policy.world.to_dict() != qp.world.to_dict():
         raise ValueError("the quantised policy was made for another world than the float policy")
     B = n_envs if n_envs is not None else default_n_envs(episodes, n_robots)
-    f = run_float(policy, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar)
-    q = run_firmware(qp, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar)
+    f = run_float(policy, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar, task=task)
+    q = run_firmware(qp, n_robots, episodes, seed, steps=steps, n_envs=B, bar=bar, task=task)
     return Comparison(int(n_robots), f, q, goal=goal)
 
 
 def compare_many(policy: FloatPolicy, qp: QuantizedActor, robots: Sequence[int], episodes: int, seed: int = 0,
-                 *, steps: int | None = None, goal: float = GOAL_RATIO, progress: bool = False) -> list[Comparison]:
+                 *, steps: int | None = None, goal: float = GOAL_RATIO, progress: bool = False,
+                 task: Task | None = None) -> list[Comparison]:
     """:func:`compare` for each robot count, with one tqdm bar (episode-steps) over all of them."""
     T = steps if steps is not None else policy.world.episode_steps
     bar = None
@@ -398,7 +407,7 @@ def compare_many(policy: FloatPolicy, qp: QuantizedActor, robots: Sequence[int],
                     for m in robots)
         bar = progress_bar(total=total, unit="ep-step", desc="closed loop (float + int8)", leave=False)
     try:
-        return [compare(policy, qp, m, episodes, seed, steps=steps, goal=goal, bar=bar) for m in robots]
+        return [compare(policy, qp, m, episodes, seed, steps=steps, goal=goal, bar=bar, task=task) for m in robots]
     finally:
         if bar is not None:
             bar.close()

@@ -74,7 +74,8 @@ class Aggregation(Task):
     name = "aggregation"
     version = 1
     description = "robots spread over the arena gather into one cluster (no beacon)"
-    success_label = "in the largest cluster"
+    success_label = "fraction of robots in the largest cluster"
+    robot_label = "in the largest cluster"
     primary_metric = "final_cluster"
     mean_metric = "mean_cluster"
     metrics = (Metric("final_cluster", "final cluster", name="final largest-cluster fraction"),

@@ -82,7 +82,8 @@ class Task(ABC):
     name: ClassVar[str]  #: registry name, e.g. "localisation"
     version: ClassVar[int] = 1  #: bump when episodes of the same seed would differ
     description: ClassVar[str] = ""  #: one line for --help and docs
-    success_label: ClassVar[str] = "success"  #: what the per-step success signal is called in plots
+    success_label: ClassVar[str] = "success"  #: the per-step success signal as a plot axis names it
+    robot_label: ClassVar[str] = "successful"  #: the robots ``robot_success`` highlights, as animations count them
     primary_metric: ClassVar[str] = "final_success"  #: the metric key that ranks policies: final success
     mean_metric: ClassVar[str] = "mean_success"  #: the key of success averaged over the episode
     #: every scalar metric :meth:`episode_metrics` reports, primary first (tables show them in this order)

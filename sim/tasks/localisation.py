@@ -24,7 +24,8 @@ class Localisation(Task):
     name = "localisation"
     version = 1
     description = "searchers find a beacon and gather within communication range of it (the thesis's task)"
-    success_label = "coverage"
+    success_label = "fraction of robots in range"
+    robot_label = "in range"
     primary_metric = "final_coverage"
     mean_metric = "mean_coverage"
     metrics = (

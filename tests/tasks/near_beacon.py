@@ -8,7 +8,8 @@ from sim.tasks.localisation import Localisation
 class NearBeacon(Localisation):
     name = "near_beacon"
     version = 2
-    success_label = "near"
+    success_label = "fraction of robots near the beacon"
+    robot_label = "near"
     primary_metric = "final_near"
     metrics = (Metric("final_near", "final near"), Metric("return", "return"))
 
