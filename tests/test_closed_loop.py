@@ -167,12 +167,12 @@ def test_comparison_statistics():
 
 
 def test_cli_verify_smoke(tmp_path, capsys):
-    """verify --closed-loop prints both columns, the ratio and a verdict, and writes plots + JSON."""
+    """verify prints both columns, the ratio and a verdict, and writes plots + JSON."""
     p, _ = lossless_pair("kilobot")
     path = tmp_path / "p.npz"
     save_policy(p, path)
     out = tmp_path / "cl"
-    rc = main(["verify", "--closed-loop", "--policy", str(path), "--robots", "4", "6", "--episodes", "3",
+    rc = main(["verify", "--policy", str(path), "--robots", "4", "6", "--episodes", "3",
                "--steps", "12", "--robots-calib", "4", "--out", str(out), "--quiet"])
     text = capsys.readouterr().out
     assert rc in (0, 1)
@@ -187,9 +187,9 @@ def test_cli_verify_smoke(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, needle", [
     (["verify", "--robot", "4"], "--robot"),
-    (["verify", "--closed-loop", "--policy", "/nonexistent/p.npz"], "does not exist"),
-    (["verify", "--closed-loop", "--episodes", "0"], "--episodes: must be in [1, "),
-    (["verify", "--closed-loop", "--robots", "5000", "--episodes", "1"], "robots"),
+    (["verify", "--policy", "/nonexistent/p.npz"], "does not exist"),
+    (["verify", "--episodes", "0"], "--episodes: must be in [1, "),
+    (["verify", "--robots", "5000", "--episodes", "1"], "robots"),
 ])
 def test_cli_verify_errors(argv, needle, capsys):
     """Bad input: one line on stderr, exit 2, no traceback."""
@@ -204,7 +204,7 @@ def test_cli_verify_refuses_unusable_out_before_running(tmp_path, capsys):
     f = tmp_path / "afile"
     f.write_text("x")
     for out in (f, f / "sub"):
-        rc = main(["verify", "--closed-loop", "--out", str(out), "--quiet"])
+        rc = main(["verify", "--out", str(out), "--quiet"])
         err = capsys.readouterr().err
         assert rc == 2 and err.startswith("python -m export verify: error: ") and err.count("\n") == 1
     assert f.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
