@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from sim.config import ACTION_DIM, OBS_RBF
+from sim.config import ACTION_DIM
 from sim.tasks import Metric, Task
 
 
@@ -31,6 +31,7 @@ class Dispersion(Task):
                Metric("mean_alone", "mean alone"), Metric("return", "return"))
     baselines = {"hand-written": "disperser", "random": "random"}
     beacon = False  # nothing but the robots
+    features = ("wall", "rbf")  # the observation: the lit-wall flag and the RBF histogram of neighbour distances
 
     def spawn(self, env):
         """Robots uniform in the middle quarter of the arena (the env then separates overlapping discs)."""
@@ -75,7 +76,7 @@ class Disperser:
         self.rng = rng
 
     def act(self, obs):
-        heard = obs[..., OBS_RBF:OBS_RBF + self.cfg.n_rbf].sum(axis=-1) > 0  # (B, M)
+        heard = obs[..., self.cfg.obs_slice("rbf")].sum(axis=-1) > 0  # (B, M) any neighbour heard
         turn = self.rng.random(heard.shape) < 0.2
         left = self.rng.random(heard.shape) < 0.5
         a = np.zeros(heard.shape + (ACTION_DIM,))

@@ -88,7 +88,7 @@ def _load_policy(a: argparse.Namespace, task: Task):
     task's baselines, or a policy file trained for the task."""
     names = list(task.baselines.values())
 
-    world = preset(a.world or DEFAULT_WORLD)
+    world = task.world(preset(a.world or DEFAULT_WORLD))  # the task's beacon and observation layout
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
     if a.policy in names:

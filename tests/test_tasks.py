@@ -194,3 +194,25 @@ def test_hand_written_aggregator_beats_random():
     final = {name: rollout(env, task.make_baseline(name, cfg), 8, seed=3).metrics().summary()["final_cluster"].mean
              for name in ("aggregator", "random")}
     assert final["aggregator"] > final["random"] + 0.05, final
+
+
+def test_sim_command_runs_a_beaconless_task(tmp_path):
+    """python -m sim --task aggregation plays its baseline, names its metrics and records the task in metrics.json."""
+    r = _run("-m", "sim", "--task", "aggregation", "--policy", "aggregator", "--robots", "6", "--episodes", "2",
+             "--steps", "20", "--quiet", "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    assert "final cluster" in r.stdout and "final cov" not in r.stdout
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["task"] == {"name": "aggregation", "version": 1} and "final_cluster" in m["metrics"]["summary"]
+    r = _run("-m", "sim", "--task", "aggregation", "--policy", "pusher", "--out", str(tmp_path / "x"))
+    assert r.returncode == 2 and "--policy must be one of aggregator, random" in r.stderr
+
+
+def test_sweep_refuses_other_tasks():
+    """learn sweep aggregates localisation's metrics: another task is refused in one line before anything runs."""
+    from learn.config import ConfigError
+    from learn.sweep.grid import build_grid
+
+    with pytest.raises(ConfigError, match="task aggregation is not supported by learn sweep"):
+        build_grid(trainer="es", task=["aggregation"], seeds=[1])
+    assert build_grid(trainer="es", task=["localisation"], seeds=[1]).axes["task"] == ["localisation"]
