@@ -525,8 +525,8 @@ class ESConfig(ConfigBase):
         return self.generations * 2 * self.pairs * sum(self.size_episode_counts())
 
     def eval_world(self) -> WorldConfig:
-        """The world of the evaluation episodes (the training world with ``eval_steps`` steps)."""
-        return world_preset(self.world, episode_steps=self.eval_steps)
+        """The world of the evaluation episodes (the training world, its task's layout, with ``eval_steps`` steps)."""
+        return self.task_spec().world(world_preset(self.world, episode_steps=self.eval_steps))
 
     def size_randomises(self) -> list[str]:
         """The randomisation name of each swarm size's training episodes."""

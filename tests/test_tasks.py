@@ -184,6 +184,15 @@ def test_aggregation_world_has_no_beacon():
         np.testing.assert_array_equal(info["success"], largest_cluster(env.pos, link_mm(cfg), cfg.arena_half_mm)[0])
 
 
+def test_es_evaluates_in_its_tasks_world():
+    """train-es's evaluation world is its training world (the task's beacon and layout) with eval_steps steps."""
+    from learn.config import ESConfig
+
+    cfg = ESConfig(task="aggregation", demo_policy="none", eval_steps=123)
+    assert cfg.eval_world() == dataclasses.replace(cfg.world_config(), episode_steps=123)
+    assert not cfg.eval_world().beacon
+
+
 def test_hand_written_aggregator_beats_random():
     """The probabilistic aggregation rule gathers more robots than the random walk (16 robots, 8 episodes)."""
     from sim.rollout import rollout
