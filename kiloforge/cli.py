@@ -66,7 +66,7 @@ def usage() -> str:
     lines += [f"  {name:<{width}}  {c.summary}" for name, c in COMMANDS.items()]
     lines += ["", "  --version  print the version", "  --help     this list", "",
               "Exit status: 0 done, 1 a check failed (does not fit, verification failed), 2 bad input, "
-              "130/143 interrupted."]
+              "130/143 interrupted, 141 standard output closed."]
     return "\n".join(lines)
 
 

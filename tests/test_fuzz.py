@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from hypothesis import example, given
 
+from tests import fuzz_commands as fc
 from tests import fuzz_targets as ft
 
 pytest.importorskip("onnx")
@@ -79,3 +80,28 @@ def test_fuzz_export_cli(work, data):
 def test_fuzz_sim_cli(work, data):
     """Random `python -m sim` argv: all four outputs, or one line and nothing written."""
     _ok(ft.cli_case("sim", data, work[1], work[0] / "sim_out"))
+
+
+# --- issue 47: every command through the kiloforge entry machinery (tests/fuzz_commands.py) -------------------
+@pytest.fixture(scope="module")
+def names_fx(work):
+    return fc.NameFixtures(work[0] / "name_fixtures")
+
+
+@pytest.mark.parametrize("target,n", [("names", 6), ("run_folders", 20), ("stdout", 10), ("disk_full", 3),
+                                      ("weights", 4), ("part_a", 8)])
+def test_fuzz_issue_47_targets(work, names_fx, target, n):
+    """Hostile names, run folders, standard outputs, full disks, huge weights and part A's causes through the
+    kiloforge command: a success with every output, or one clean line with nothing written; never a hang."""
+    check = {"names": lambda d: fc.names_case(d, names_fx, work[0]),
+             "run_folders": lambda d: fc.run_folder_case(d, work[0]),
+             "stdout": lambda d: fc.stdout_case(d, names_fx, work[0]),
+             "disk_full": lambda d: fc.disk_full_case(d, names_fx, work[0]),
+             "weights": lambda d: fc.weights_case(d, work[0]),
+             "part_a": lambda d: fc.part_a_case(d, names_fx, work[0])}[target]
+
+    @ft.fuzz_settings(n)
+    @given(data=ft.st.data())
+    def run(data):
+        _ok(check(data))
+    run()
