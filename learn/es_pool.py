@@ -10,14 +10,16 @@ process played it, and a run learns the same weights bit for bit with any number
 * :class:`LocalPool` (``--workers 1``, no Ray imported): all members in one batch, part after part,
   stopping between parts when a stop was requested.
 * :class:`RayPool` (``--workers N`` starts a private local Ray with N CPUs; ``--ray-address`` joins a
-  cluster): N actors, one CPU each; each part's members are cut into N contiguous blocks and every
-  (part, block) is given to the next idle actor. What travels per generation is θ (one ``ray.put``),
-  σ, the generation's seed and the block bounds; every actor draws ε itself from the seed, and the
-  fitness object travels once per run. A block whose actor dies is given again, to the next idle actor
-  (Ray restarts the dead one, which is probed until it answers), at most :data:`MAX_TRIES` times; a stop request is looked at every :data:`POLL_S` seconds
+  cluster): N actors, one CPU each, warmed before the first generation (:meth:`RayPool.warm`). Each
+  part's members are cut into N contiguous blocks and every (part, block) goes to the next idle actor.
+  What travels per generation is θ (one ``ray.put``), σ, the generation's seed and the block bounds;
+  every actor draws ε itself from the seed, and the fitness object travels once per run. A block whose
+  actor dies is given again, to the next idle actor (Ray restarts the dead one, which is probed until it
+  answers), at most :data:`MAX_TRIES` times. A stop request is looked at every :data:`POLL_S` seconds
   and abandons the generation. Ray starts quietly (no dashboard, workers' output not forwarded) and is
-  shut down when the pool closes, also on errors and signals; its child processes die with the driver
-  (Ray's own fate sharing) when that is killed.
+  shut down when the pool closes, also on errors and signals; on SIGKILL of the trainer its workers,
+  raylet and GCS die with it (Ray's fate sharing) and its two agent processes exit on their own within
+  about a minute.
 """
 from __future__ import annotations
 

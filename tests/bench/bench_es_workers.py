@@ -12,6 +12,12 @@ median and range of the per-round ratios to one worker. Every run must end with 
 the one-worker run of its round (the script checks the policy arrays and says so). Print ``uptime``
 with the table: on a shared machine the ratios, not the rates, are what two runs can be compared by,
 and only a run on an idle machine measures the scaling itself.
+
+A second table (``--cpu-generations``, 0 = none) reads what load hides: the same population evaluated in
+this process through :mod:`learn.es_pool` for each worker count, with the CPU seconds each process (this
+one, or each Ray worker) spent per generation. The busiest process's CPU seconds bound a generation's
+wall time on idle cores; their ratio to one worker's is the ratio an idle machine would show at most
+(Ray's own processes and the dispatch not counted), and the total shows what splitting the batch costs.
 """
 from __future__ import annotations
 
@@ -22,6 +28,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +55,48 @@ def weights(run_dir: Path) -> list[np.ndarray]:
     return [np.asarray(a) for a in (*p.weights, *p.biases)]
 
 
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_table(args: argparse.Namespace) -> dict[int, tuple[float, float, float]]:
+    """Per worker count: (median wall s, median busiest-process CPU s, median total CPU s) per generation."""
+    from learn.config import ESConfig
+    from learn.es import PopulationMLP
+    from learn.es_pool import worker_pool
+    from learn.es_train import actor_algo, get_theta, task_fitness
+    from learn.speed import set_threads
+
+    class NoStop:
+        def check(self) -> None:
+            pass
+
+    set_threads(1)
+    cfg = ESConfig(n_robots=tuple(args.robots), demo_policy="none", pairs=args.pairs, seed=args.seed)
+    world = cfg.world_config()
+    algo = actor_algo(cfg, world)
+    fitness = task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(args.robots))
+    theta = get_theta(algo)
+    out = {}
+    for w in args.workers:
+        with worker_pool(w, log=lambda _m: None) as pool:
+            pool.warm(fitness, theta)
+            pids = list(getattr(pool, "pids", [os.getpid()]))
+            walls, busiest, total = [], [], []
+            for g in range(args.cpu_generations):
+                c0 = [_cpu_s(p) for p in pids]
+                t0 = time.perf_counter()
+                pool.evaluate(fitness, theta, cfg.sigma, cfg.pairs, np.random.SeedSequence([args.seed, g]), NoStop())
+                walls.append(time.perf_counter() - t0)
+                spent = [_cpu_s(p) - c for p, c in zip(pids, c0)]
+                busiest.append(max(spent))
+                total.append(sum(spent))
+        out[w] = (statistics.median(walls), statistics.median(busiest), statistics.median(total))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="worker counts; the first is the baseline")
@@ -55,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--generations", type=int, default=4)
     p.add_argument("--pairs", type=int, default=8)
     p.add_argument("--seed", type=int, default=3)
-    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--rounds", type=int, default=2, help="paired train-es rounds (0: only the CPU table)")
+    p.add_argument("--cpu-generations", type=int, default=6, help="generations of the CPU-seconds table (0: none)")
     args = p.parse_args(argv)
     base = args.workers[0]
     rates: dict[int, list[float]] = {w: [] for w in args.workers}
@@ -79,16 +129,28 @@ def main(argv: list[str] | None = None) -> int:
             for w in args.workers:
                 ratios[w].append(got[w] / got[base])
                 same &= all(np.array_equal(a, b) for a, b in zip(ref, weights(Path(tmp) / f"r{r}_w{w}"), strict=True))
-    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-    print(f"\ntrain-es --robots {' '.join(map(str, args.robots))} --demo-policy none --generations {args.generations} "
-          f"--pairs {args.pairs} --seed {args.seed}; {args.rounds} rounds; {os.cpu_count()} CPUs; {load}")
-    print(f"{'workers':>7} | {'generations/s':>13} | {'member-episodes/s':>17} | {'ratio (median)':>14} | ratio range")
-    print("-" * 7 + "-+-" + "-" * 13 + "-+-" + "-" * 17 + "-+-" + "-" * 14 + "-+-" + "-" * 12)
-    for w in args.workers:
-        rr = ratios[w]
-        print(f"{w:>7} | {statistics.median(rates[w]):>13.3f} | {statistics.median(episodes[w]):>17.1f} | "
-              f"{statistics.median(rr):>14.2f} | {min(rr):.2f}-{max(rr):.2f}")
-    print(f"policy_last.npz weights equal across worker counts in every round: {'yes' if same else 'NO'}")
+    if args.rounds:
+        load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+        print(f"\ntrain-es --robots {' '.join(map(str, args.robots))} --demo-policy none --generations {args.generations} "
+              f"--pairs {args.pairs} --seed {args.seed}; {args.rounds} rounds; {os.cpu_count()} CPUs; {load}")
+        print(f"{'workers':>7} | {'generations/s':>13} | {'member-episodes/s':>17} | {'ratio (median)':>14} | ratio range")
+        print("-" * 7 + "-+-" + "-" * 13 + "-+-" + "-" * 17 + "-+-" + "-" * 14 + "-+-" + "-" * 12)
+        for w in args.workers:
+            rr = ratios[w]
+            print(f"{w:>7} | {statistics.median(rates[w]):>13.3f} | {statistics.median(episodes[w]):>17.1f} | "
+                  f"{statistics.median(rr):>14.2f} | {min(rr):.2f}-{max(rr):.2f}")
+        print(f"policy_last.npz weights equal across worker counts in every round: {'yes' if same else 'NO'}")
+    if args.cpu_generations:
+        cpu = cpu_table(args)
+        b = cpu[base][1]
+        print(f"\nCPU seconds per generation (median of {args.cpu_generations}; "
+              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+        print(f"{'workers':>7} | {'wall s':>7} | {'busiest process CPU s':>21} | {'all workers CPU s':>17} | "
+              "idle-core bound on the ratio")
+        print("-" * 7 + "-+-" + "-" * 7 + "-+-" + "-" * 21 + "-+-" + "-" * 17 + "-+-" + "-" * 28)
+        for w in args.workers:
+            wall, busy, tot = cpu[w]
+            print(f"{w:>7} | {wall:>7.3f} | {busy:>21.3f} | {tot:>17.3f} | {b / busy:.2f}")
     return 0 if same else 1
 
 
