@@ -79,12 +79,13 @@ def quantise(policy: FloatPolicy, args: argparse.Namespace, seed: int, steps: in
     return calib, qp, error_report(policy, qp, calib)
 
 
-def check_robots(world: WorldConfig, counts: list[int], flag: str) -> None:
-    """The largest robot count fits the world's arena (SwarmEnv refuses too many discs)."""
+def check_robots(world: WorldConfig, counts: list[int], flag: str, task: "Task | str | None" = None) -> None:
+    """The largest robot count fits the world's arena (SwarmEnv refuses too many discs) of ``task`` (default
+    localisation)."""
     from sim.env import SwarmEnv
 
     try:
-        SwarmEnv(world, 1, max(counts), seed=0)
+        SwarmEnv(world, 1, max(counts), seed=0, task=task)
     except ValueError as e:
         raise ExportError(f"{flag} {max(counts)}: {e}") from None
 

@@ -119,7 +119,15 @@ def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
 
 def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: Sequence[int],
                kilolib: Path | None) -> list[str]:
-    """The lines printed after a successful export: what to run next to get the policy onto robots."""
+    """The lines printed after a successful export: what to run next to get the policy onto robots (no target
+    uids: a world without a beacon, one image for every robot)."""
+    if not target_uids:
+        if kilolib is not None:
+            return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI",
+                    "      before you flash (calibration, lighting, uids): docs/flashing.md"]
+        return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
+                "(DIR: your built kilolib checkout)",
+                "      then flash every robot with it: docs/flashing.md"]
     beacon = f"kilo_uid {', '.join(map(str, target_uids))}"
     if kilolib is not None:
         return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {beacon} "
@@ -145,12 +153,16 @@ def run_export(argv: Sequence[str]) -> int:
         avr.find_kilolib(args.kilolib)  # a bad --kilolib (or no AVR toolchain) too
 
     policy = load(args.policy, args.onnx, args.world_json, args.task)
+    beacon = policy.world.beacon  # without one: no beacon role, no kilobot_target.c
+    if not beacon and args.target_uids is not None:
+        raise ExportError(f"--target-uids: the policy's world '{policy.world.name}' has no beacon "
+                          f"(task {policy.task.name})")
     if policy.world.name != KILOBOT.name:
         print(f"warning: this policy was trained in the '{policy.world.name}' world, not the Kilobot's "
               f"('{KILOBOT.name}': 33 mm bodies, collisions, leg-pivot motion, the Kilobot radio); on robots it "
               f"will not do what the simulator showed: train with --world {KILOBOT.name}", file=sys.stderr)
     print(describe(policy))
-    check_robots(policy.world, args.robots_calib, "--robots-calib")
+    check_robots(policy.world, args.robots_calib, "--robots-calib", args.task)
     calib_steps = run_steps(policy.world, args.calib_steps, "--calib-steps")
     budget = bud.for_policy(policy)
     if not budget.ok:
@@ -166,8 +178,8 @@ def run_export(argv: Sequence[str]) -> int:
         print(budget.table())
         raise BudgetError(f"quantised policy does not fit ({budget.summary()})")
 
-    target_uids = args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
-    files = render_firmware(qp, target_uids=target_uids, generator_version=generator_version())
+    target_uids = () if not beacon else args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
+    files = render_firmware(qp, target_uids=target_uids or None, generator_version=generator_version())
     budget = _exact_budget(budget, qp, files, skip=args.no_avr)
     built: dict[Path, bytes] = {}
     if args.kilolib is not None:
@@ -184,7 +196,8 @@ def run_export(argv: Sequence[str]) -> int:
                "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
                "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
                "source": str(args.onnx or args.policy or "default reference policy")}
-    contents: dict[Path, Any] = {out: files[POLICY_FILE], target_path: files[TARGET_FILE], **built}
+    contents: dict[Path, Any] = {out: files[POLICY_FILE], **({target_path: files[TARGET_FILE]} if beacon else {}),
+                                 **built}
     manifest = build_manifest(policy, qp, budget, report, calib, {p.name: data for p, data in contents.items()},
                               options)
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)

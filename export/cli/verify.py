@@ -127,8 +127,8 @@ def run_verify(argv: Sequence[str]) -> int:
         check_writable([base / RESULT_JSON])
     policy = load(args.policy, task=args.task)
     print(describe(policy))
-    check_robots(policy.world, args.robots, "--robots")
-    check_robots(policy.world, args.robots_calib, "--robots-calib")
+    check_robots(policy.world, args.robots, "--robots", args.task)
+    check_robots(policy.world, args.robots_calib, "--robots-calib", args.task)
     calib_steps = run_steps(policy.world, args.calib_steps, "--calib-steps")
     steps = run_steps(policy.world, args.steps, "--steps")
 

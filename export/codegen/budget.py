@@ -30,6 +30,7 @@ from kiloforge import numfmt
 from kiloforge.actors.base import ActorKind, BudgetItem, FloatPolicy, QuantizedActor, Resize
 from kiloforge.actors.registry import kind_of
 from sim.config import WorldConfig
+from sim.features import FEATURES
 
 from ..contract import firmware as fw
 from .cformat import clamp_index_table, nonzero_windows
@@ -60,7 +61,7 @@ LAYER_DESCRIPTOR_B = 15  #: per layer: the kernel's layer struct (initialised .d
 
 # --- SRAM estimate --------------------------------------------------------------------------------
 RX_ENTRY_B = 8  #: uid (2) + raw distance_measurement_t (4) + role/flag (1) + tick (1)
-NEIGHBOUR_ENTRY_B = 4  #: uid (2) + distance (1) + sensing flag (1)
+NEIGHBOUR_ENTRY_B = 4  #: uid (2) + distance (1) + sensing flag (1, only when a feature reads it)
 MISC_STATE_B = 32  #: tick counters, previous command, wall flag, target slot, schedule, role, heads
 CONTROL_STACK_B = 80  #: estimated peak stack of the control step (frames + saved registers)
 
@@ -170,11 +171,22 @@ class Budget:
 
 
 def sensing_table_bytes(world: WorldConfig, e_in: int = numfmt.DEFAULT_INPUT_EXP) -> tuple[int, int]:
-    """(RBF bytes, target-table bytes) as rendered: non-zero windows + their lo/len/offset; clamped prefix."""
-    rbf = numfmt.rbf_table(world.rbf_centres_mm, world.rbf_sigma_mm, world.rbf_norm, world.comm_radius_mm, e_in)
-    _, _, _, packed = nonzero_windows(rbf)
-    tgt, _ = clamp_index_table(numfmt.target_table(world.comm_radius_mm, e_in))
-    return int(packed.size) + 5 * world.n_rbf, int(tgt.size)  # lo uint8, len + offset uint16 per bin
+    """(RBF bytes, target-table bytes) as rendered: non-zero windows + their lo/len/offset; clamped prefix.
+    0 for a table the world's observation layout does not read (it is not rendered)."""
+    rbf_b = tgt_b = 0
+    if world.has_feature("rbf"):
+        rbf = numfmt.rbf_table(world.rbf_centres_mm, world.rbf_sigma_mm, world.rbf_norm, world.comm_radius_mm, e_in)
+        _, _, _, packed = nonzero_windows(rbf)
+        rbf_b = int(packed.size) + 5 * world.n_rbf  # lo uint8, len + offset uint16 per bin
+    if world.has_feature("target"):
+        tgt, _ = clamp_index_table(numfmt.target_table(world.comm_radius_mm, e_in))
+        tgt_b = int(tgt.size)
+    return rbf_b, tgt_b
+
+
+def neighbour_entry_bytes(world: WorldConfig) -> int:
+    """One neighbour-table entry as rendered: the sensing flag only when a feature reads it."""
+    return NEIGHBOUR_ENTRY_B - (not any(FEATURES[f].uses_flag for f in world.features))
 
 
 def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numfmt.DEFAULT_INPUT_EXP,
@@ -182,8 +194,11 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
     """Analytic budget of an actor of ``kind`` with architecture ``arch`` (the kind's size type).
 
     ``e_in`` (the input exponent) shapes the trimmed sensing tables; ``n_target_uids``: kilo_uids that
-    run the beacon role (a uint16 table).
+    run the beacon role (a uint16 table; none in a world without a beacon). Only what the world's beacon
+    and observation layout render is counted.
     """
+    if not world.beacon:
+        n_target_uids = 0
     spec = kind.budget_spec(world, arch, e_in)
     n_layers = len(spec.dense)
     n_w = sum(o * i for o, i in spec.dense)
@@ -200,13 +215,14 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
         BudgetItem("flash", "weights int8", n_w, " + ".join(f"{o}x{i}" for o, i in spec.dense)),
         BudgetItem("flash", "biases int32", 4 * n_rows, f"4 x {n_rows} rows"),
         BudgetItem("flash", "shifts uint8", n_rows, f"1 x {n_rows} rows"),
-        BudgetItem("flash", "RBF table", rbf_b, f"{world.n_rbf} non-zero windows + index, e_in {e_in}"),
+        *([BudgetItem("flash", "RBF table", rbf_b, f"{world.n_rbf} non-zero windows + index, e_in {e_in}")]
+          if world.has_feature("rbf") else []),
         BudgetItem("flash", "target, action, uid tables", tgt_b + numfmt.TABLE_SIZE + 2 * n_target_uids,
              f"{tgt_b} + {numfmt.TABLE_SIZE} int8 + {n_target_uids} uint16"),
         *spec.flash,
         *spec.memory,
-        BudgetItem("sram", "neighbour table", world.neighbour_table_size * NEIGHBOUR_ENTRY_B,
-             f"{world.neighbour_table_size} x {NEIGHBOUR_ENTRY_B} B"),
+        BudgetItem("sram", "neighbour table", world.neighbour_table_size * neighbour_entry_bytes(world),
+             f"{world.neighbour_table_size} x {neighbour_entry_bytes(world)} B"),
         BudgetItem("sram", "rx queue", fw.RXQ_CAPACITY * RX_ENTRY_B, f"{fw.RXQ_CAPACITY} x {RX_ENTRY_B} B"),
         BudgetItem("sram", "outgoing message", fw.MSG_BYTES, "message_t"),
         BudgetItem("sram", "misc state", MISC_STATE_B, "estimate"),

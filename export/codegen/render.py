@@ -1,4 +1,5 @@
-"""Render a quantised actor into Kilobot C: ``kilobot_policy.c`` and the beacon-only ``kilobot_target.c``.
+"""Render a quantised actor into Kilobot C: ``kilobot_policy.c`` and, in worlds with a beacon, the beacon-only
+``kilobot_target.c``.
 
 :func:`render_firmware` is a pure function (no I/O besides reading the templates). The shared
 program (``firmware_templates/kilobot_policy.c.j2``: radio, observation, motor schedule, message,
@@ -13,6 +14,11 @@ What the program does is the control-step contract (docs/design.md); :mod:`expor
 is its bit-exact NumPy model, and :mod:`export.contract.firmware` holds the constants both share.
 Tables are stored trimmed where that is exact: the target table up to the first distance from which
 it is constant (the C clamps the index), each RBF row only over its non-zero window.
+
+The observation is the world's (``WorldConfig.obs_features``, chosen by the task): ``kf_observe`` is
+rendered from each feature's block (``firmware_templates/features/<name>.c.j2``, :mod:`sim.features`),
+and only what the layout and the beacon need is rendered: a world without a beacon gets no beacon
+role, no target slot, table or uids, no message flags and no ``kilobot_target.c``.
 """
 from __future__ import annotations
 
@@ -24,7 +30,8 @@ from kiloforge import numfmt
 from kiloforge.actors.base import CDefine, CDense, QuantizedActor, RenderSpec
 from kiloforge.actors.registry import kind_of
 from kiloforge.errors import QuantizeError
-from sim.config import ACTION_DIM, OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL
+from sim.config import ACTION_DIM, WorldConfig
+from sim.features import FEATURES
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 
 from ..contract import crc
@@ -42,6 +49,8 @@ TARGET_TEMPLATE = "kilobot_target.c.j2"
 RUNTIME_SOURCES = ("kf_runtime.h",)
 DENSE_SOURCES = ("kf_dense.h", "kf_dense.c")
 MAX_TARGET_UIDS = 32
+#: the loop counters (uint8_t) each feature's firmware block uses in kf_observe
+FEATURE_COUNTERS: dict[str, tuple[str, ...]] = {"nbr_sensing": ("i",), "rbf": ("i", "k")}
 
 
 def _define(name: str, value: str, comment: str = "") -> dict[str, str]:
@@ -84,7 +93,8 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
         f"world           {c_comment(w.name, 40)}: control period {w.period_ticks} kilo_ticks, comm radius "
         f"{w.comm_radius_mm:g} mm, {w.n_rbf} RBF bins, neighbour table {w.neighbour_table_size}",
         f"actor           {qp.describe()}",
-        f"target uids     {', '.join(str(u) for u in uids)} (these robots act as the beacon)",
+        *([f"target uids     {', '.join(str(u) for u in uids)} (these robots act as the beacon)"] if w.beacon else
+          [f"observation     {c_comment(w.obs_features, 60)} (no beacon)"]),
         f"message         type {msg_type:#04x}, version {fw.MSG_VERSION}",
         "",
         "Robot: avr-gcc -mmcu=atmega328p -O3 -funsigned-char -funsigned-bitfields -fpack-struct",
@@ -97,8 +107,11 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
     return lines
 
 
-def _common_defines(msg_type: int) -> list[dict[str, str]]:
-    return [
+def _common_defines(msg_type: int, world: WorldConfig) -> list[dict[str, str]]:
+    """The message and LED constants: the role and sensing bits and their LEDs only where the world has a beacon."""
+    beacon = world.beacon
+    nbr = world.has_feature("nbr_sensing")
+    defines = [
         _define("KF_MSG_TYPE", _u(msg_type), "message type of ours (a user type: < 0x80, not 1)"),
         _define("KF_MSG_VERSION", _u(fw.MSG_VERSION), "data[0] of our messages; others are dropped"),
         _define("KF_READY", _u(fw.STATE_READY, "uint16_t"),
@@ -106,15 +119,16 @@ def _common_defines(msg_type: int) -> list[dict[str, str]]:
         _define("KF_MSG_DATA_BYTES", _u(fw.MSG_DATA_BYTES), "message_t payload bytes (the CRC covers them and the type)"),
         _define("KF_MSG_USED_BYTES", _u(fw.MSG_USED_BYTES), "data[0..3] carry version, uid and info; the rest is 0"),
         _define("KF_MSG_INFO_BYTE", _u(fw.MSG_INFO_BYTE), "data[] index of role | sensing << 1"),
-        _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon"),
-        _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period"),
-        _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show"),
-        _define("KF_LED_BEACON", "(RGB({}, {}, {}))".format(*fw.LED_BEACON), "blue: target beacon"),
-        _define("KF_LED_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_SENSING),
-                "green: heard the target during the last period"),
-        _define("KF_LED_NBR_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_NBR_SENSING),
-                "yellow: a neighbour heard last period senses the target"),
+        (beacon, _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon")),
+        (beacon, _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period")),
+        (True, _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show")),
+        (beacon, _define("KF_LED_BEACON", "(RGB({}, {}, {}))".format(*fw.LED_BEACON), "blue: target beacon")),
+        (beacon, _define("KF_LED_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_SENSING),
+                         "green: heard the target during the last period")),
+        (beacon and nbr, _define("KF_LED_NBR_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_NBR_SENSING),
+                                 "yellow: a neighbour heard last period senses the target")),
     ]
+    return [d if isinstance(d, dict) else d[1] for d in defines if isinstance(d, dict) or d[0]]
 
 
 def runtime_defines() -> dict[str, str]:
@@ -146,20 +160,21 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
                 "messages buffered between the rx ISR and loop(); one arriving when full is dropped"),
         _define("KF_NBR_CAPACITY", _u(w.neighbour_table_size),
                 "neighbour-table entries per period; further new senders are dropped"),
-        _define("KF_N_TARGET_UIDS", _u(len(uids)), "robots with these kilo_uids act as the beacon"),
+        *([_define("KF_N_TARGET_UIDS", _u(len(uids)), "robots with these kilo_uids act as the beacon")]
+          if w.beacon else []),
         *map(_kind_define, spec.memory),
         _define("KF_ACTION_DIM", _u(ACTION_DIM), "tuple = [ACT[q_left], ACT[q_right], observation]"),
         _define("KF_OBS_DIM", _u(w.obs_dim), "observation entries"),
         _define("KF_TUPLE_DIM", _u(D), "history tuple entries"),
-        _define("KF_OBS_WALL", _u(OBS_WALL), "observation layout (sim/config.py)"),
-        _define("KF_OBS_TARGET", _u(OBS_TARGET)),
-        _define("KF_OBS_NBR_SENSING", _u(OBS_NBR_SENSING)),
-        _define("KF_OBS_RBF", _u(OBS_RBF)),
-        _define("KF_N_RBF", _u(w.n_rbf), "RBF histogram bins"),
-        _define("KF_LIGHT_THRESHOLD", f"((int16_t){c_int(w.light_threshold, 'int16_t')})",
-                "ambient-light ADC counts: wall flag = reading >= this"),
+        *[_define(f"KF_OBS_{name.upper()}", _u(w.obs_index(name)),
+                  "observation layout (the world's obs_features)" if k == 0 else "")
+          for k, name in enumerate(w.features)],
+        *([_define("KF_N_RBF", _u(w.n_rbf), "RBF histogram bins")] if w.has_feature("rbf") else []),
+        *([_define("KF_LIGHT_THRESHOLD", f"((int16_t){c_int(w.light_threshold, 'int16_t')})",
+                   "ambient-light ADC counts: wall flag = reading >= this")] if w.has_feature("wall") else []),
         _define("KF_ONE", f"((int8_t){c_int(one, 'int8_t')})", f"1.0 at the input exponent e_in = {qp.e_in}"),
-        _define("KF_MINUS_ONE", f"((int8_t){c_int(-one, 'int8_t')})", "-1.0: target not heard"),
+        *([_define("KF_MINUS_ONE", f"((int8_t){c_int(-one, 'int8_t')})", "-1.0: target not heard")]
+          if w.has_feature("target") else []),
         _define("KF_SCHED_SHIFT", _u(SCHEDULE_SHIFT), "motor schedule (sim/motion.py): ticks = (x * K + half) >> shift"),
         _define("KF_SCHED_HALF", c_int(1 << (SCHEDULE_SHIFT - 1), "uint32_t")),
         _define("KF_K_TURN", c_int(k_turn, "uint32_t"), "turn ticks per unit of |q_left - q_right|"),
@@ -171,24 +186,36 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
         *map(_kind_define, spec.scratch),
     ]
 
-    # --- sensing tables (trimmed where exact) ---
-    tgt, tgt_last = clamp_index_table(np.asarray(qp.target_table))
-    defines.append(_define("KF_TGT_LAST", _u(tgt_last),
-                           "target table index clamp: distances above it read this entry"))
-    lo, length, off, packed = nonzero_windows(np.asarray(qp.rbf_table))
-    tables = [
-        c_array("KF_TARGET_UIDS", "uint16_t", uids, comment="kilo_uids of the target beacon role"),
-        c_array("KF_ACT", "int8_t", qp.action_table,
-                comment=f"ACT[q]: motor command q / 255 at exponent e_in = {qp.e_in} (history entries)"),
-        c_array("KF_TGT", "int8_t", tgt,
-                comment=f"TGT[d]: min(d / comm radius, 1) at e_in for d = 0..{tgt_last} mm"),
-        c_array("KF_RBF_LO", "uint8_t", lo, comment="RBF bin k is non-zero for d = LO[k] .. LO[k] + LEN[k] - 1 mm"),
-        c_array("KF_RBF_LEN", "uint16_t", length),
-        c_array("KF_RBF_OFF", "uint16_t", off, comment="offset of bin k's window in KF_RBF"),
-        c_array("KF_RBF", "uint8_t", packed,
-                comment="psi_k(d) / rbf_norm at e_in over each bin's window (0 beyond the comm radius)"),
-    ]
+    # --- sensing tables (trimmed where exact), those the layout reads ---
+    tables = []
+    if w.beacon:
+        tables.append(c_array("KF_TARGET_UIDS", "uint16_t", uids, comment="kilo_uids of the target beacon role"))
+    tables.append(c_array("KF_ACT", "int8_t", qp.action_table,
+                          comment=f"ACT[q]: motor command q / 255 at exponent e_in = {qp.e_in} (history entries)"))
+    if w.has_feature("target"):
+        tgt, tgt_last = clamp_index_table(np.asarray(qp.target_table))
+        defines.append(_define("KF_TGT_LAST", _u(tgt_last),
+                               "target table index clamp: distances above it read this entry"))
+        tables.append(c_array("KF_TGT", "int8_t", tgt,
+                              comment=f"TGT[d]: min(d / comm radius, 1) at e_in for d = 0..{tgt_last} mm"))
+    if w.has_feature("rbf"):
+        lo, length, off, packed = nonzero_windows(np.asarray(qp.rbf_table))
+        tables += [
+            c_array("KF_RBF_LO", "uint8_t", lo, comment="RBF bin k is non-zero for d = LO[k] .. LO[k] + LEN[k] - 1 mm"),
+            c_array("KF_RBF_LEN", "uint16_t", length),
+            c_array("KF_RBF_OFF", "uint16_t", off, comment="offset of bin k's window in KF_RBF"),
+            c_array("KF_RBF", "uint8_t", packed,
+                    comment="psi_k(d) / rbf_norm at e_in over each bin's window (0 beyond the comm radius)"),
+        ]
     return defines, tables
+
+
+def _layout_context(w: WorldConfig) -> dict[str, Any]:
+    """What the shared template renders from the world's beacon and observation layout."""
+    counters = {c for f in w.features for c in FEATURE_COUNTERS.get(f, ())}
+    return {"beacon": w.beacon, "obs_features": list(w.features),
+            "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
+            "observe_counters": ", ".join(sorted(counters))}
 
 
 def _dense_arrays(d: CDense) -> tuple[list[str], dict[str, str]]:
@@ -224,7 +251,7 @@ def _policy_context(qp: QuantizedActor, uids: tuple[int, ...]) -> dict[str, Any]
         else:
             tables.append(c_array(t.name, t.ctype, t.values, per_line=t.per_line, comment=t.comment))
     return {"defines": defines, "tables": tables, "layers": layers, "actor_c": inline_sources(kind.c_sources),
-            **spec.variables}
+            **_layout_context(qp.world), **spec.variables}
 
 
 def _dense_c(qp: QuantizedActor) -> str:
@@ -238,15 +265,18 @@ def _dense_c(qp: QuantizedActor) -> str:
 
 def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None = None,
                     msg_type: int = fw.DEFAULT_MSG_TYPE, generator_version: str | None = None) -> dict[str, str]:
-    """The generated programs: ``{"kilobot_policy.c": ..., "kilobot_target.c": ...}``.
+    """The generated programs: ``{"kilobot_policy.c": ..., "kilobot_target.c": ...}`` (the second only when the
+    world has a beacon).
 
     ``target_uids`` (default ``(world.target_uid,)``): robots with these kilo_uids run the beacon
-    role of the policy program. ``msg_type``: the message type of ours (< 0x80, not 1).
+    role of the policy program (refused for a world without a beacon). ``msg_type``: the message type of ours (< 0x80, not 1).
     ``generator_version`` goes into the banner (default: the installed kiloforge version).
     Raises :class:`ExportError` with a one-line message for bad arguments.
     """
     qp = qpolicy
-    uids = _check_uids((qp.world.target_uid,) if target_uids is None else target_uids)
+    if not qp.world.beacon and target_uids is not None:
+        raise ExportError(f"the policy's world '{qp.world.name}' has no beacon: target uids do not apply")
+    uids = _check_uids((qp.world.target_uid,) if target_uids is None else target_uids) if qp.world.beacon else ()
     try:
         msg_type = fw.check_msg_type(msg_type)
         c_hex_digest(qp.policy_hash)
@@ -255,19 +285,20 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
     if generator_version is None:
         generator_version = installed_version()
     env = environment()
-    common = {"defines_common": _common_defines(msg_type), "defines_runtime": _runtime_defines(),
+    common = {"defines_common": _common_defines(msg_type, qp.world), "defines_runtime": _runtime_defines(),
               "runtime_c": inline_sources(RUNTIME_SOURCES)}
     policy_ctx = dict(common, **_policy_context(qp, uids),
                       banner=_banner(POLICY_FILE, qp, generator_version,
                                      ["One program for every robot: robots whose kilo_uid is a target uid act",
-                                      "as the beacon, all others as searchers running the policy."],
+                                      "as the beacon, all others as searchers running the policy."] if qp.world.beacon
+                                     else ["One program for every robot: each runs the policy (the world has no beacon)."],
                                      uids, msg_type),
                       dense_c=_dense_c(qp))
+    policy_c = env.get_template(kind_of(qp).template).render(**policy_ctx)
+    if not qp.world.beacon:
+        return {POLICY_FILE: policy_c}
     target_ctx = dict(common, banner=_banner(TARGET_FILE, qp, generator_version,
                                              ["Beacon-only program: whatever its kilo_uid, this robot is the target",
                                               "(it never moves, shines blue and sends role = 1)."],
                                              uids, msg_type))
-    return {
-        POLICY_FILE: env.get_template(kind_of(qp).template).render(**policy_ctx),
-        TARGET_FILE: env.get_template(TARGET_TEMPLATE).render(**target_ctx),
-    }
+    return {POLICY_FILE: policy_c, TARGET_FILE: env.get_template(TARGET_TEMPLATE).render(**target_ctx)}

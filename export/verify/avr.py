@@ -591,7 +591,10 @@ def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, target_uids
     """
     qp = qpolicy
     msg_type = fw.DEFAULT_MSG_TYPE if msg_type is None else msg_type
-    targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
+    if not qp.world.beacon:  # no beacon role: no robot is one (the stream's role bits are neighbours')
+        targets: tuple[int, ...] = ()
+    else:
+        targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
     P, obs_dim = qp.world.period_ticks, qp.world.obs_dim
     if inputs is None:
         rng = np.random.default_rng(np.random.SeedSequence(seed))
@@ -600,7 +603,8 @@ def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, target_uids
     with tempfile.TemporaryDirectory(prefix="kf_simavr_") as td:
         b = build_simavr_firmware(files[POLICY_FILE], Path(td), portable=portable)
         outs, res = run_firmware(b.elf, inputs, P, obs_dim)
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets, msg_type=msg_type).run(inputs)
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets if qp.world.beacon else None,
+                           msg_type=msg_type).run(inputs)
     detail = compare(emu, outs)
     steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(P)
     step_cycles, net_cycles, stack = _step_profile(res)

@@ -29,18 +29,23 @@ inside is vectorised over robots (and over the ticks of a period).
 
 The receive rules are not re-implemented: :func:`sim.events.summarise` applies them to the
 messages the queue accepted, so the host test proves the C follows the simulator's definition.
+
+The observation is the world's layout (``WorldConfig.obs_features``): each feature's firmware block
+(``firmware_templates/features/<name>.c.j2``) has its twin in :data:`INT_FEATURES`. In a world without
+a beacon no robot is a beacon, the role bit is ignored (every message is a neighbour's), the message
+never carries a flag and the LED stays off.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 
 from kiloforge import numfmt
 from kiloforge.actors.base import QuantizedActor
-from sim.config import OBS_NBR_SENSING, OBS_RBF, OBS_TARGET, OBS_WALL, ROLE_TARGET, WorldConfig
-from sim.events import HeardEvents, summarise
+from sim.config import ROLE_TARGET, WorldConfig
+from sim.events import HeardEvents, PeriodSummary, summarise
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
 
 from ..contract import firmware as fw
@@ -128,6 +133,39 @@ class FirmwareOutputs:
         return self.steps[..., 2:].view(np.int8)
 
 
+# --- the observation features' integer blocks (twins of firmware_templates/features/<name>.c.j2) ---------
+def _int_wall(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """wall.c.j2: the flag (already updated from this step's light reading) as KF_ONE / 0."""
+    return np.where(emu.wall, int(emu.qp.one_q), 0)[:, None]
+
+
+def _int_target(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """target.c.j2: TGT[min(d, TGT_LAST)] (the full table: the same entries) when heard, else -KF_ONE."""
+    R, one = emu.R, int(emu.qp.one_q)
+    d = summ.target_dist_mm[0, :R].astype(np.int64)
+    return np.where(summ.target_heard[0, :R], np.asarray(emu.qp.target_table, np.int64)[d], -one)[:, None]
+
+
+def _int_nbr_sensing(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """nbr_sensing.c.j2: KF_ONE when any table entry's latest flag is set."""
+    nbr = np.zeros(emu.R, np.int64)
+    np.maximum.at(nbr, summ.table_rx.astype(np.int64), summ.table_flag.astype(np.int64))
+    return np.where(nbr > 0, int(emu.qp.one_q), 0)[:, None]
+
+
+def _int_rbf(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """rbf.c.j2: per bin the table entries' RBF entries summed, saturated to int8."""
+    rbf = np.zeros((emu.R, emu.world.n_rbf), np.int64)
+    t_rx, t_d = summ.table_rx.astype(np.int64), summ.table_dist_mm.astype(np.int64)
+    np.add.at(rbf, t_rx, np.asarray(emu.qp.rbf_table, np.int64)[:, t_d].T)  # (K, n_rbf) per table entry
+    return np.minimum(rbf, numfmt.INT8_MAX)
+
+
+#: each observation feature's integer twin: (emulator, the period's summary) -> (R, width) int64
+INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]] = {
+    "wall": _int_wall, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf}
+
+
 def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarray:
     """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros, type, CRC LE.
 
@@ -170,7 +208,8 @@ class FirmwareEmulator:
         self.calib = np.asarray(calib, np.uint8)
         assert self.calib.shape == (R, 4), f"calib must be (R, 4), got {self.calib.shape}"
         targets = (self.world.target_uid,) if target_uids is None else tuple(int(u) for u in target_uids)
-        self.is_beacon = np.isin(self.uids.astype(np.int64), np.asarray(targets, np.int64))  # (R,)
+        assert self.world.beacon or target_uids is None, "target uids in a world without a beacon"
+        self.is_beacon = np.isin(self.uids.astype(np.int64), np.asarray(targets, np.int64)) & self.world.beacon  # (R,)
         self.msg_type = fw.check_msg_type(msg_type)
         assert rxq_capacity >= 1, "the rx queue holds at least one message"
         self.rxq_capacity = int(rxq_capacity)
@@ -237,7 +276,7 @@ class FirmwareEmulator:
         ev = HeardEvents(env=z, rx=heard["robot"].astype(np.int32), sender=sender.astype(np.int32).reshape(-1),
                          tick=(heard["tick"] % self.P).astype(np.int16),  # one period's events
                          dist_mm=heard["dist"].astype(np.float64),
-                         role=np.where(heard["role"] & 1, ROLE_TARGET, 0).astype(np.uint8),
+                         role=np.where(heard["role"] & int(self.world.beacon), ROLE_TARGET, 0).astype(np.uint8),
                          flag=(heard["flag"] & 1).astype(np.uint8))
         return summarise(ev, self.world, 1, M)
 
@@ -252,21 +291,14 @@ class FirmwareEmulator:
         assert light.shape == (R,), f"light must be ({R},), got {light.shape}"
         summ = self._summary()
         self._heard = []
+        w = self.world
         target_heard = summ.target_heard[0, :R]  # (R,)
-        target_d = summ.target_dist_mm[0, :R].astype(np.int64)
-        t_rx, t_d = summ.table_rx.astype(np.int64), summ.table_dist_mm.astype(np.int64)
-        one = int(qp.one_q)
 
-        self.wall = np.where(light >= 0, light >= self.world.light_threshold, self.wall)
-        obs = np.zeros((R, self.world.obs_dim), np.int64)
-        obs[:, OBS_WALL] = np.where(self.wall, one, 0)
-        obs[:, OBS_TARGET] = np.where(target_heard, np.asarray(qp.target_table, np.int64)[target_d], -one)
-        nbr = np.zeros(R, np.int64)
-        np.maximum.at(nbr, t_rx, summ.table_flag.astype(np.int64))
-        obs[:, OBS_NBR_SENSING] = np.where(nbr > 0, one, 0)
-        rbf = np.zeros((R, self.world.n_rbf), np.int64)
-        np.add.at(rbf, t_rx, np.asarray(qp.rbf_table, np.int64)[:, t_d].T)  # (K, n_rbf) per table entry
-        obs[:, OBS_RBF:] = np.minimum(rbf, numfmt.INT8_MAX)
+        if w.has_feature("wall"):
+            self.wall = np.where(light >= 0, light >= w.light_threshold, self.wall)
+        obs = np.zeros((R, w.obs_dim), np.int64)
+        for name in w.features:
+            obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)
 
         act = np.asarray(qp.action_table, np.int64)[self.q.astype(np.int64)]  # (R, 2) ACT[previous q], a_0 = ACT[0] = 0
         q, self.state = qp.step_int(np.concatenate([act, obs], 1), self.state)  # (R, 2) uint8
@@ -279,8 +311,9 @@ class FirmwareEmulator:
         self.turn_mode = mode
         self.straight = np.where(searcher, straight, 0).astype(np.uint8)
         sensing = target_heard & searcher
+        nbr = obs[:, w.obs_index("nbr_sensing")] != 0 if w.has_feature("nbr_sensing") else np.zeros(R, bool)
         led = np.where(sensing, self.led_codes["sensing"],
-                       np.where(obs[:, OBS_NBR_SENSING] != 0, self.led_codes["nbr"], self.led_codes["off"]))
+                       np.where(nbr, self.led_codes["nbr"], self.led_codes["off"]))
         self.led = np.where(self.is_beacon, self.led_codes["beacon"], led).astype(np.uint8)
         self.msg = np.where(self.is_beacon[:, None], self.msg_beacon,
                             self.msg_searcher[np.arange(R), sensing.astype(np.int64)])

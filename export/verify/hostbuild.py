@@ -197,8 +197,9 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     T = (spec.n_steps + 1) * P - int(rng.integers(0, P))  # the listening period, steps, often a partial last one
     n_steps = n_control_steps(T, P)
     uids = rng.choice(np.arange(1, 0x10000), size=R, replace=False).astype(np.uint16)
-    beacon = rng.random(R) < spec.beacon_p
-    uids[beacon] = rng.choice(np.asarray(target_uids, np.uint16), size=int(beacon.sum()))
+    beacon = (rng.random(R) < spec.beacon_p) & bool(target_uids)  # no beacon uids: none is a beacon
+    if target_uids:
+        uids[beacon] = rng.choice(np.asarray(target_uids, np.uint16), size=int(beacon.sum()))
     calib = rng.integers(0, 256, size=(R, 4)).astype(np.uint8)
     calib[rng.random((R, 4)) < 0.1] = 0
     light = rng.integers(0, 1024, size=(R, n_steps))
@@ -218,7 +219,7 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     ev["uid"] = pool[robot, rng.integers(0, spec.n_senders, size=N)]
     is_t = rng.random(N) < spec.target_p
     ev["role"] = is_t
-    ev["uid"][is_t] = rng.choice(np.asarray(target_uids + (1234,), np.uint16), size=int(is_t.sum()))
+    ev["uid"][is_t] = rng.choice(np.asarray(tuple(target_uids) + (1234,), np.uint16), size=int(is_t.sum()))
     ev["flag"] = rng.random(N) < 0.3
     d = np.where(rng.random(N) < 0.6, rng.normal(comm_radius_mm * 0.7, comm_radius_mm * 0.4, N),
                  rng.integers(0, 256, N))
@@ -262,36 +263,43 @@ def compare(emu: FirmwareOutputs, host: FirmwareOutputs) -> str:
 
 
 def rendered_params(c_text: str) -> tuple[tuple[int, ...], int]:
-    """(target uids, message type) of a rendered kilobot_policy.c, read back from its constants."""
+    """(target uids, message type) of a rendered kilobot_policy.c, read back from its constants (no uids: the
+    program of a world without a beacon, which has no KF_TARGET_UIDS)."""
     m_type = re.search(r"^#define KF_MSG_TYPE (\d+)u\b", c_text, re.M)
     m_uids = re.search(r"KF_TARGET_UIDS\[\d+\] PROGMEM = \{([^}]*)\}", c_text)
-    if not (m_type and m_uids):
+    if not (m_type and (m_uids or "KF_TARGET_UIDS" not in c_text)):
         raise HostBuildError("not a kiloforge policy program (KF_MSG_TYPE / KF_TARGET_UIDS not found)")
-    uids = tuple(int(v.strip().rstrip("u")) for v in m_uids.group(1).split(",") if v.strip())
+    uids = tuple(int(v.strip().rstrip("u")) for v in m_uids.group(1).split(",") if v.strip()) if m_uids else ()
     return uids, int(m_type.group(1))
 
 
 def verify_host(qp: QuantizedActor, files: dict[str, str], *, seed: int = 0,
                 spec: StreamSpec = StreamSpec(n_robots=64, n_steps=40)) -> HostCheck:
-    """Build both rendered programs on the host, replay random streams, compare with the emulator.
+    """Build the rendered programs on the host, replay random streams, compare with the emulator.
 
-    The target uids and message type are read back from ``kilobot_policy.c``; the beacon program
-    is replayed with every robot a beacon.
+    The target uids and message type are read back from ``kilobot_policy.c``; the beacon program (in
+    worlds with a beacon) is replayed with every robot a beacon. Without a beacon the stream still
+    carries messages with the role bit, which the program must take as a neighbour's.
     """
     targets, msg_type = rendered_params(files[POLICY_FILE])
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     w = qp.world
     inputs = random_inputs(rng, w.period_ticks, targets, spec, msg_type, w.comm_radius_mm, w.light_threshold)
+    beacon = TARGET_FILE in files
     with tempfile.TemporaryDirectory(prefix="kiloforge-host-") as tmp:
         host = run_host(build_host(files[POLICY_FILE], tmp), inputs, w.period_ticks, w.obs_dim)
         host_t = run_host(build_host(files[TARGET_FILE], tmp, name="kilobot_target"), inputs,
-                          w.period_ticks, w.obs_dim)
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets, msg_type=msg_type).run(inputs)
-    emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids),
-                             msg_type=msg_type).run(inputs)
+                          w.period_ticks, w.obs_dim) if beacon else None
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets if beacon else None,
+                           msg_type=msg_type).run(inputs)
     detail = compare(emu, host)
-    detail_t = compare(emu_t, host_t)
+    detail_t = ""
+    if host_t is not None:
+        emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids),
+                                 msg_type=msg_type).run(inputs)
+        detail_t = compare(emu_t, host_t)
     detail = "; ".join(d for d in (detail and f"policy program: {detail}",
                                    detail_t and f"target program: {detail_t}") if d)
     steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(w.period_ticks)
-    return HostCheck(ok=not detail, control_steps=steps, ticks=2 * inputs.n_robots * inputs.n_ticks, detail=detail)
+    return HostCheck(ok=not detail, control_steps=steps, ticks=(1 + beacon) * inputs.n_robots * inputs.n_ticks,
+                     detail=detail)

@@ -47,7 +47,7 @@
 #define KF_ACTION_DIM 2u /* tuple = [ACT[q_left], ACT[q_right], observation] */
 #define KF_OBS_DIM 6u /* observation entries */
 #define KF_TUPLE_DIM 8u /* history tuple entries */
-#define KF_OBS_WALL 0u /* observation layout (sim/config.py) */
+#define KF_OBS_WALL 0u /* observation layout (the world's obs_features) */
 #define KF_OBS_TARGET 1u
 #define KF_OBS_NBR_SENSING 2u
 #define KF_OBS_RBF 3u
@@ -392,7 +392,8 @@ static void kf_drain(kf_state_t *s)
 
 /* ===== control step ===== */
 
-/* The int8 observation (kiloforge/numfmt.py), written straight into the history slot. */
+/* The int8 observation (kiloforge/numfmt.py), written straight into the history slot: the world's
+ * features in order (sim/features.py; firmware_templates/features/). */
 static void kf_observe(kf_state_t *s, int8_t *obs)
 {
     int16_t light = get_ambientlight();
