@@ -92,3 +92,14 @@ def test_export_of_an_aggregation_policy_verifies_without_a_target_program(verif
     text = capsys.readouterr().out
     assert rc == 0 and "bit-exact" in text and "is the beacon" not in text
     assert sorted(f.name for f in out.parent.iterdir()) == ["kilobot_policy.c", "kilobot_policy.c.manifest.json"]
+
+
+def test_every_feature_has_a_firmware_block_and_an_emulator_twin():
+    """Each registered observation feature has its template partial and its integer twin, and nothing else does."""
+    from pathlib import Path
+
+    from export.verify.emulator import INT_FEATURES
+    from sim.features import FEATURES
+
+    blocks = Path(__file__).resolve().parent.parent / "firmware_templates" / "features"
+    assert {p.name.removesuffix(".c.j2") for p in blocks.glob("*.c.j2")} == set(FEATURES) == set(INT_FEATURES)
