@@ -35,7 +35,7 @@ import numpy as np
 from kiloforge.errors import InputError
 
 from .config import WorldConfig
-from .kinematics import Collider, thesis_move, tick_move, wrap_angle
+from .kinematics import Collider, thesis_move, tick_move
 from .motion import action_to_u8
 from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,

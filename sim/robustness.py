@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 
 from .config import WorldConfig
 from .env import SwarmEnv
-from .metrics import Summary, summarise
+from .metrics import Summary
 from .rollout import SwarmPolicy, rollout
 from .tasks import Task, get_task
 from .variants import Randomisation, robustness_suite

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from export.codegen import budget as bud
-from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.codegen.render import POLICY_FILE, render_firmware
 from export.contract import firmware as fwspec
 from export.errors import ExportError
 from export.verify.emulator import FirmwareEmulator
