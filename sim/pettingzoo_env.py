@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from .config import ACTION_DIM, WorldConfig, preset
+from .rollout import robot_success
+from .tasks import Task
 
 try:
     import gymnasium
@@ -54,25 +56,27 @@ class SwarmParallelEnv(_ParallelEnv):
     metadata = {"name": "kiloforge_swarm_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
 
     def __init__(self, cfg: WorldConfig | str = "thesis", n_robots: int = 4, seed: int | None = None,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, task: "Task | str | None" = None) -> None:
         if gymnasium is None:
             raise ImportError(_MISSING)
         from .env import SwarmEnv
+        from .tasks import get_task
 
-        cfg = preset(cfg) if isinstance(cfg, str) else cfg
+        task = get_task(task)
+        cfg = task.world(preset(cfg) if isinstance(cfg, str) else cfg)
         assert n_robots >= 1, f"n_robots must be >= 1, got {n_robots}"
         assert render_mode in (None, "rgb_array"), f"render_mode must be None or 'rgb_array', got {render_mode!r}"
         self.cfg = cfg
         self.render_mode = render_mode
-        self.env = SwarmEnv(cfg, 1, n_robots, seed=seed)
+        self.env = SwarmEnv(cfg, 1, n_robots, seed=seed, task=task)
         self.possible_agents = [f"robot_{i}" for i in range(n_robots)]
         self.agents: list[str] = []
         lo, hi = observation_bounds(cfg, n_robots)
         self.observation_spaces = {a: gymnasium.spaces.Box(lo, hi, dtype=np.float32) for a in self.possible_agents}
         self.action_spaces = {a: gymnasium.spaces.Box(0.0, 1.0, (ACTION_DIM,), np.float32)
                               for a in self.possible_agents}
-        self.state_space = gymnasium.spaces.Box(-1.0, 1.0, (cfg.state_dim(n_robots),), np.float32)
-        self._last_in_range = np.zeros(n_robots, bool)
+        self.state_space = gymnasium.spaces.Box(-1.0, 1.0, (task.state_dim(cfg, n_robots),), np.float32)
+        self._last_success = np.zeros(n_robots, bool)
 
     def observation_space(self, agent: str):
         return self.observation_spaces[agent]
@@ -80,17 +84,22 @@ class SwarmParallelEnv(_ParallelEnv):
     def action_space(self, agent: str):
         return self.action_spaces[agent]
 
-    def _split(self, obs: np.ndarray, in_range: np.ndarray, coverage: float):
+    def _split(self, obs: np.ndarray, info):
+        """Per-agent observations and infos: the task's ``success`` of the team, whether this robot counts
+        towards it (``robot_success``), and the task's own per-robot / team entries (localisation:
+        ``in_range`` and ``coverage``)."""
+        M = len(self.possible_agents)
+        self._last_success = robot_success(info, 1, M)[0]
+        team = {k: float(v[0]) for k, v in info.items() if k not in ("events", "light") and np.shape(v) == (1,)}
+        per = {k: np.asarray(v)[0] for k, v in info.items() if k not in ("events", "light") and np.shape(v) == (1, M)}
         o = {a: obs[0, i].astype(np.float32) for i, a in enumerate(self.possible_agents)}
-        info = {a: {"in_range": bool(in_range[i]), "coverage": coverage} for i, a in enumerate(self.possible_agents)}
-        return o, info
+        infos = {a: {**team, **{k: v[i].item() for k, v in per.items()}} for i, a in enumerate(self.possible_agents)}
+        return o, infos
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         obs, info = self.env.reset(seed=seed)
         self.agents = list(self.possible_agents)
-        d = np.linalg.norm(self.env.pos[0] - self.env.target[0], axis=-1)  # (M,)
-        self._last_in_range = d <= self.cfg.comm_radius_mm
-        return self._split(obs, self._last_in_range, float(self._last_in_range.mean()))
+        return self._split(obs, info)
 
     def step(self, actions: dict):
         assert self.agents, "step() after the episode ended; call reset()"
@@ -99,8 +108,7 @@ class SwarmParallelEnv(_ParallelEnv):
             if name in actions:
                 a[0, i] = np.clip(np.asarray(actions[name], np.float64).reshape(ACTION_DIM), 0.0, 1.0)
         obs, reward, terminated, truncated, info = self.env.step(a)
-        self._last_in_range = np.asarray(info["in_range"][0], bool)
-        o, infos = self._split(obs, self._last_in_range, float(info["coverage"][0]))
+        o, infos = self._split(obs, info)
         r = float(reward[0])
         rewards = {n: r for n in self.agents}
         terms = {n: bool(terminated[0]) for n in self.agents}
@@ -118,14 +126,15 @@ class SwarmParallelEnv(_ParallelEnv):
             return None
         from .render import render_frame
 
-        return render_frame(self.env.pos[0], self.env.heading[0], self.env.target[0], self._last_in_range,
-                            self.cfg, step=int(self.env.t))
+        target = None if self.env.target is None else self.env.target[0]
+        return render_frame(self.env.pos[0], self.env.heading[0], target, self._last_success, self.cfg,
+                            step=int(self.env.t))
 
     def close(self) -> None:
         pass
 
 
 def parallel_env(cfg: WorldConfig | str = "thesis", n_robots: int = 4, seed: int | None = None,
-                 render_mode: str | None = None) -> SwarmParallelEnv:
-    """PettingZoo-style constructor: ``parallel_env("thesis", n_robots=4)``."""
-    return SwarmParallelEnv(cfg, n_robots, seed, render_mode)
+                 render_mode: str | None = None, task: "Task | str | None" = None) -> SwarmParallelEnv:
+    """PettingZoo-style constructor: ``parallel_env("thesis", n_robots=4)``, ``task="aggregation"``."""
+    return SwarmParallelEnv(cfg, n_robots, seed, render_mode, task)

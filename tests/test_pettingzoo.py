@@ -38,7 +38,9 @@ def test_shared_reward_spaces_state_and_truncation():
         assert all(env.observation_space(a).contains(o) for a, o in obs.items())
         assert not any(term.values())
         assert all(trunc.values()) == (t == 4)
-        assert set(info["robot_0"]) == {"in_range", "coverage"}
+        assert set(info["robot_0"]) == {"in_range", "coverage", "success", "robot_success"}
+        assert info["robot_0"]["success"] == info["robot_0"]["coverage"]
+        assert info["robot_0"]["robot_success"] == info["robot_0"]["in_range"]
     assert env.agents == []
     frame = env.render()
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
@@ -56,3 +58,13 @@ def test_reset_seed_reproduces_episode():
             traj.append(np.concatenate([obs[a] for a in sorted(obs)]))
         runs.append(np.stack(traj))
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_parallel_env_runs_another_task():
+    """parallel_env(task="aggregation") plays a beaconless task: its world, state and success in the infos."""
+    env = parallel_env("kilobot", n_robots=5, seed=2, render_mode="rgb_array", task="aggregation")
+    obs, info = env.reset(seed=2)
+    assert env.cfg.beacon is False and env.state().shape == (15,)
+    assert set(info["robot_0"]) == {"success", "robot_success"} and obs["robot_0"].shape == (env.cfg.obs_dim,)
+    obs, rew, term, trunc, info = env.step({a: env.action_space(a).sample() for a in env.agents})
+    assert 0 < info["robot_0"]["success"] <= 1 and env.render().ndim == 3
