@@ -260,3 +260,17 @@ def test_huge_weights_are_one_line_without_warnings(tmp_path, capsys, seed):
     assert rc == 2, (name, scale, err)
     assert_one_clean_line(err)
     assert not (tmp_path / "k.c").exists()
+
+
+# --- found by tests/soak/fuzz_all.py ------------------------------------------------------------------
+@pytest.mark.parametrize("ahead", [1, 2, 50])
+def test_onnx_opset_newer_than_onnx_knows_is_refused(tmp_path, capsys, ahead):
+    """An ONNX model claiming an opset newer than the installed onnx defines (onnxruntime cannot load it): one line."""
+    onnx = pytest.importorskip("onnx")
+    from tests.onnx_models import tiny_model
+
+    m = onnx.load(str(tiny_model(tmp_path / "b.onnx")))
+    m.opset_import[0].version = onnx.defs.onnx_opset_version() + ahead
+    (tmp_path / "m.onnx").write_bytes(m.SerializeToString())
+    line = refused(["export", "--onnx", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "k.c"), *EXPORT], capsys)
+    assert "newer than" in line and not (tmp_path / "k.c").exists()

@@ -414,6 +414,10 @@ def load_onnx_policy(path: str | os.PathLike, world_json: Any = None) -> Any:
     if opset < MIN_OPSET:
         raise err(f"opset {opset} is older than {MIN_OPSET}, the oldest whose Gemm, Dropout and broadcasting rules "
                   "the importer models (re-export with a newer opset)")
+    newest = onnx.defs.onnx_opset_version()
+    if opset > newest:  # an operator's rules in a future opset are unknown (and onnxruntime refuses the model)
+        raise err(f"opset {opset} is newer than {newest}, the newest the installed onnx defines (re-export with "
+                  f"opset {newest} or older)")
     meta = {p.key: p.value for p in model.metadata_props}
 
     # ---- constants --------------------------------------------------------------------------
