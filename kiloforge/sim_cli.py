@@ -149,7 +149,7 @@ def run(a: argparse.Namespace) -> dict:
 
     n_envs = a.n_envs or min(a.episodes, 32)
     try:
-        env = SwarmEnv(world, n_envs, robots, seed=a.seed, task=task)
+        env = SwarmEnv(task.world_for(world, robots), n_envs, robots, seed=a.seed, task=task)
     except ValueError as e:  # e.g. too many discs for the arena
         raise UserError(str(e)) from None
     out = Path(a.out)

@@ -142,7 +142,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         results["packing"] = {"open_capacity": open_capacity(world), "mean_capacity": mean_capacity(world)}
     for M in robots:
         b = max(1, min(n_envs, episodes))
-        env = SwarmEnv(world, n_envs=b, n_robots=M, seed=seed, task=task)
+        size_world = task.world_for(world, M)  # e.g. phototaxis's anchor arena for 64 robots
+        env = SwarmEnv(size_world, n_envs=b, n_robots=M, seed=seed, task=task)
         runs: dict[str, RolloutResult] = {}
         for c in contenders:
             if progress:
@@ -159,6 +160,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
             "mean_reward_over_time": {n: r.rewards.mean(axis=0).round(6).tolist() for n, r in runs.items()},
             "returns": {n: r.rewards.sum(axis=1).round(6).tolist() for n, r in runs.items()},
         }
+        if size_world != world:
+            results["robots"][str(M)]["world"] = size_world.to_dict()
         if with_ceiling:  # per episode, from each run's own final beacon positions
             results["robots"][str(M)]["ceiling"] = {n: m.ceiling.round(6).tolist() for n, m in metrics.items()}
 

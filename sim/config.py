@@ -55,6 +55,7 @@ from kiloforge.errors import InputError
 from kiloforge.validate import check_keys, check_str, check_typed, show
 
 from .features import FEATURES, LEGACY_FEATURES, parse_features
+from .light import parse_lamps
 
 # Localisation's observation layout (docs/design.md control-step contract, step 2; thesis §4.1), the
 # legacy default of WorldConfig.obs_features. Code that reads observations of any world uses
@@ -138,6 +139,12 @@ class WorldConfig:
     light_wall: int = 800  #: ambient-light reading near a wall (walls are lit)
     light_threshold: int = 500  #: firmware: wall flag = reading >= threshold
     light_dropout: float = 0.0  #: probability a reading is -1 (busy receiving); firmware keeps the last flag
+    #: lamps over the table (:mod:`sim.light`: ``spot:x,y,radius,edge,peak``, ``side:angle_deg,peak``, ``;``-separated),
+    #: added to the floor / lit-wall light; "" = none
+    lamps: str = ""
+    light_noise: float = 0.0  #: std of the sensor noise per reading (ADC counts)
+    light_gain_spread: float = 0.0  #: per-robot relative std of the sensor gain (drawn per episode)
+    light_offset_spread: float = 0.0  #: per-robot std of the sensor offset (ADC counts, drawn per episode)
     # --- task -------------------------------------------------------------------------------
     episode_steps: int = 200  #: control periods per episode
     reward_scale: float = 5.0  #: thesis §4.2 factor 5
@@ -203,6 +210,10 @@ class WorldConfig:
         need(0 <= self.light_floor <= 1023 and 0 <= self.light_wall <= 1023
              and 0 <= self.light_threshold <= 1023, "light readings and threshold must be in 0..1023")
         need(0.0 <= self.light_dropout < 1.0, f"light_dropout must be in [0, 1), got {self.light_dropout}")
+        for k in ("light_noise", "light_gain_spread", "light_offset_spread"):
+            need(0.0 <= getattr(self, k) <= 1e4, f"{k} must be in [0, 1e4], got {getattr(self, k)}")
+        check_str(self.lamps, f"WorldConfig '{self.name}': lamps", max_len=512)
+        object.__setattr__(self, "_lamps", parse_lamps(self.lamps, f"WorldConfig '{self.name}'"))
         need(1 <= self.episode_steps <= MAX_EPISODE_STEPS,
              f"episode_steps must be in 1..{MAX_EPISODE_STEPS}, got {self.episode_steps}")
         if self.tick_level:
@@ -216,6 +227,16 @@ class WorldConfig:
     def features(self) -> tuple[str, ...]:
         """The observation's feature names in input order (``obs_features``, parsed)."""
         return self._features  # type: ignore[attr-defined]
+
+    @property
+    def lamp_list(self) -> tuple:
+        """The lamps of ``lamps``, parsed (:class:`sim.light.Lamp`)."""
+        return self._lamps  # type: ignore[attr-defined]
+
+    @property
+    def graded_light(self) -> bool:
+        """True when readings go beyond the lit-wall values: lamps, sensor noise or per-robot spreads."""
+        return bool(self.lamps) or self.light_noise > 0 or self.light_gain_spread > 0 or self.light_offset_spread > 0
 
     def has_feature(self, name: str) -> bool:
         return name in self.features
@@ -296,7 +317,8 @@ class WorldConfig:
 
 #: fields added after policy artifacts were first written, and the value that older worlds had
 _LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5,
-                                 "beacon": True, "obs_features": LEGACY_FEATURES}
+                                 "beacon": True, "obs_features": LEGACY_FEATURES, "lamps": "", "light_noise": 0.0,
+                                 "light_gain_spread": 0.0, "light_offset_spread": 0.0}
 
 THESIS = WorldConfig()
 

@@ -41,6 +41,8 @@ from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
 from .tasks import Task, get_task
+from .features import held_light
+from .light import draw_sensors
 
 ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clipped)
 MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
@@ -284,6 +286,8 @@ class SwarmEnv:
         self._mobility = self.cfg.beacon_mobility if w.beacon_mobility is None else w.beacon_mobility
         self.sensing = np.zeros((B, M), np.uint8)
         self._prev_wall = np.zeros((B, M), np.float32)
+        self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
+        self._sensors = draw_sensors(self.cfg, M, self._rng_light)  # per-robot light sensor gain and offset
         self.t = 0
         self._tick0 = 0
         if self.tick_level_radio:
@@ -385,8 +389,10 @@ class SwarmEnv:
                             self.neighbour_method)
 
     def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
-        light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm)
-        obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe)
+        light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm, self._sensors,
+                               self.world_draw)
+        obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held)
+        self._light_held = held_light(light, self._light_held)
         self.sensing = flags
         if self.cfg.has_feature("wall"):
             self._prev_wall = obs[..., self.cfg.obs_index("wall")].copy()

@@ -129,19 +129,20 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
                          t_d, t_f)
 
 
-def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
-            ) -> tuple[np.ndarray, np.ndarray]:
+def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
+            prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and the robots' new sensing flags (B, M) uint8.
 
     ``light`` (B, M) int: ambient-light readings at the control tick (-1 = busy, keep last flag).
     ``prev_wall`` (B, M) float: last period's wall flag (0 at reset).
+    ``prev_light`` (B, M) int: the held light reading before this period (-1: none; the ``light`` feature).
     """
     B, M = light.shape
     assert prev_wall.shape == (B, M), f"prev_wall shape {prev_wall.shape} != light shape {(B, M)}"
     summ = summarise(events, cfg, B, M)
     obs = np.zeros((B, M, cfg.obs_dim), np.float64)
     for name in cfg.features:
-        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg)
+        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg, prev_light)
     return obs.astype(np.float32), summ.target_heard.astype(np.uint8)
 
 

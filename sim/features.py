@@ -14,6 +14,11 @@ feature's first input. Each feature has
   ``nbr_sensing`` the beacon and the message's "I sense the target" bit.
 
 ``wall``: 1 when the ambient light is at least ``light_threshold`` (a reading of -1 keeps the last flag).
+``light`` (2 inputs, what run-and-tumble needs): the *held* reading h (the latest reading >= 0: a
+reading of -1, receiving, keeps the last one, as the firmware does) as ``h / 1024``, and its change
+since the last control step ``(h - h_prev) / 1024`` (0 when this step's reading is -1 or no reading
+was held before). The firmware block quantises both at the input exponent: level ``(h · ONE) >> 10``,
+change the difference of levels.
 ``target``: ``min(d / comm_radius, 1)`` when the beacon was heard this period, else -1.
 ``nbr_sensing``: 1 when a table entry's latest message says its sender senses the target.
 ``rbf``: bin k is ``Σ ψ_k(d) / rbf_norm`` over the table entries within the communication radius,
@@ -41,13 +46,17 @@ class Feature:
     uses_flag: bool = False  #: reads the message's "I sense the target" bit
     per_rbf: bool = False  #: ``n_rbf`` inputs, else one
     input_name: str = ""  #: the input's name in ONNX metadata (default: the feature's name)
+    parts: tuple[str, ...] = ()  #: several named inputs (``<name>_<part>``), else one
+    reads_light: bool = False  #: reads get_ambientlight() (the program reads it once per control step)
 
     def width(self, cfg: WorldConfig) -> int:
-        return cfg.n_rbf if self.per_rbf else 1
+        return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
 
 
 FEATURES: dict[str, Feature] = {f.name: f for f in (
-    Feature("wall", "1 when the ambient light says a wall is near, else 0"),
+    Feature("wall", "1 when the ambient light says a wall is near, else 0", reads_light=True),
+    Feature("light", "the held ambient-light reading / 1024 and its change since the last control period",
+            parts=("level", "change"), reads_light=True),
     Feature("target", "distance to the beacon / comm radius in [0, 1] when heard this period, else -1",
             needs_beacon=True, input_name="target_dist"),
     Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the beacon, else 0",
@@ -91,13 +100,27 @@ def wall_flag(light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig) -> np.
     return np.where(light < 0, prev_wall, wall)
 
 
-def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
-              ) -> np.ndarray:
+def held_light(light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
+    """(B, M) the held reading after this step: ``light`` where >= 0, else ``prev_held`` (-1: none yet)."""
+    return np.where(light >= 0, light, prev_held)
+
+
+def light_feature(light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
+    """(B, M, 2) float64 ``light`` feature: held level / 1024 and its change (module doc)."""
+    h = held_light(light, prev_held).astype(np.float64)
+    change = np.where((light >= 0) & (prev_held >= 0), h - prev_held, 0.0)
+    return np.stack([np.maximum(h, 0.0), change], axis=-1) / 1024.0
+
+
+def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
+              prev_light: np.ndarray | None = None) -> np.ndarray:
     """Feature ``name`` of every robot in float64, shape (B, M, width): the definition the firmware block
-    and the fast path follow."""
+    and the fast path follow. ``prev_light`` (B, M): the held reading before this step (-1: none)."""
     B, M = light.shape
     if name == "wall":
         return wall_flag(light, prev_wall, cfg)[..., None]
+    if name == "light":
+        return light_feature(light, np.full((B, M), -1) if prev_light is None else prev_light)
     if name == "target":
         return np.where(summ.target_heard, np.minimum(summ.target_dist_mm / cfg.comm_radius_mm, 1.0), -1.0)[..., None]
     if name == "nbr_sensing":
@@ -117,7 +140,10 @@ def input_names(cfg: WorldConfig) -> list[str]:
     for n in cfg.features:
         f = FEATURES[n]
         name = f.input_name or f.name
-        out += [f"{name}_{k}" for k in range(cfg.n_rbf)] if f.per_rbf else [name]
+        if f.per_rbf:
+            out += [f"{name}_{k}" for k in range(cfg.n_rbf)]
+        else:
+            out += [f"{name}_{p}" for p in f.parts] or [name]
     return out
 
 

@@ -186,12 +186,18 @@ class SuccessMetrics(EpisodeSteps):
     ceiling: np.ndarray | None = None  # no upper bound known
 
     def per_episode(self, key: str) -> np.ndarray:
-        """(E,) values of one metric (``return``, the final or the mean key)."""
+        """(E,) values of one metric (``return``, the final or the mean key, ``of_ceiling`` with a ceiling)."""
+        if key == "of_ceiling" and self.ceiling is not None:
+            return self.final / self.ceiling
         return {"return": self.returns, self.final_key: self.final, self.mean_key: self.coverage.mean(axis=1)}[key]
 
     def summary(self) -> dict[str, Summary]:
-        return {self.final_key: summarise(self.final), self.mean_key: summarise(self.coverage.mean(axis=1)),
-                "return": summarise(self.returns)}
+        s = {self.final_key: summarise(self.final), self.mean_key: summarise(self.coverage.mean(axis=1)),
+             "return": summarise(self.returns)}
+        if self.ceiling is not None:
+            s["of_ceiling"] = summarise(self.final / self.ceiling)
+            s["ceiling"] = summarise(self.ceiling)
+        return s
 
     def to_dict(self, per_episode: bool = True) -> dict:
         d: dict = {"episodes": self.episodes, "steps": self.steps,
@@ -201,12 +207,14 @@ class SuccessMetrics(EpisodeSteps):
         return d
 
 
-def success_metrics(rewards: np.ndarray, success: np.ndarray, final_key: str, mean_key: str) -> SuccessMetrics:
-    """:class:`SuccessMetrics` from per-step team rewards (E, T) and success (E, T)."""
+def success_metrics(rewards: np.ndarray, success: np.ndarray, final_key: str, mean_key: str,
+                    ceiling: np.ndarray | None = None) -> SuccessMetrics:
+    """:class:`SuccessMetrics` from per-step team rewards (E, T) and success (E, T); ``ceiling`` (E,) > 0: each
+    episode's upper bound on final success, when the task has one."""
     r = np.asarray(rewards, np.float64)
     c = np.asarray(success, np.float64)
     assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and success {c.shape} must both be (E, T)"
-    return SuccessMetrics(c, r.sum(axis=1), final_coverage(c), final_key, mean_key)
+    return SuccessMetrics(c, r.sum(axis=1), final_coverage(c), final_key, mean_key, ceiling)
 
 
 def compare(table: dict, columns: tuple[tuple[str, str], ...] | None = None) -> str:

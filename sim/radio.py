@@ -27,8 +27,9 @@ messages]; tick-level mode draws them over the period's in-range messages in (re
 tick) order, the target counting as sender M.
 
 Light (:func:`light_readings`): ``light_wall`` when the robot centre is at most ``wall_sense_mm``
-from the nearest wall (or per-wall zones: uneven light), else ``light_floor``; with probability
-``light_dropout`` the reading is -1.
+from the nearest wall (or per-wall zones: uneven light), else ``light_floor``; in worlds with lamps or
+a sensor model (:mod:`sim.light`) plus the lamps, times a per-robot gain, plus an offset and noise,
+rounded and clipped to 0..1023; with probability ``light_dropout`` the reading is -1.
 
 Per-env and per-transmitter variations (:mod:`sim.variants`: message period, loss, noise) are
 optional arguments of :func:`tick_radio`; without them everything comes from ``cfg``.
@@ -48,6 +49,11 @@ import numpy as np
 from . import compiled, grid
 from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
+from .features import light_feature
+from .light import SensorDraw, sensor_readings
+from .variants import WorldDraw
+
+_NO_DRAW = WorldDraw()
 
 
 @dataclass
@@ -275,11 +281,14 @@ def _messages(pos_ticks: np.ndarray, target: np.ndarray | None, target_ticks: np
 
 
 def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
-                   wall_zone_mm: np.ndarray | None = None) -> np.ndarray:
+                   wall_zone_mm: np.ndarray | None = None, sensors: "SensorDraw | None" = None,
+                   draw: "WorldDraw | None" = None) -> np.ndarray:
     """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout).
 
     ``wall_zone_mm`` (B, 4): per env, how far from the +x, +y, -x, -y walls the reading is high
-    (uneven light); default ``cfg.wall_sense_mm`` for every wall.
+    (uneven light); default ``cfg.wall_sense_mm`` for every wall. Worlds with graded light
+    (``cfg.graded_light``: lamps, noise, per-robot ``sensors``; :mod:`sim.light`) add the lamps and the
+    sensor model, with ``draw``'s per-env lamp brightness, shift and noise when randomised.
     """
     a = cfg.arena_half_mm
     if wall_zone_mm is None:
@@ -290,6 +299,10 @@ def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.G
         lit = (a - x <= z[..., 0]) | (a - y <= z[..., 1]) | (a + x <= z[..., 2]) | (a + y <= z[..., 3])
     light = np.full(lit.shape, cfg.light_floor, np.int16)
     light[lit] = cfg.light_wall
+    if cfg.graded_light:
+        d = draw if draw is not None else _NO_DRAW
+        light = sensor_readings(light.astype(np.float64), pos, cfg, cfg.lamp_list, rngs, sensors,
+                                d.lamp_brightness, d.lamp_shift_mm, d.light_noise)
     if cfg.light_dropout > 0:
         M = pos.shape[1]
         u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
@@ -362,8 +375,8 @@ def _run_ends(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(([0], brk)), np.concatenate((brk - 1, [key.size - 1]))
 
 
-def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
+                 prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sim.events.observe` straight from the period's message arrays (no sorted event list).
 
     Per (receiver, sender) run of messages: the first tick ranks the sender for the neighbour table,
@@ -392,6 +405,8 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if cfg.has_feature("wall"):
         wall = (light >= cfg.light_threshold).astype(np.float64)
         obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
+    if cfg.has_feature("light"):
+        obs[..., cfg.obs_slice("light")] = light_feature(light, np.full((B, M), -1) if prev_light is None else prev_light)
     heard = np.zeros(B * M, bool)
     tdist = np.zeros(B * M)
     tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
@@ -421,8 +436,8 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
 
 
 def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-                   fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                   fast: bool = True, prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and new sensing flags (B, M) uint8 for a period."""
     if fast:
-        return observe_fast(period, light, prev_wall, cfg)
-    return observe(period.events(), light, prev_wall, cfg)
+        return observe_fast(period, light, prev_wall, cfg, prev_light)
+    return observe(period.events(), light, prev_wall, cfg, prev_light)

@@ -89,7 +89,8 @@ def run_suite(policy_factory: Callable[[WorldConfig], SwarmPolicy], cfg: WorldCo
         for name, (world, rand) in suite.items():
             world = dataclasses.replace(world, episode_steps=T)
             for M in table.robots:
-                env = SwarmEnv(world, n_envs or min(episodes, 50), M, seed=seed, randomise=rand, task=task)
+                env = SwarmEnv(task.world_for(world, M), n_envs or min(episodes, 50), M, seed=seed, randomise=rand,
+                               task=task)
                 res = rollout(env, policy_factory(world), episodes, seed=seed)
                 table.cells.setdefault(name, {})[M] = res.metrics().summary()[task.primary_metric]
                 if bar is not None:

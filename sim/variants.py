@@ -51,6 +51,13 @@ Pivot point (per robot, ``pivot_offset_mm``)
     suite also runs the centre pivot alone.
 Beacon (per env, ``beacon_mobility``)
     Taped down (0, the nominal ``kilobot`` world), or pushed by collisions like a robot (1).
+Lamps (worlds with lamps only, :mod:`sim.light`; per env ``lamp_brightness``, ``lamp_shift_mm``,
+``light_noise``)
+    Lamp bulbs, their height and the room light differ from table to table, a lamp is never exactly
+    where it was meant to be, and sensors are noisier in some rooms: a factor on every lamp's peak,
+    a shift of every lamp in a random direction, and the sensor noise std. The suite has lamps
+    dimmer (×0.6) and brighter (×1.4), moved 50 mm, and 30 counts more noise. Worlds without lamps
+    draw none of these (their draws are as before).
 """
 from __future__ import annotations
 
@@ -80,6 +87,9 @@ class WorldDraw:
     dist_noise_mm: np.ndarray | None = None  #: (B,)
     wall_zone_mm: np.ndarray | None = None  #: (B, 4) wall-flag zone of the +x, +y, -x, -y walls
     beacon_mobility: np.ndarray | None = None  #: (B,)
+    lamp_brightness: np.ndarray | None = None  #: (B,) factor on every lamp's peak
+    lamp_shift_mm: np.ndarray | None = None  #: (B, 2) every lamp moved by this
+    light_noise: np.ndarray | None = None  #: (B,) std of the light sensor's noise (ADC counts)
 
 
 @dataclass(frozen=True)
@@ -103,13 +113,18 @@ class Randomisation:
     wall_zone: Range | None = None  #: factor on wall_sense_mm, per env and wall
     beacon_mobility: Range | None = None  #: per env
     pivot_offset_mm: Range | None = None  #: pivot point's distance from the centre, per robot
+    #: worlds with lamps only (:mod:`sim.light`; others draw nothing for these): per env
+    lamp_brightness: Range | None = None  #: factor on every lamp's peak
+    lamp_shift_mm: Range | None = None  #: distance the lamps are moved, in a uniformly random direction
+    light_noise: Range | None = None  #: std of the light sensor's noise, ADC counts
 
     def __post_init__(self) -> None:
         def need(cond: bool, msg: str) -> None:
             if not cond:
                 raise ValueError(f"Randomisation: {msg}")
 
-        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "beacon_mobility", "pivot_offset_mm"):
+        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "beacon_mobility", "pivot_offset_mm",
+                     "lamp_brightness", "lamp_shift_mm", "light_noise"):
             r = getattr(self, name)
             need(r is None or (len(r) == 2 and 0 <= r[0] <= r[1]), f"{name} must be None or (lo, hi) with 0 <= lo <= hi, got {r}")
         for name in ("speed", "turn", "wall_zone"):
@@ -153,7 +168,8 @@ class Randomisation:
             sp, tl, tr, cu = (np.stack([d[k] for d in per_env]) for k in ("speed", "turn_left", "turn_right", "curve"))
             piv = np.stack([d["pivot_mm"] for d in per_env]) if self.pivot_offset_mm is not None else None
             out.motion = MotionParams(sp, tl, tr, cu if np.any(cu != 0) else None, piv)
-        for key in ("msg_period", "msg_loss", "dist_noise_mm", "wall_zone_mm", "beacon_mobility"):
+        for key in ("msg_period", "msg_loss", "dist_noise_mm", "wall_zone_mm", "beacon_mobility", "lamp_brightness",
+                    "lamp_shift_mm", "light_noise"):
             if key in per_env[0]:
                 setattr(out, key, np.stack([d[key] for d in per_env]))
         return out
@@ -190,13 +206,22 @@ class Randomisation:
             d["beacon_mobility"] = rng.uniform(*self.beacon_mobility)
         if self.pivot_offset_mm is not None:
             d["pivot_mm"] = rng.uniform(*self.pivot_offset_mm, M)
+        if cfg.lamps:  # last: worlds without lamps draw as before
+            if self.lamp_brightness is not None:
+                d["lamp_brightness"] = rng.uniform(*self.lamp_brightness)
+            if self.lamp_shift_mm is not None:
+                r, a = rng.uniform(*self.lamp_shift_mm), rng.uniform(-math.pi, math.pi)
+                d["lamp_shift_mm"] = np.array([r * math.cos(a), r * math.sin(a)])
+            if self.light_noise is not None:
+                d["light_noise"] = rng.uniform(*self.light_noise)
         return d
 
 
 _TABLE = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn_spread=0.1, curve_deg_s=2.0,
                        motors="mixed", wheel_spread=0.1, msg_period=(15, 17), msg_success=(0.6, 1.0),
                        dist_noise_mm=(0.0, 6.0), wall_zone=(0.5, 1.5), beacon_mobility=(0.0, 1.0),
-                       pivot_offset_mm=(0.0, 16.5))
+                       pivot_offset_mm=(0.0, 16.5), lamp_brightness=(0.6, 1.4), lamp_shift_mm=(0.0, 50.0),
+                       light_noise=(0.0, 30.0))
 
 #: named randomisations for training: "none" is the nominal world; "table" spans the suite's variants;
 #: "table-free-beacon" is "table" with a beacon that collisions push like a robot in every episode (an
@@ -206,6 +231,18 @@ RANDOMISATIONS: dict[str, Randomisation] = {
     "table": _TABLE,
     "table-free-beacon": dataclasses.replace(_TABLE, beacon_mobility=(1.0, 1.0)),
 }
+
+
+LAMP_SHIFT_MM = 50.0  #: the "lamp shifted" variant moves every lamp this far along +x
+NOISIER_LIGHT = 30.0  #: the "noisier light sensor" variant adds this to the noise std (ADC counts)
+
+
+def _lamps(lamps, peak: float = 1.0, shift: float = 0.0) -> str:
+    """The lamps spec with every peak scaled (clipped to the ADC range) and every spot moved ``shift`` mm along +x."""
+    from .light import ADC_MAX, format_lamps
+
+    return format_lamps([dataclasses.replace(lp, peak=min(lp.peak * peak, ADC_MAX),
+                                             x=lp.x + shift if lp.kind == "spot" else lp.x) for lp in lamps])
 
 
 def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisation | None]]:
@@ -231,6 +268,12 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
     suite["dim light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 0.5), None)
     suite["bright light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 1.5), None)
     suite["uneven light"] = (cfg, Randomisation(wall_zone=(0.5, 1.5)))
+    if cfg.lamps:  # lamps (sim.light): dimmer, brighter, moved, and a noisier sensor
+        lamps = cfg.lamp_list
+        suite["lamps dimmer"] = (r(cfg, lamps=_lamps(lamps, peak=0.6)), None)
+        suite["lamps brighter"] = (r(cfg, lamps=_lamps(lamps, peak=1.4)), None)
+        suite["lamp shifted"] = (r(cfg, lamps=_lamps(lamps, shift=LAMP_SHIFT_MM)), None)
+        suite["noisier light sensor"] = (r(cfg, light_noise=cfg.light_noise + NOISIER_LIGHT), None)
     if cfg.pivot_offset_mm > 0:
         suite["centre pivot"] = (r(cfg, pivot_offset_mm=0.0), None)
     else:

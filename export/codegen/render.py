@@ -215,6 +215,7 @@ def _layout_context(w: WorldConfig) -> dict[str, Any]:
     counters = {c for f in w.features for c in FEATURE_COUNTERS.get(f, ())}
     return {"beacon": w.beacon, "obs_features": list(w.features),
             "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
+            "reads_light": any(FEATURES[f].reads_light for f in w.features),
             "observe_counters": ", ".join(sorted(counters))}
 
 

@@ -139,6 +139,11 @@ def _int_wall(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
     return np.where(emu.wall, int(emu.qp.one_q), 0)[:, None]
 
 
+def _int_light(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """light.c.j2: the held level and its change (already updated from this step's reading)."""
+    return emu.light_obs
+
+
 def _int_target(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
     """target.c.j2: TGT[min(d, TGT_LAST)] (the full table: the same entries) when heard, else -KF_ONE."""
     R, one = emu.R, int(emu.qp.one_q)
@@ -163,7 +168,7 @@ def _int_rbf(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
 
 #: each observation feature's integer twin: (emulator, the period's summary) -> (R, width) int64
 INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]] = {
-    "wall": _int_wall, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf}
+    "wall": _int_wall, "light": _int_light, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf}
 
 
 def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarray:
@@ -235,6 +240,9 @@ class FirmwareEmulator:
         R = self.R
         self.steps_done = 0
         self.wall = np.zeros(R, bool)
+        self.light_level = np.zeros(R, np.int64)  # light.c.j2's held level and whether one is held
+        self.light_valid = np.zeros(R, bool)
+        self.light_obs = np.zeros((R, 2), np.int64)
         self.q = np.zeros((R, 2), np.uint8)
         self.state = self.qp.setup_state(self.uids)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
@@ -296,6 +304,13 @@ class FirmwareEmulator:
 
         if w.has_feature("wall"):
             self.wall = np.where(light >= 0, light >= w.light_threshold, self.wall)
+        if w.has_feature("light"):
+            ok = light >= 0
+            now = (np.maximum(light, 0) * int(qp.one_q)) >> 10
+            change = np.where(ok & self.light_valid, now - self.light_level, 0)
+            self.light_level = np.where(ok, now, self.light_level)
+            self.light_valid |= ok
+            self.light_obs = np.stack([self.light_level, change], 1)
         obs = np.zeros((R, w.obs_dim), np.int64)
         for name in w.features:
             obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)

@@ -16,6 +16,7 @@ from kiloforge.errors import InputError
 from .base import LEGACY_TASK, Metric, Task, TaskRef
 from .aggregation import Aggregation
 from .localisation import Localisation
+from .phototaxis import Phototaxis
 
 __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS", "TASK_HELP", "Task", "TaskRef",
            "check_policy_task", "get_task", "task_names"]
@@ -23,7 +24,7 @@ __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS"
 ENTRY_POINT_GROUP = "kiloforge.tasks"
 DEFAULT_TASK = "localisation"
 #: the built-in tasks, by name
-TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation, Aggregation)}
+TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation, Aggregation, Phototaxis)}
 
 #: the help text of every command's ``--task``
 TASK_HELP = (f"the task: {', '.join(sorted(TASKS))}, an installed plug-in (entry point group {ENTRY_POINT_GROUP}) "

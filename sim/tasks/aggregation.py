@@ -18,15 +18,13 @@ episodes (seed 777, docs/tasks.md). And the random walk.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ..config import ACTION_DIM, WorldConfig
-from ..kinematics import wrap_angle
-from .base import Metric, Task
+from .base import BeaconlessTask, Metric
 
 
 def link_mm(cfg: WorldConfig) -> float:
@@ -70,7 +68,7 @@ def largest_cluster(pos: np.ndarray, link: float, extent: float) -> tuple[np.nda
     return best / M, members
 
 
-class Aggregation(Task):
+class Aggregation(BeaconlessTask):
     name = "aggregation"
     version = 1
     description = "robots spread over the arena gather into one cluster (no beacon)"
@@ -85,33 +83,9 @@ class Aggregation(Task):
     beacon = False
     features = ("wall", "rbf")
 
-    def spawn(self, env) -> tuple[None, np.ndarray, np.ndarray]:
-        B, M = env.n_envs, env.n_robots
-        h = env.spawn_box()
-        pos = np.empty((B, M, 2))
-        heading = np.empty((B, M))
-        for e, rng in enumerate(env.init_streams):  # loop over envs: each owns its generator
-            pos[e] = rng.uniform(-h, h, (M, 2))
-            heading[e] = rng.uniform(-math.pi, math.pi, M)
-        return None, pos, wrap_angle(heading)
-
     def step_info(self, env) -> dict[str, np.ndarray]:
         frac, members = largest_cluster(env.pos, link_mm(env.cfg), env.cfg.arena_half_mm)
         return {"success": frac, "robot_success": members}
-
-    def reward(self, env, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
-        cfg = env.cfg
-        s = info["success"]
-        effort = np.sum(u * u, axis=(1, 2)) / env.n_robots
-        return (cfg.reward_scale * (s * s - cfg.action_penalty * effort)).astype(np.float32)
-
-    def state_dim(self, cfg: WorldConfig, n_robots: int) -> int:
-        return 3 * n_robots
-
-    def state(self, env) -> np.ndarray:
-        a, B, M = env.cfg.arena_half_mm, env.n_envs, env.n_robots
-        robots = np.concatenate([env.pos / a, env.heading[..., None] / math.pi], axis=-1)
-        return robots.reshape(B, 3 * M).astype(np.float32)
 
     def make_baseline(self, name: str, cfg: WorldConfig) -> Any:
         if name == "aggregator":

@@ -108,6 +108,11 @@ class Task(ABC):
             return cfg
         return dataclasses.replace(cfg, beacon=self.beacon, obs_features=spec)
 
+    def world_for(self, cfg: WorldConfig, n_robots: int) -> WorldConfig:
+        """The world of a run with ``n_robots`` (default ``cfg``; a task whose geometry depends on the swarm size,
+        e.g. phototaxis's arena for 64 robots, changes it). Evaluations and ``python -m sim`` ask per size."""
+        return cfg
+
     def check_world(self, cfg: WorldConfig) -> None:
         """Raise InputError when the task cannot run in ``cfg``: a beacon or observation layout other than the
         task's (:meth:`world`). A subclass that adds conditions calls this first."""
@@ -169,3 +174,56 @@ class Task(ABC):
             if m.key == key:
                 return m
         raise KeyError(key)
+
+
+# --- pieces several tasks share ------------------------------------------------------------------
+def uniform_spawn(env: Any) -> tuple[None, np.ndarray, np.ndarray]:
+    """No beacon; robots uniform over the spawn box, headings uniform, from each env's init stream."""
+    import math
+
+    from ..kinematics import wrap_angle
+
+    B, M = env.n_envs, env.n_robots
+    h = env.spawn_box()
+    pos = np.empty((B, M, 2))
+    heading = np.empty((B, M))
+    for e, rng in enumerate(env.init_streams):  # loop over envs: each owns its generator
+        pos[e] = rng.uniform(-h, h, (M, 2))
+        heading[e] = rng.uniform(-math.pi, math.pi, M)
+    return None, pos, wrap_angle(heading)
+
+
+def squared_success_reward(env: Any, u: np.ndarray, success: np.ndarray) -> np.ndarray:
+    """The thesis's §4.2 team reward on a task's success: ``scale * (s² - penalty · (1/M) Σ_i ||u_i||²)``."""
+    cfg = env.cfg
+    effort = np.sum(u * u, axis=(1, 2)) / env.n_robots
+    return (cfg.reward_scale * (success * success - cfg.action_penalty * effort)).astype(np.float32)
+
+
+def pose_state(env: Any) -> np.ndarray:
+    """Critic state (B, 3M) of a task without a beacon: each robot's x, y / arena_half_mm and heading / π."""
+    import math
+
+    a, B, M = env.cfg.arena_half_mm, env.n_envs, env.n_robots
+    robots = np.concatenate([env.pos / a, env.heading[..., None] / math.pi], axis=-1)
+    return robots.reshape(B, 3 * M).astype(np.float32)
+
+
+class BeaconlessTask(Task):
+    """A task without a beacon whose robots spawn uniformly (:func:`uniform_spawn`), with the squared-success
+    team reward (:func:`squared_success_reward`) and the robots' poses as the critic state (:func:`pose_state`):
+    a subclass gives ``step_info`` and the class attributes."""
+
+    beacon = False
+
+    def spawn(self, env: Any) -> tuple[None, np.ndarray, np.ndarray]:
+        return uniform_spawn(env)
+
+    def reward(self, env: Any, u: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        return squared_success_reward(env, u, info["success"])
+
+    def state_dim(self, cfg: WorldConfig, n_robots: int) -> int:
+        return 3 * n_robots
+
+    def state(self, env: Any) -> np.ndarray:
+        return pose_state(env)

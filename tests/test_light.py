@@ -1,0 +1,139 @@
+"""The light field (sim.light), the graded light feature (sim, emulator, host C) and the phototaxis task (issue 43)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from export.codegen.render import POLICY_FILE, render_firmware
+from export.contract import firmware as fwspec
+from export.verify.emulator import FirmwareEmulator
+from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host
+from kiloforge.errors import InputError
+from sim.config import WorldConfig, preset
+from sim.env import SwarmEnv
+from sim.light import lamp_field, parse_lamps
+from sim.tasks import get_task
+from sim.tasks.phototaxis import spot_capacity
+from sim.variants import robustness_suite
+from tests.fixtures import synthetic_qpolicy
+
+PHOTO = get_task("phototaxis")
+WORLD = PHOTO.world(preset("kilobot"))
+needs_gcc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
+
+
+def test_spot_and_gradient_values_at_known_points():
+    """A soft-edged spot: peak inside, half at the nominal radius, 0 beyond the edge; a side lamp: peak to 0."""
+    lamps = parse_lamps("spot:50,0,100,40,600;side:0,200", "t")
+    pts = np.array([[[50, 0], [50 + 80, 0], [50, 100], [50, -120], [-250, 0], [250, 0]]], float)
+    spot_only = lamp_field(pts, lamps[:1], 250.0)[0]
+    np.testing.assert_allclose(spot_only, [600, 600, 300, 0, 0, 0])
+    side = lamp_field(pts, lamps[1:], 250.0)[0]
+    np.testing.assert_allclose(side[4:], [0, 200])  # far wall 0, the lamp's wall its peak
+    np.testing.assert_allclose(lamp_field(pts, lamps, 250.0, brightness=np.array([0.5]))[0], 0.5 * (spot_only + side))
+
+
+def test_legacy_world_reads_as_before_and_keeps_its_dict():
+    """Without lamps or a sensor model the world dict has no new keys and the readings are floor / wall only."""
+    loc = preset("kilobot")
+    assert not loc.graded_light and not {"lamps", "light_noise", "light_gain_spread"} & set(loc.to_dict())
+    env = SwarmEnv(loc, 2, 8, seed=1)
+    _, info = env.reset()
+    assert set(np.unique(info["light"])) <= {-1, loc.light_floor, loc.light_wall}
+    assert WorldConfig.from_dict(WORLD.to_dict()) == WORLD and WORLD.to_dict()["lamps"] == WORLD.lamps
+
+
+def test_readings_in_range_with_per_robot_gain_deterministic_per_seed():
+    """Readings lie in 0..1023 or -1; gains and offsets are per robot, equal for equal seeds, differ otherwise."""
+    w = dataclasses.replace(WORLD, light_gain_spread=0.3, light_offset_spread=40.0, light_dropout=0.2)
+    a, b, c = (SwarmEnv(w, 2, 16, seed=s, task=PHOTO) for s in (5, 5, 6))
+    la, lb, lc = (e.reset()[1]["light"] for e in (a, b, c))
+    np.testing.assert_array_equal(la, lb)
+    np.testing.assert_array_equal(a._sensors.gain, b._sensors.gain)
+    assert not np.array_equal(a._sensors.gain, c._sensors.gain)
+    assert np.unique(a._sensors.gain).size == 32 and np.unique(a._sensors.offset).size == 32
+    assert la.min() >= -1 and la.max() <= 1023 and (la == -1).any()
+
+
+def test_bad_lamps_are_one_line_errors():
+    """An unknown lamp kind or a wrong count of numbers is refused naming the grammar."""
+    for spec, msg in (("laser:1,2", "unknown lamp kind"), ("spot:1,2,3", "needs 5 finite numbers"),
+                      ("spot:0,0,10,5,2000", "peak in 0..1023")):
+        with pytest.raises(InputError, match=msg):
+            dataclasses.replace(WORLD, lamps=spec)
+
+
+def test_suite_gains_light_variants_only_with_lamps():
+    """The robustness suite adds lamp variants for worlds with lamps; localisation's suite is unchanged."""
+    names = set(robustness_suite(WORLD))
+    assert {"lamps dimmer", "lamps brighter", "lamp shifted", "noisier light sensor"} <= names
+    assert not any("lamp" in n or "light sensor" in n for n in robustness_suite(preset("kilobot")))
+    shifted = robustness_suite(WORLD)["lamp shifted"][0]
+    assert shifted.lamp_list[0].x == 50.0
+
+
+def test_light_feature_holds_the_last_valid_reading():
+    """The sim's light feature: level = held / 1024, change 0 on a -1 reading and before any reading."""
+    from sim.features import light_feature
+
+    prev = np.array([[-1, 512, 512, 100]])
+    light = np.array([[300, -1, 1023, 0]])
+    f = light_feature(light, prev) * 1024
+    np.testing.assert_array_equal(f[0], [[300, 0], [512, 0], [1023, 511], [0, -100]])
+
+
+@needs_gcc
+def test_light_block_equals_its_emulator_on_fuzzed_readings(tmp_path):
+    """The light feature's C block (host build) equals the emulator byte for byte, readings incl. -1, 0, 1023."""
+    world = dataclasses.replace(PHOTO.world(preset("kilobot", neighbour_table_size=5, period_ticks=12)),
+                                obs_features="light,wall,rbf")  # both sensor features: one reading per step
+    qp = synthetic_qpolicy(world, 3, (8,), seed=4)
+    exe = build_host(render_firmware(qp, generator_version="t")[POLICY_FILE], tmp_path, name="light")
+    rng = np.random.default_rng(np.random.SeedSequence(43))
+    inputs = random_inputs(rng, world.period_ticks, (), StreamSpec(n_robots=48, n_steps=60, rate=0.9),
+                           fwspec.DEFAULT_MSG_TYPE, world.comm_radius_mm, world.light_threshold)
+    pick = rng.random(inputs.light.shape)
+    inputs.light[pick < 0.1] = 0
+    inputs.light[(pick >= 0.1) & (pick < 0.2)] = 1023
+    inputs.light[(pick >= 0.2) & (pick < 0.35)] = -1
+    inputs.light[:5, :3] = -1  # no reading held yet
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib)
+    want = emu.run(inputs)
+    got = run_host(exe, inputs, world.period_ticks, world.obs_dim, fill="random:3")
+    np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
+    np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
+    lvl = want.obs[..., world.obs_index("light")].astype(int)
+    chg = want.obs[..., world.obs_index("light") + 1].astype(int)
+    one = int(qp.one_q)
+    assert lvl.max() == (1023 * one) >> 10 and (lvl[:5, :3] == 0).all() and (chg < 0).any() and (chg > 0).any()
+    held = np.maximum.accumulate(np.where(inputs.light >= 0, np.arange(inputs.light.shape[1]), -1), axis=1)
+    h = np.where(held >= 0, np.take_along_axis(inputs.light, np.maximum(held, 0), 1), 0)
+    np.testing.assert_array_equal(lvl, (h.astype(int) * one) >> 10)  # the held reading's level, as specified
+
+
+def test_spot_capacity_on_known_geometries():
+    """One disc at radius 0; 3 at the circumradius of a triangle of side d; 7 at radius d (the optimum)."""
+    assert spot_capacity(0.0, 33.0) == 1
+    assert spot_capacity(33.0 / math.sqrt(3) + 1e-9, 33.0) == 3
+    assert spot_capacity(33.0, 33.0) == 7
+    assert PHOTO.ceiling(WORLD, 64) == min(64, spot_capacity(100.0, 33.0)) / 64
+
+
+def test_phototaxis_world_per_size_has_the_anchor_spot_fraction():
+    """16 and 32 robots: the 500 mm arena; 64: an arena whose area is the spot's / 6 %."""
+    assert PHOTO.world_for(WORLD, 32) is WORLD and WORLD.arena_half_mm == 250.0
+    big = PHOTO.world_for(WORLD, 64)
+    assert math.pi * 100.0 ** 2 / (2 * big.arena_half_mm) ** 2 == pytest.approx(0.06, rel=0.01)
+
+
+def test_sim_cli_runs_a_phototaxis_baseline(tmp_path, capsys):
+    """python -m sim --task phototaxis --policy <hand-written baseline> runs and reports the task's metric."""
+    from kiloforge.sim_cli import main
+
+    for policy in ("stop_in_light", "run_and_tumble"):
+        assert main(["--task", "phototaxis", "--policy", policy, "--robots", "6", "--episodes", "2", "--steps", "20",
+                     "--out", str(tmp_path / policy), "--quiet"]) == 0
+    assert "in spot" in capsys.readouterr().out
