@@ -219,8 +219,15 @@ class WorldConfig:
         if self.tick_level:
             need(self.msg_period_ticks >= 1, "tick-level worlds need msg_period_ticks >= 1")
         check_str(self.obs_features, f"WorldConfig '{self.name}': obs_features", max_len=256)
-        object.__setattr__(self, "_features", parse_features(self.obs_features, self.beacon,
-                                                              f"WorldConfig '{self.name}'"))
+        features = parse_features(self.obs_features, self.beacon, f"WorldConfig '{self.name}'")
+        slices, i = {}, 0
+        for n in features:  # the layout once: the simulator reads it every step
+            w = FEATURES[n].width(self)
+            slices[n] = slice(i, i + w)
+            i += w
+        object.__setattr__(self, "_features", features)
+        object.__setattr__(self, "_obs_slices", slices)
+        object.__setattr__(self, "_obs_dim", i)
 
     # --- derived constants (one definition each) --------------------------------------------
     @property
@@ -239,26 +246,23 @@ class WorldConfig:
         return bool(self.lamps) or self.light_noise > 0 or self.light_gain_spread > 0 or self.light_offset_spread > 0
 
     def has_feature(self, name: str) -> bool:
-        return name in self.features
+        return name in self._obs_slices  # type: ignore[attr-defined]
 
     def obs_index(self, name: str) -> int:
         """First input of feature ``name`` in this world's observation (KeyError naming the layout when absent)."""
-        i = 0
-        for n in self.features:
-            if n == name:
-                return i
-            i += FEATURES[n].width(self)
-        raise KeyError(f"world '{self.name}' observes {self.obs_features}, not {name!r}")
+        return self.obs_slice(name).start
 
     def obs_slice(self, name: str) -> slice:
-        """The inputs of feature ``name``."""
-        i = self.obs_index(name)
-        return slice(i, i + FEATURES[name].width(self))
+        """The inputs of feature ``name`` (KeyError naming the layout when absent)."""
+        try:
+            return self._obs_slices[name]  # type: ignore[attr-defined]
+        except KeyError:
+            raise KeyError(f"world '{self.name}' observes {self.obs_features}, not {name!r}") from None
 
     @property
     def obs_dim(self) -> int:
         """Length of one observation: the sum of its features' widths (localisation: 3 + n_rbf)."""
-        return sum(FEATURES[n].width(self) for n in self.features)
+        return self._obs_dim  # type: ignore[attr-defined]
 
     @property
     def tuple_dim(self) -> int:
