@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shlex
 import shutil
 import subprocess
 import sys
 import venv
 import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,38 +165,77 @@ def test_hostile_inputs_outside_the_repository(installed):
         assert any(r["case"].startswith("planted runner") for r in rows), "the planted-runner case did not run"
 
 
-def test_example_task_round_trip_outside_the_repository(installed):
-    """examples/dispersion.py, a user's task in one file, through the installed package outside the repository:
-    train-es from random weights, evaluate, export --verify host and export verify, each naming the task."""
+@contextmanager
+def _learn_extra(installed: Installed):
+    """Let the fresh core-only venv import this interpreter's torch, tyro and numba (a .pth appended after the
+    venv's own site-packages, so the wheel's kiloforge and the venv's packages come first); removed after."""
     torch = pytest.importorskip("torch", reason="training needs the learn extra (torch)")
-    cwd = _workdir(installed, "task")
-    shutil.copy(ROOT / "examples" / "dispersion.py", cwd / "dispersion.py")
-    # the fresh venv has the core only: let it import this interpreter's torch and tyro (appended, so the wheel's
-    # kiloforge and the venv's packages come first)
     site = next((installed.tmp / "venv").glob("lib/python*/site-packages"))
     pth = site / "zz_learn_extra.pth"
     pth.write_text(str(Path(torch.__file__).resolve().parents[1]) + "\n")
-    task = ["--task", "dispersion.py:Dispersion"]
     try:
-        steps = [
-            ["learn", "train-es", *task, "--demo-policy", "none", "--robots", "4", "--generations", "2", "--pairs", "4",
-             "--eval-episodes", "2", "--eval-every", "1", "--quiet", "--out", "run"],
-            ["learn", "evaluate", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "4",
-             "--steps", "60", "--quiet", "--out", "eval"],
-            ["export", *task, "--policy", "run/policy_best.npz", "--out", "disp.c", "--verify", "host", "--no-avr",
-             "--quiet"],
-            ["export", "verify", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "2", "--quiet"],
-        ]
-        out = []
+        yield
+    finally:
+        pth.unlink()
+
+
+#: flags appended to the README's commands so the round trip takes about a minute (a repeated flag: the last wins)
+SHORT = {"train-es": ["--generations", "1", "--pairs", "2", "--eval-episodes", "1", "--eval-steps", "30",
+                      "--episode-steps", "30", "--demo-robot-episodes", "8", "--bc-updates", "20"],
+         "evaluate": ["--robots", "4", "--episodes", "2", "--steps", "30"],
+         "verify": ["--robots", "4", "--episodes", "2", "--steps", "30"]}
+
+
+def _readme_round_trip() -> list[list[str]]:
+    """The commands of the README's "From a training run to robots" block, continuation lines joined."""
+    text = (ROOT / "README.md").read_text().split("## From a training run to robots", 1)[1].split("\n## ", 1)[0]
+    block = re.sub(r"\\\n\s*", " ", text)
+    return [shlex.split(line.strip()) for line in block.splitlines() if line.strip().startswith("python -m ")]
+
+
+def test_readme_round_trip_outside_the_repository(installed):
+    """The README's round trip (train-es, its fine-tune, evaluate, export --verify host, export verify), shortened
+    by flags, from the installed wheel in an empty directory: each command succeeds and hands the next its file."""
+    cmds = _readme_round_trip()
+    assert [c[2] for c in cmds] == ["learn", "learn", "learn", "export", "export"], cmds
+    cwd = _workdir(installed, "roundtrip")
+    out = {}
+    with _learn_extra(installed):
+        for cmd in cmds:
+            sub = cmd[3] if cmd[2] == "learn" or cmd[3:4] == ["verify"] else "export"
+            res = _run([installed.python, *cmd[1:], *SHORT.get(sub, []), "--quiet"], cwd=cwd, env=installed.env)
+            assert res.returncode in (0, 1) if sub == "verify" else res.returncode == 0, \
+                (cmd, (res.stdout + res.stderr)[-3000:])
+            out[sub] = res.stdout
+    policy = next(a for c in cmds if c[2:4] == ["learn", "evaluate"] for a in c if a.endswith(".npz"))
+    assert (cwd / policy).is_file() and (cwd / "kilobot_policy.c").is_file()
+    assert "host build vs emulator: bit-exact" in out["export"] and "closed loop:" in out["verify"]
+
+
+def test_example_task_round_trip_outside_the_repository(installed):
+    """examples/dispersion.py, a user's task in one file, through the installed package outside the repository:
+    train-es from random weights, evaluate, export --verify host and export verify, each naming the task."""
+    cwd = _workdir(installed, "task")
+    shutil.copy(ROOT / "examples" / "dispersion.py", cwd / "dispersion.py")
+    task = ["--task", "dispersion.py:Dispersion"]
+    steps = [
+        ["learn", "train-es", *task, "--demo-policy", "none", "--robots", "4", "--generations", "2", "--pairs", "4",
+         "--eval-episodes", "2", "--eval-every", "1", "--quiet", "--out", "run"],
+        ["learn", "evaluate", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "4",
+         "--steps", "60", "--quiet", "--out", "eval"],
+        ["export", *task, "--policy", "run/policy_best.npz", "--out", "disp.c", "--verify", "host", "--no-avr",
+         "--quiet"],
+        ["export", "verify", *task, "--policy", "run/policy_best.npz", "--robots", "4", "--episodes", "2", "--quiet"],
+    ]
+    out = []
+    with _learn_extra(installed):
         for cmd in steps:
             res = _run([installed.bin / "kiloforge", *cmd], cwd=cwd, env=installed.env)
             assert res.returncode in (0, 1), (cmd, res.stdout[-2000:], res.stderr[-2000:])  # verify: 1 = FAIL
             out.append(res.stdout)
-    finally:
-        pth.unlink()
     meta = json.loads(bytes(__import__("numpy").load(cwd / "run" / "policy_best.npz")["meta"]).decode())
     assert meta["task"] == {"name": "dispersion", "version": 1}
     ev = json.loads((cwd / "eval" / "evaluation.json").read_text())
     assert ev["task"]["primary_metric"] == "final_alone" and {"hand-written", "random"} <= set(ev["robots"]["4"]["metrics"])
-    assert "bit-exact" in out[2] and (cwd / "disp.c").is_file()
+    assert "bit-exact" in out[2] and (cwd / "disp.c").is_file() and not (cwd / "kilobot_target.c").exists()
     assert "final fraction of robots alone int8/float" in out[3]
