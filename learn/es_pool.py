@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import signal
+import socket
 import threading
 import time
 from collections import deque
@@ -151,11 +152,27 @@ def import_ray():
     return ray
 
 
+def unreachable(address: str, timeout: float = 5.0) -> str | None:
+    """Why nothing answers at a ``HOST:PORT`` address (None when something does, or for ``auto`` and
+    ``ray://`` addresses): ``ray.init`` would retry an unreachable head for minutes."""
+    host, sep, port = address.rpartition(":")
+    if not sep or "://" in address or not port.isdigit():
+        return None
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
 def init_ray(ray, address: str, num_cpus: int | None, flag: str) -> None:
     """Start a private local Ray with ``num_cpus`` CPUs (None: all), or join the cluster at ``address`` (given as
     ``flag``), quietly (no dashboard, workers' output not forwarded), keeping this process's SIGINT and SIGTERM
     handlers: ``ray.init`` installs a SIGTERM handler that exits at once, which would skip the checkpoint and
     the exit status 143 of an interrupted run."""
+    problem = unreachable(address)
+    if problem:
+        raise ConfigError(f"cannot reach a Ray cluster at {flag} {address}: {problem}")
     main = threading.current_thread() is threading.main_thread()
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)} if main else {}
     kw = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)

@@ -217,3 +217,16 @@ def test_missing_ray_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install 'kiloforge[sweep]'" in err[0], err
     assert not (tmp_path / "r").exists()
+
+
+def test_unreachable_ray_address_is_one_line(tmp_path, capsys):
+    """--ray-address where no Ray head listens: one line naming the address, exit 2, nothing written."""
+    import socket
+
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(["train-es", *SMALL_FLAGS, "--ray-address", f"127.0.0.1:{port}", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--ray-address 127.0.0.1:{port}" in err[0], err
+    assert not (tmp_path / "r").exists()
