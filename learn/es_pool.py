@@ -197,6 +197,9 @@ class RayPool:
 
     def __init__(self, workers: int, address: str = "", threads: int = 1, log: Callable[[str], None] = print) -> None:
         ray = self.ray = import_ray()
+        problem = unreachable(address)  # checked even when this process's Ray is running already (which is used)
+        if problem:
+            raise ConfigError(f"cannot reach a Ray cluster at --ray-address {address}: {problem}")
         self.workers, self.log = workers, log
         self.own = not ray.is_initialized()  # a Ray started (or joined) here is shut down here
         self.actors: list = []
