@@ -21,6 +21,8 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
     "default": "default_policy.npz",  #: learned by evolution strategies (README, docs/results/localisation.md)
     "searcher": "searcher_policy.npz",  #: sim.baselines' hand-written searcher, TUNED["kilobot"]
     "pusher": "pusher_policy.npz",  #: the same with sim.baselines.PUSHER
+}, "aggregation": {
+    "aggregator": "aggregator_policy.npz",  #: sim.tasks.aggregation's hand-written rule, tuned AggregatorParams
 }}
 
 

@@ -68,6 +68,25 @@ PARAM_RANGES: dict[str, tuple[float, float]] = {
 _KIND_NAMES = {"bool": "true or false", "int": "an integer", "float": "a number"}
 
 
+def check_fields(params: object, ranges: dict[str, tuple[float, float]], what: str,
+                 open_zero: tuple[str, ...] = ()) -> None:
+    """Every field of the dataclass ``params`` of its annotated type (bool, int, float) and in its range of
+    ``ranges`` (closed; a field of ``open_zero`` excludes 0); raises InputError ``<what> parameter NAME ...``."""
+    for f in dataclasses.fields(params):  # type: ignore[arg-type]
+        v = getattr(params, f.name)
+        kind = f.type if isinstance(f.type, str) else f.type.__name__
+        ok = isinstance(v, bool) if kind == "bool" else \
+            isinstance(v, int) and not isinstance(v, bool) if kind == "int" else \
+            isinstance(v, (int, float)) and not isinstance(v, bool)
+        if not ok:
+            raise InputError(f"{what} parameter {f.name} must be {_KIND_NAMES[kind]}, got {v!r}")
+        if f.name in ranges:
+            lo, hi = ranges[f.name]
+            if not (lo <= v <= hi) or (f.name in open_zero and v == 0):
+                shown = f"({lo:g}, {hi:g}]" if f.name in open_zero else f"[{lo}, {hi}]"
+                raise InputError(f"{what} parameter {f.name} must be in {shown}, got {v!r}")
+
+
 @dataclass(frozen=True)
 class SearcherParams:
     """Constants of :class:`HandWrittenSearcher` (each one a byte or two in firmware)."""
@@ -100,19 +119,7 @@ class SearcherParams:
         """Every field of its type and in its range (:data:`PARAM_RANGES`; the firmware holds the counters in a
         byte, run lengths in 16 bits, so the simulator and the export accept the same parameters);
         raises :class:`kiloforge.errors.InputError` naming the field and its range."""
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            kind = f.type if isinstance(f.type, str) else f.type.__name__
-            ok = isinstance(v, bool) if kind == "bool" else \
-                isinstance(v, int) and not isinstance(v, bool) if kind == "int" else \
-                isinstance(v, (int, float)) and not isinstance(v, bool)
-            if not ok:
-                raise InputError(f"searcher parameter {f.name} must be {_KIND_NAMES[kind]}, got {v!r}")
-            if f.name in PARAM_RANGES:
-                lo, hi = PARAM_RANGES[f.name]
-                if not (lo <= v <= hi) or (f.name == "speed" and v == 0):
-                    shown = "(0, 1]" if f.name == "speed" else f"[{lo}, {hi}]"
-                    raise InputError(f"searcher parameter {f.name} must be in {shown}, got {v!r}")
+        check_fields(self, PARAM_RANGES, "searcher", open_zero=("speed",))
         if self.turn_sign not in (-1, 0, 1, 2):
             raise InputError(f"searcher parameter turn_sign must be -1, 0, 1 or 2, got {self.turn_sign}")
         if self.run_min_steps > self.run_max_steps:

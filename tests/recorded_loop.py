@@ -1,6 +1,8 @@
 """Firmware in the loop for the host-build tests: SwarmEnv driven by the emulator, its inputs recorded."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs, events_from_sim
@@ -8,12 +10,15 @@ from kiloforge.actors.base import QuantizedActor
 from sim.config import WorldConfig
 
 
-def record_loop(qp: QuantizedActor, cfg: WorldConfig, n_robots: int, steps: int, seed: int) -> FirmwareInputs:
-    """What ``n_robots`` robots (uids 1..M) of one env receive while the emulator drives them ``steps`` control steps."""
+def record_loop(qp: QuantizedActor, cfg: WorldConfig, n_robots: int, steps: int, seed: int,
+                task: Any = None) -> FirmwareInputs:
+    """What ``n_robots`` robots (uids 1..M) of one env receive while the emulator drives them ``steps`` control steps
+    of ``task`` (a sim.tasks name or Task; default localisation)."""
     from sim.env import SwarmEnv
+    from sim.tasks import get_task
 
     M, P = int(n_robots), cfg.period_ticks
-    env = SwarmEnv(cfg, 1, M, seed=seed)
+    env = SwarmEnv(cfg, 1, M, seed=seed, task=get_task(task))
     _, info = env.reset()
     emu = FirmwareEmulator(qp, np.arange(1, M + 1))
     events, lights = [], []

@@ -17,6 +17,7 @@ import numpy as np
 from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, TARGET_FILE, render_firmware
 from export.codegen.templates import inline_sources
 from kiloforge import numfmt
+from kiloforge.actors.aggregator import QuantizedAggregator
 from kiloforge.actors.base import QuantizedActor, sensing_tables
 from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU
 from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell
@@ -27,6 +28,8 @@ from kiloforge.io import write_atomic
 from kiloforge.numfmt import HIDDEN_EXP, QuantLayer
 from sim.baselines import SearcherParams
 from sim.config import preset
+from sim.tasks import get_task
+from sim.tasks.aggregation import NBR_MAX, AggregatorParams
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN_VERSION = "golden"  #: generator version written into the golden banner
@@ -104,14 +107,28 @@ def golden_searcher() -> QuantizedSearcher:
                              world=WORLD, policy_hash=GOLDEN_HASH, **sensing_tables(WORLD, E_IN))  # 4 = 0.0625 * 2**6
 
 
+def golden_aggregator() -> QuantizedAggregator:
+    """The hand-written aggregator with non-default parameters and fixed integer thresholds, in aggregation's layout
+    (no beacon)."""
+    p = AggregatorParams(stop_base=0.25, stop_per_nbr=0.125, leave_base=0.5, leave_decay=2.0, run_steps=16,
+                         turn_max_steps=5, wall_turn_steps=4)
+    n = np.arange(NBR_MAX + 1)
+    world = get_task("aggregation").world(WORLD)
+    return QuantizedAggregator(params=p, nbr_t=(16 + 32 * np.arange(NBR_MAX)).astype(np.uint16),
+                               stop_t=np.minimum(16384 + 8192 * n, 65536).astype(np.uint32),
+                               leave_t=(32768 // (1 + 2 * n * n)).astype(np.uint32), tumble_t=4096, e_in=E_IN,
+                               world=world, policy_hash=GOLDEN_HASH, **sensing_tables(world, E_IN))
+
+
 def golden_policies() -> dict[str, QuantizedActor]:
     """Kind name -> its golden quantised policy."""
-    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher())}
+    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher(), golden_aggregator())}
 
 
 def render(qp: QuantizedActor) -> dict[str, str]:
-    """Both programs of a golden policy, rendered as the golden files were."""
-    return render_firmware(qp, target_uids=GOLDEN_TARGET_UIDS, msg_type=0x2A, generator_version=GOLDEN_VERSION)
+    """The programs of a golden policy (both, or the one of a world without a beacon), rendered as the golden files were."""
+    return render_firmware(qp, target_uids=GOLDEN_TARGET_UIDS if qp.world.beacon else None, msg_type=0x2A,
+                           generator_version=GOLDEN_VERSION)
 
 
 def generated_part(text: str, inlined: tuple[tuple[str, ...], ...]) -> str:

@@ -46,23 +46,35 @@ CONTRACT = {  # rendered name -> its one definition (in both programs)
     "KF_MSG_USED_BYTES": fw.MSG_USED_BYTES, "KF_MSG_INFO_BYTE": fw.MSG_INFO_BYTE,
     "KF_CRC_POLY": crc.POLY_REFLECTED, "KF_CRC_INIT": crc.INIT, "KF_MSG_TYPE": fw.DEFAULT_MSG_TYPE,
 }
+#: what a program of a world without a beacon leaves out
+BEACON_ONLY = ("KF_ROLE_BIT", "KF_SENSING_BIT", "KF_LED_BEACON", "KF_LED_SENSING", "KF_LED_NBR_SENSING")
 LEDS = {"KF_LED_OFF": fw.LED_OFF, "KF_LED_BEACON": fw.LED_BEACON, "KF_LED_SENSING": fw.LED_SENSING,
         "KF_LED_NBR_SENSING": fw.LED_NBR_SENSING}
 
 
 def test_contract_constants_are_rendered_from_python(program):
-    """Message layout, queue size, ready value, CRC and LEDs in both programs equal export.contract's."""
+    """Message layout, queue size, ready value, CRC and LEDs in both programs (one without a beacon, and none of the
+    beacon's constants) equal export.contract's."""
     qp, files = program
-    for name in (POLICY_FILE, TARGET_FILE):
+    beacon = qp.world.beacon
+    for name in (POLICY_FILE, TARGET_FILE) if beacon else (POLICY_FILE,):
         d = defines(files[name])
         for key, want in CONTRACT.items():
-            assert c_int(d[key]) == want, (name, key)
+            if key in BEACON_ONLY and not beacon:
+                assert key not in d, (name, key)
+            else:
+                assert c_int(d[key]) == want, (name, key)
         for key, rgb in LEDS.items():
-            assert d[key] == "(RGB({}, {}, {}))".format(*rgb), (name, key)
+            if key in BEACON_ONLY and not beacon:
+                assert key not in d, (name, key)
+            else:
+                assert d[key] == "(RGB({}, {}, {}))".format(*rgb), (name, key)
+    assert (TARGET_FILE in files) == beacon
     d = defines(files[POLICY_FILE])
-    assert c_int(d["KF_RXQ_CAPACITY"]) == fw.RXQ_CAPACITY
-    assert c_int(d["KF_ONE"]) == 1 << qp.e_in and c_int(d["KF_MINUS_ONE"]) == -(1 << qp.e_in)
+    assert c_int(d["KF_RXQ_CAPACITY"]) == fw.RXQ_CAPACITY and c_int(d["KF_ONE"]) == 1 << qp.e_in
     assert c_int(d["KF_TUPLE_DIM"]) == qp.world.tuple_dim and c_int(d["KF_OBS_DIM"]) == qp.world.obs_dim
+    if beacon:  # "target not heard"
+        assert c_int(d["KF_MINUS_ONE"]) == -(1 << qp.e_in)
 
 
 def test_number_format_constants_are_rendered_from_python(program):

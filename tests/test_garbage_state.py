@@ -20,7 +20,9 @@ from export.verify.hostbuild import HostBuildError, StreamSpec, build_host, comp
 from tests.fixtures import synthetic_qpolicy
 from kiloforge.actors.gru import random_gru_policy
 from kiloforge.actors.lstm import random_lstm_policy
+from kiloforge.actors.aggregator import AggregatorPolicy, quantize_aggregator
 from kiloforge.actors.searcher import quantize_searcher, searcher_policy
+from sim.tasks.aggregation import AggregatorParams
 from sim.config import preset
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -38,6 +40,8 @@ def policy(kind: str):
     """The quantised policy behind each program kind (the beacon program uses the MLP's)."""
     if kind == "searcher":
         return quantize_searcher(searcher_policy(WORLD))
+    if kind == "aggregator":  # in localisation's layout: the rule beside a beacon
+        return quantize_aggregator(AggregatorPolicy(AggregatorParams(), WORLD))
     if kind in RECURRENT:
         p = RECURRENT[kind](WORLD, 16, seed=4, scale=3.0)
         return quantize_policy(p, calibrate(p, episodes=1, n_robots=(4,), seed=4, steps=40))
@@ -45,7 +49,7 @@ def policy(kind: str):
 
 
 def program(kind: str) -> str:
-    """The rendered C of one kind: the MLP, GRU, LSTM or searcher program, or the beacon-only program."""
+    """The rendered C of one kind: the MLP, GRU, LSTM, searcher or aggregator program, or the beacon-only program."""
     files = render_firmware(policy(kind), target_uids=TARGETS, generator_version="test")
     return files[TARGET_FILE if kind == "beacon" else POLICY_FILE]
 
@@ -70,7 +74,7 @@ def builds(tmp_path_factory):
 
 
 @pytest.mark.parametrize("fill", FILLS)
-@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "searcher", "beacon"))
+@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "searcher", "aggregator", "beacon"))
 def test_sanitized_program_on_garbage_state_equals_emulator(kind, fill, builds):
     """ASan/UBSan build, state garbage before setup() and callbacks called before it: 0 findings, bit-exact."""
     exe = build_host(program(kind), builds, name=f"{kind}-asan", sanitize=True)
@@ -85,13 +89,13 @@ def test_sanitized_program_on_garbage_state_equals_emulator(kind, fill, builds):
         beacon = np.isin(inputs.uids, TARGETS)
         assert beacon.any() and not beacon.all(), "the stream should hold searchers and beacons"
         cmd = want.commands[~beacon]
-        if kind == "searcher":  # straight, pivot left or right, stop: (0 | 255, 0 | 255)
-            assert np.unique(cmd.reshape(-1, 2), axis=0).shape[0] == 4, "not every searcher command occurred"
+        if kind in ("searcher", "aggregator"):  # straight, pivot left or right, stop: (0 | 255, 0 | 255)
+            assert np.unique(cmd.reshape(-1, 2), axis=0).shape[0] == 4, f"not every {kind} command occurred"
         else:
             assert np.unique(cmd).size > 16, "commands barely vary"
 
 
-@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "searcher", "beacon"))
+@pytest.mark.parametrize("kind", ("mlp", "gru", "lstm", "searcher", "aggregator", "beacon"))
 def test_a_program_relying_on_zeroed_state_is_caught(kind, builds):
     """With setup()'s clearing loop removed a program still passes on zeroed state but not on garbage."""
     loop = "    for (i = 0u; i < (uint16_t)sizeof(kf_state_t); ++i) {\n        p[i] = 0u;\n    }\n"

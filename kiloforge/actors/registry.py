@@ -8,13 +8,14 @@ from __future__ import annotations
 from typing import Any
 
 from ..errors import PolicyError
+from .aggregator import AGGREGATOR
 from .base import ActorKind
 from .gru import GRU
 from .lstm import LSTM
 from .mlp import MLP
 from .searcher import SEARCHER
 
-KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER)}
+KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER, AGGREGATOR)}
 
 
 def kind_named(name: object) -> ActorKind:

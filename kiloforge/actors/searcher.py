@@ -27,17 +27,14 @@ the int8 observation every firmware builds (wall, target, neighbour flag and RBF
   stops at 0 and ``run_left`` at -1 (only ``<= 0`` and ``max(run_left, cooldown >= 0)`` read them),
   ``fails`` and ``miss`` at 255 (compared with thresholds <= 254). "Run forever" is ``BIG = 2**20``
   periods, as in the float searcher.
-* **randomness**: no NumPy generator on a robot. Each robot owns a xorshift32 word (Marsaglia's
-  13/17/5 triple), seeded in ``setup()`` from its ``kilo_uid`` (``uid * 0x9E3779B1 + 0x7F4A7C15``,
-  never 0), stepped once every control period whether its draws are used or not (as the float
-  searcher draws every period). Its four bytes are the period's draws: byte 0 the turn direction
+* **randomness**: no NumPy generator on a robot. Each robot owns the xorshift32 word of
+  :mod:`kiloforge.actors.rules` seeded from its ``kilo_uid``, stepped once every control period whether
+  its draws are used or not (as the float searcher draws every period). Its four bytes are the period's draws: byte 0 the turn direction
   (left when < 128), byte 1 the tumble ``1 + (b * tumble_max >> 8)``, byte 2 the wall turn
   ``wall_turn_min + (b * span >> 8)``, byte 3 the run length ``RUN[b]``, a 256-entry table of
   :func:`sim.baselines.run_lengths` at ``u = (b + 0.5) / 256``. So each uniform integer has
   probabilities within 1/256 of the float's, and the run-length CDF is within 1/512 of the float's
-  (tests/test_searcher_firmware.py). kilolib's ``rand_soft`` is not used: its generator is
-  kilolib's and no emulator could follow it bit for bit; this one the emulator models exactly, on
-  the robot, under Kilombo and in the host and AVR builds alike. Robots with equal uids draw alike.
+  (tests/test_searcher_firmware.py).
 
 :class:`FirmwareDrawSearcher` is the float searcher taking its draws from these bytes: fed the
 dequantised observations it gives exactly the integer searcher's commands (the test of the integer
@@ -59,15 +56,13 @@ from sim.tasks.base import TaskRef
 
 from .. import numfmt
 from ..artifact import plain_provenance
-from ..errors import InputError, PolicyError, QuantizeError
-from ..validate import show
-from .base import (ActorKind, BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor,
-                   RenderSpec, Resize, check_world_and_task, invalid, sensing_tables)
+from ..errors import QuantizeError
+from .base import (BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor, RenderSpec,
+                   check_world_and_task, invalid, sensing_tables)
+from .rules import SEED_ADD, SEED_MUL, OwnSeeds, RuleKind, UidStreams, draw_bytes, params_from_meta, rng_seed, xorshift32
 
 BIG = 1 << 20  #: "run until something happens" (periods), as in sim.baselines
 RUN_TABLE_SIZE = 256  #: one entry per value of the run-length draw byte
-SEED_MUL = 0x9E3779B1  #: kilo_uid -> xorshift32 seed: uid * SEED_MUL + SEED_ADD (mod 2**32)
-SEED_ADD = 0x7F4A7C15
 COUNT_MAX = COUNTER_MAX  #: fails and miss saturate here (uint8)
 STATE_BYTES = 4 + 4 + 4 + 4 + 7  #: rng, run_left, prev_score, best (uint32/int32) + seven uint8 counters and flags
 #: SearcherParams fields newer than the first searcher artifacts, with the values that keep those files' rules
@@ -77,43 +72,8 @@ LATER_FIELDS = {"push_margin": 0.0, "hold_within": False}
 # --------------------------------------------------------------------------------------------
 # The float searcher and its random draws
 # --------------------------------------------------------------------------------------------
-class SeededSearcher(HandWrittenSearcher):
+class SeededSearcher(OwnSeeds, HandWrittenSearcher):
     """The float searcher; ``reset`` without a generator takes the next child of its own seed sequence."""
-
-    def __init__(self, cfg: WorldConfig, params: SearcherParams, seed: int = 0) -> None:
-        super().__init__(cfg, params)
-        self._seeds = np.random.SeedSequence(seed)
-
-    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator | None = None) -> None:
-        super().reset(n_envs, n_robots, rng if rng is not None else np.random.default_rng(self._seeds.spawn(1)[0]))
-
-
-def rng_seed(uids: np.ndarray) -> np.ndarray:
-    """(R,) uint32 xorshift32 state setup() leaves for these kilo_uids (never 0).
-
-    >>> rng_seed(np.array([0, 1])).tolist()
-    [2135587861, 495056326]
-    """
-    x = (np.asarray(uids, np.uint64) * SEED_MUL + SEED_ADD) & 0xFFFFFFFF
-    return np.where(x == 0, 1, x).astype(np.uint32)
-
-
-def xorshift32(x: np.ndarray) -> np.ndarray:
-    """One step of Marsaglia's xorshift32 (13, 17, 5) on uint32 words.
-
-    >>> xorshift32(np.array([1], np.uint32)).tolist()
-    [270369]
-    """
-    x = np.asarray(x, np.uint32)
-    x = x ^ (x << np.uint32(13))
-    x = x ^ (x >> np.uint32(17))
-    return x ^ (x << np.uint32(5))
-
-
-def draw_bytes(word: np.ndarray) -> np.ndarray:
-    """(R, 4) int64 bytes of xorshift32 words: direction, tumble, wall turn, run length."""
-    w = np.asarray(word, np.uint32).astype(np.int64)
-    return np.stack([(w >> (8 * i)) & 0xFF for i in range(4)], -1)
 
 
 def run_table(p: SearcherParams) -> np.ndarray:
@@ -130,17 +90,8 @@ def firmware_draws(p: SearcherParams, b: np.ndarray) -> tuple[np.ndarray, np.nda
     return dirs, tumble, wall, run_lengths(p, (b[..., 3] + 0.5) / RUN_TABLE_SIZE)
 
 
-class FirmwareDrawSearcher(HandWrittenSearcher):
+class FirmwareDrawSearcher(UidStreams, HandWrittenSearcher):
     """The float searcher drawing from the firmware's xorshift32 streams (one per robot, seeded by uid)."""
-
-    def __init__(self, cfg: WorldConfig, params: SearcherParams, uids: np.ndarray) -> None:
-        super().__init__(cfg, params)
-        self.uids = np.asarray(uids, np.uint16)
-
-    def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator | None = None) -> None:
-        assert n_envs * n_robots == self.uids.size, "one uid per robot"
-        super().reset(n_envs, n_robots, np.random.default_rng(0))  # the generator is never drawn from
-        self.word = rng_seed(self.uids).reshape(n_envs, n_robots)
 
     def draws(self, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         self.word = xorshift32(self.word)
@@ -200,19 +151,7 @@ def params_of(meta_params: Any) -> SearcherParams:
     """SearcherParams of an artifact's ``params`` (every field, of its type and in its range, checked by
     SearcherParams; a field added after the file was written, :data:`LATER_FIELDS`, reads as its default);
     raises PolicyError."""
-    names = [f.name for f in dataclasses.fields(SearcherParams)]
-    if not isinstance(meta_params, dict):
-        raise PolicyError(f"policy: 'params' must be an object, got {show(meta_params)}")
-    meta_params = {**LATER_FIELDS, **meta_params}
-    missing, extra = [n for n in names if n not in meta_params], sorted(set(meta_params) - set(names))
-    if missing or extra:
-        raise PolicyError(f"policy: 'params' lacks {missing} / has unknown {extra}" if missing and extra else
-                          f"policy: 'params' lacks {', '.join(missing)}" if missing else
-                          f"policy: 'params' has unknown field(s) {', '.join(extra)}")
-    try:
-        return SearcherParams(**meta_params)
-    except InputError as e:
-        raise PolicyError(f"policy: {e}") from None
+    return params_from_meta(SearcherParams, meta_params, LATER_FIELDS)
 
 
 def pusher_policy(world: WorldConfig) -> SearcherPolicy:
@@ -387,62 +326,6 @@ def quantize_searcher(policy: SearcherPolicy, e_in: int | None = None) -> Quanti
 
 
 # --------------------------------------------------------------------------------------------
-# Calibration (nothing to calibrate) and the error report
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class SearcherCalibration:
-    """The recorded input tuples (S, T, D) of the float searcher's rollouts."""
-
-    seqs: np.ndarray
-    info: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def n(self) -> int:
-        return int(self.seqs.shape[0] * self.seqs.shape[1])
-
-
-@dataclass(frozen=True)
-class SearcherError:
-    """Integer searcher on quantised observations vs the float searcher on the recorded float ones, both
-    drawing from the firmware's streams (uid i + 1 for row i): what quantising the observation changes."""
-
-    du_max: float
-    du_mean: float
-    same_command: float  #: fraction of (robot, step, motor) with equal uint8 commands
-    same_step: float  #: fraction of (robot, step) with both commands equal
-    n_samples: int
-    e_in: int
-
-    def table(self) -> str:
-        return (f"searcher quantisation error over {self.n_samples} recorded steps (e_in = {self.e_in}; same random "
-                f"draws, float vs quantised observations): same uint8 command {100 * self.same_command:.2f}%, both "
-                f"motors {100 * self.same_step:.2f}%, max |du| = {self.du_max:.5f}, mean |du| = {self.du_mean:.5f}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"kind": SEARCHER.name, **dataclasses.asdict(self)}
-
-
-def searcher_error(policy: SearcherPolicy, qp: QuantizedSearcher, calib: SearcherCalibration) -> SearcherError:
-    """:class:`SearcherError` over the calibration sequences."""
-    seqs = np.asarray(calib.seqs, np.float64)
-    S, T, _ = seqs.shape
-    uids = np.arange(1, S + 1)
-    ref = FirmwareDrawSearcher(policy.world, policy.params, uids)
-    ref.reset(1, S)
-    state = qp.setup_state(uids)
-    du, same, both = [], 0, 0
-    for t in range(T):
-        u = ref.act(seqs[None, :, t, ACTION_DIM:])[0]
-        q, state = qp.step_int(qp.quantize_tuple(seqs[:, t]), state)
-        uf = action_to_u8(u)
-        du.append(np.abs(q / 255.0 - u))
-        same += int((q == uf).sum())
-        both += int((q == uf).all(-1).sum())
-    d = np.stack(du)
-    return SearcherError(du_max=float(d.max()), du_mean=float(d.mean()), same_command=same / (2 * S * T),
-                         same_step=both / (S * T), n_samples=S * T, e_in=qp.e_in)
-
-
 # --------------------------------------------------------------------------------------------
 # The kind
 # --------------------------------------------------------------------------------------------
@@ -457,46 +340,30 @@ class SearcherArch:
 CODE_B = -2_600
 
 
-class SearcherKind(ActorKind):
+class SearcherKind(RuleKind):
     """The hand-written searcher of sim.baselines (the baseline to flash next to a learned policy)."""
 
     name: ClassVar[str] = "searcher"
     template: ClassVar[str] = "actors/searcher.c.j2"
-    c_sources: ClassVar[tuple[str, ...]] = ()
+    arch = SearcherArch
     budget_usage: ClassVar[str] = "--searcher PRESET"
     budget_options: ClassVar[tuple[BudgetOption, ...]] = (
         BudgetOption("--searcher", "the hand-written searcher (its size does not depend on its parameters)",
                      metavar="PRESET", positive=False, choices=tuple(TUNED)),
     )
 
-    def from_arrays(self, arrays: dict[str, np.ndarray], meta: dict[str, Any], world: WorldConfig,
-                    provenance: dict[str, Any]) -> SearcherPolicy:
-        if arrays:
-            raise PolicyError(f"policy: a searcher has no arrays, found {', '.join(sorted(arrays))}")
-        if "params" not in meta:
-            raise PolicyError("policy: 'meta' lacks 'params'")
-        return SearcherPolicy(params_of(meta["params"]), world, provenance)
+    def policy_of(self, meta_params: Any, world: WorldConfig, provenance: dict[str, Any]) -> SearcherPolicy:
+        return SearcherPolicy(params_of(meta_params), world, provenance)
 
     def swarm_policy(self, policy: SearcherPolicy, world: WorldConfig | None = None) -> SeededSearcher:
         """The float searcher of sim.baselines (its own generator unless reset gets one)."""
         return SeededSearcher(world or policy.world, policy.params)
 
-    def calibration(self, policy: SearcherPolicy, seqs: np.ndarray, info: dict[str, Any]) -> SearcherCalibration:
-        return SearcherCalibration(np.asarray(seqs, np.float32), dict(info))
-
-    def quantize(self, policy: SearcherPolicy, calib: SearcherCalibration, *, percentile: float = 100.0,
-                 headroom: float = 1.0, e_in: int | None = None) -> QuantizedSearcher:
-        """No ranges to cover: e_in is the default input exponent unless given."""
+    def quantize_rule(self, policy: SearcherPolicy, e_in: int | None) -> QuantizedSearcher:
         return quantize_searcher(policy, e_in)
 
-    def error_report(self, policy: SearcherPolicy, qp: QuantizedSearcher, calib: SearcherCalibration) -> SearcherError:
-        return searcher_error(policy, qp, calib)
-
-    def arch_of(self, policy: SearcherPolicy) -> SearcherArch:
-        return SearcherArch()
-
-    def arch_of_quantized(self, qp: QuantizedSearcher) -> SearcherArch:
-        return SearcherArch()
+    def draw_reference(self, policy: SearcherPolicy, uids: np.ndarray) -> FirmwareDrawSearcher:
+        return FirmwareDrawSearcher(policy.world, policy.params, uids)
 
     def budget_spec(self, world: WorldConfig, arch: SearcherArch, e_in: int) -> BudgetSpec:
         return BudgetSpec(
@@ -505,12 +372,6 @@ class SearcherKind(ActorKind):
             memory=(BudgetItem("sram", "searcher state", STATE_BYTES, "rng, run, score, best (4 B each) + 7 counters"),),
             scratch=(BudgetItem("sram", "tuple buffer", world.tuple_dim, f"{world.tuple_dim} int8"),),
             code_b=CODE_B, code_note="(the searcher's rules, without the dense kernels; estimate)")
-
-    def resizes(self, world: WorldConfig, arch: SearcherArch) -> list[Resize]:
-        return []
-
-    def budget_arch(self, values: Mapping[str, Any]) -> SearcherArch | None:
-        return SearcherArch() if values.get("searcher") else None
 
     def render_spec(self, qp: QuantizedSearcher) -> RenderSpec:
         p = qp.params

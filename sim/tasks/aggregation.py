@@ -13,7 +13,8 @@ Critic state: every robot's pose, normalised.
 Garnier et al. (2005) as Kilobots can run it: walk (straight runs, random turns, away from lit walls);
 a walking robot stops with a probability that grows with the neighbours it hears, a resting one
 leaves with one that shrinks with them. The neighbour count comes from the robot's own RBF histogram
-(the observation), so the rule uses only what the firmware has. Parameters tuned on validation
+(the observation), rounded to an integer, so the rule uses only what the firmware has and the firmware
+(actor kind ``aggregator``) follows it exactly. Parameters tuned on validation
 episodes (seed 777, docs/tasks.md). And the random walk.
 """
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..baselines import COUNTER_MAX, check_fields
 from ..config import ACTION_DIM, WorldConfig
 from .base import BeaconlessTask, Metric
 
@@ -95,10 +97,21 @@ class Aggregation(BeaconlessTask):
         return make_policy(name, cfg)
 
 
+#: the neighbours n is counted up to (a robot of the largest swarm evaluated, 32, has at most 31); a table entry
+#: per n in the firmware
+NBR_MAX = 31
+#: what the rule's parameters may be: probabilities in [0, 1], the pivots a uint8 counter, the mean run a
+#: 16-bit probability 1 / run_steps (the firmware's fields; the simulator accepts the same)
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "stop_base": (0.0, 1.0), "stop_per_nbr": (0.0, 1.0), "leave_base": (0.0, 1.0), "leave_decay": (0.0, 1000.0),
+    "run_steps": (1, 0xFFFF), "turn_max_steps": (1, COUNTER_MAX), "wall_turn_steps": (1, COUNTER_MAX)}
+
+
 @dataclass(frozen=True)
 class AggregatorParams:
     """Constants of :class:`ProbabilisticAggregator` (probabilities per control period), tuned on validation
-    episodes by ``python -m tools.tune_aggregator`` (four grids; 0.923 final cluster at 16 robots, seed 777)."""
+    episodes by ``python -m tools.tune_aggregator`` (four grids; 0.923 final cluster at 16 robots, seed 777).
+    Each is checked against :data:`PARAM_RANGES` (InputError naming it and its range)."""
 
     stop_base: float = 0.0  #: P(stop) of a walking robot that hears no neighbour
     stop_per_nbr: float = 0.2  #: ... plus this per neighbour heard (capped at 1)
@@ -108,20 +121,51 @@ class AggregatorParams:
     turn_max_steps: int = 3  #: a random turn pivots 1..this many periods
     wall_turn_steps: int = 3  #: pivot periods away from a lit wall
 
+    def __post_init__(self) -> None:
+        check_fields(self, PARAM_RANGES, "aggregator")
+
+
+def per_neighbour(cfg: WorldConfig) -> float:
+    """The RBF histogram's sum that one neighbour in the middle of the sensing range adds."""
+    from ..events import rbf
+
+    mid = 0.5 * (cfg.rbf_lo_mm + min(cfg.rbf_hi_mm, cfg.comm_radius_mm))
+    return float(rbf(cfg, np.array([mid])).sum())
+
+
+def nbr_thresholds(cfg: WorldConfig) -> np.ndarray:
+    """(NBR_MAX,) float64: n >= j neighbours are heard when the RBF sum is at least ``(j - 0.5) · per_neighbour``
+    (n is the sum over one neighbour's, rounded half up, at most NBR_MAX)."""
+    return (np.arange(1, NBR_MAX + 1) - 0.5) * per_neighbour(cfg)
+
+
+def stop_prob(p: AggregatorParams, n: np.ndarray) -> np.ndarray:
+    """P(a walking robot stops) with n neighbours."""
+    return np.minimum(1.0, p.stop_base + p.stop_per_nbr * np.asarray(n, np.float64))
+
+
+def leave_prob(p: AggregatorParams, n: np.ndarray) -> np.ndarray:
+    """P(a resting robot leaves) with n neighbours."""
+    n = np.asarray(n, np.float64)
+    return p.leave_base / (1.0 + p.leave_decay * n * n)
+
+
+def tumble_prob(p: AggregatorParams) -> float:
+    """P(an idle walking robot starts a random turn) per period (geometric runs of mean run_steps)."""
+    return 1.0 / p.run_steps
+
 
 class ProbabilisticAggregator:
     """The probabilistic aggregation rule (module doc), vectorised over (B envs, M robots).
 
-    Neighbours heard: the RBF histogram's sum times ``rbf_norm`` divided by the sum of the bins one
-    neighbour in the middle of the range adds (so n counts neighbours within the communication radius).
+    Neighbours heard n: the RBF histogram's sum over the sum one neighbour in the middle of the range adds,
+    rounded half up, at most :data:`NBR_MAX` (an integer, so the firmware's tables follow it exactly:
+    kiloforge/actors/aggregator.py). Its random numbers come from :meth:`draws`.
     """
 
     def __init__(self, cfg: WorldConfig, params: AggregatorParams | None = None) -> None:
-        from ..events import rbf
-
         self.cfg, self.p = cfg, params or AggregatorParams()
-        mid = 0.5 * (cfg.rbf_lo_mm + min(cfg.rbf_hi_mm, cfg.comm_radius_mm))
-        self.per_neighbour = float(rbf(cfg, np.array([mid])).sum())
+        self.thresholds = nbr_thresholds(cfg)
         self.rng: np.random.Generator | None = None
 
     def reset(self, n_envs: int, n_robots: int, rng: np.random.Generator) -> None:
@@ -132,23 +176,29 @@ class ProbabilisticAggregator:
         self.turn_dir = np.zeros(shape, bool)  # True: left
 
     def neighbours(self, obs: np.ndarray) -> np.ndarray:
-        """(B, M) estimated neighbours heard this period."""
-        return obs[..., self.cfg.obs_slice("rbf")].sum(axis=-1) / self.per_neighbour
+        """(B, M) int64 neighbours heard this period."""
+        total = np.asarray(obs, np.float64)[..., self.cfg.obs_slice("rbf")].sum(axis=-1)
+        return (total[..., None] >= self.thresholds).sum(-1)
+
+    def draws(self, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One period's draws: uniform [0, 1) for stopping / leaving and for starting a turn, the turn's
+        pivot periods (1..turn_max_steps), its direction (True: left)."""
+        assert self.rng is not None, "ProbabilisticAggregator.act before reset"
+        u = self.rng.random((2,) + shape)
+        steps = self.rng.integers(1, self.p.turn_max_steps + 1, shape)
+        return u[0], u[1], steps, self.rng.random(shape) < 0.5
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        assert self.rng is not None, "ProbabilisticAggregator.act before reset"
-        p, rng = self.p, self.rng
+        p = self.p
         n = self.neighbours(obs)
-        u = rng.random((2,) + n.shape)  # one draw for stopping / leaving, one for starting a turn
-        stop = ~self.resting & (u[0] < np.minimum(1.0, p.stop_base + p.stop_per_nbr * n))
-        leave = self.resting & (u[0] < p.leave_base / (1.0 + p.leave_decay * n * n))
+        u_stay, u_turn, steps, left = self.draws(n.shape)
+        stop = ~self.resting & (u_stay < stop_prob(p, n))
+        leave = self.resting & (u_stay < leave_prob(p, n))
         self.resting = (self.resting | stop) & ~leave
         walking = ~self.resting
         idle = walking & (self.turn_left == 0)
         wall = idle & (obs[..., self.cfg.obs_index("wall")] > 0.5)
-        tumble = idle & ~wall & (u[1] < 1.0 / p.run_steps)
-        steps = rng.integers(1, p.turn_max_steps + 1, n.shape)
-        left = rng.random(n.shape) < 0.5
+        tumble = idle & ~wall & (u_turn < tumble_prob(p))
         self.turn_left = np.where(wall, p.wall_turn_steps, np.where(tumble, steps, self.turn_left))
         self.turn_dir = np.where(wall | tumble, left, self.turn_dir)
         turning = walking & (self.turn_left > 0)
