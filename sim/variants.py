@@ -265,9 +265,10 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
         suite[f"msg success {ok:.1f}"] = (r(cfg, msg_loss=round(1.0 - ok, 6)), None)
     for sd in (0.0, 6.0):
         suite[f"dist noise {sd:g} mm"] = (r(cfg, dist_noise_mm=sd), None)
-    suite["dim light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 0.5), None)
-    suite["bright light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 1.5), None)
-    suite["uneven light"] = (cfg, Randomisation(wall_zone=(0.5, 1.5)))
+    if cfg.light_wall != cfg.light_floor:  # lit walls (unlit ones, e.g. phototaxis's, have no wall zone to vary)
+        suite["dim light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 0.5), None)
+        suite["bright light"] = (r(cfg, wall_sense_mm=cfg.wall_sense_mm * 1.5), None)
+        suite["uneven light"] = (cfg, Randomisation(wall_zone=(0.5, 1.5)))
     if cfg.lamps:  # lamps (sim.light): dimmer, brighter, moved, and a noisier sensor
         lamps = cfg.lamp_list
         suite["lamps dimmer"] = (r(cfg, lamps=_lamps(lamps, peak=0.6)), None)

@@ -71,6 +71,7 @@ def test_suite_gains_light_variants_only_with_lamps():
     names = set(robustness_suite(WORLD))
     assert {"lamps dimmer", "lamps brighter", "lamp shifted", "noisier light sensor"} <= names
     assert not any("lamp" in n or "light sensor" in n for n in robustness_suite(preset("kilobot")))
+    assert "dim light" not in names and "dim light" in robustness_suite(preset("kilobot"))  # phototaxis: unlit walls
     shifted = robustness_suite(WORLD)["lamp shifted"][0]
     assert shifted.lamp_list[0].x == 50.0
 
@@ -137,3 +138,19 @@ def test_sim_cli_runs_a_phototaxis_baseline(tmp_path, capsys):
         assert main(["--task", "phototaxis", "--policy", policy, "--robots", "6", "--episodes", "2", "--steps", "20",
                      "--out", str(tmp_path / policy), "--quiet"]) == 0
     assert "in spot" in capsys.readouterr().out
+
+
+def test_export_of_a_phototaxis_policy_is_bit_exact_on_the_host(tmp_path, capsys):
+    """python -m export --task phototaxis of a random-weights policy: the host build equals the emulator."""
+    from export.cli.main import main
+    from kiloforge.policies import save_policy
+    from tests.fixtures import init_policy
+
+    p = dataclasses.replace(init_policy(WORLD, 2, (8,)), task=PHOTO.ref)
+    path = save_policy(p, tmp_path / "photo.npz")
+    out = tmp_path / "photo.c"
+    rc = main(["--task", "phototaxis", "--policy", str(path), "--out", str(out), "--verify", "host",
+               "--robots-calib", "4", "--calib-steps", "20", "--no-avr", "--quiet"])
+    text = capsys.readouterr().out
+    assert rc == 0 and "bit-exact" in text
+    assert "get_ambientlight()" in out.read_text() and "KF_OBS_LIGHT" in out.read_text()

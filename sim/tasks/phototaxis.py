@@ -149,20 +149,20 @@ class Phototaxis(BeaconlessTask):
 
 @dataclass(frozen=True)
 class StopInLightParams:
-    """Constants of :class:`StopInLight`, tuned by ``python -m tools.tune_phototaxis`` (seed 777)."""
+    """Constants of :class:`StopInLight`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.920 at 16 robots)."""
 
-    threshold: int = 500  #: stop while the held reading is at least this (ADC counts)
-    run_steps: int = 20  #: mean straight run of the walk outside the light (periods, geometric)
-    turn_max_steps: int = 3  #: a random turn pivots 1..this many periods
+    threshold: int = 550  #: stop while the held reading is at least this (ADC counts)
+    run_steps: int = 5  #: mean straight run of the walk outside the light (periods, geometric)
+    turn_max_steps: int = 2  #: a random turn pivots 1..this many periods
 
 
 @dataclass(frozen=True)
 class RunAndTumbleParams:
-    """Constants of :class:`RunAndTumble`, tuned by ``python -m tools.tune_phototaxis`` (seed 777)."""
+    """Constants of :class:`RunAndTumble`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.515 at 16 robots)."""
 
-    fall: int = 16  #: tumble when the reading fell by more than this since the last period (ADC counts)
-    run_steps: int = 20  #: otherwise tumble with probability 1 / this per period (so walls do not trap it)
-    turn_max_steps: int = 3  #: a tumble pivots 1..this many periods
+    fall: int = 12  #: tumble when the reading fell by more than this since the last period (ADC counts)
+    run_steps: int = 40  #: otherwise tumble with probability 1 / this per period (so walls do not trap it)
+    turn_max_steps: int = 6  #: a tumble pivots 1..this many periods
 
 
 class _LightWalker:
