@@ -154,3 +154,31 @@ def test_export_of_a_phototaxis_policy_is_bit_exact_on_the_host(tmp_path, capsys
     text = capsys.readouterr().out
     assert rc == 0 and "bit-exact" in text
     assert "get_ambientlight()" in out.read_text() and "KF_OBS_LIGHT" in out.read_text()
+
+
+def test_lamp_randomisation_draws_only_in_worlds_with_lamps():
+    """--randomise table moves and dims the lamps per env in phototaxis (success follows the spot); localisation draws none."""
+    from sim.variants import RANDOMISATIONS
+
+    env = SwarmEnv(WORLD, 3, 8, seed=2, task=PHOTO, randomise=RANDOMISATIONS["table"])
+    _, info = env.reset()
+    d = env.world_draw
+    assert d.lamp_shift_mm.shape == (3, 2) and d.lamp_brightness.shape == (3,) and d.light_noise.shape == (3,)
+    centre = PHOTO.spot_centre(env)
+    inside = np.hypot(*(env.pos - centre[:, None]).transpose(2, 0, 1)) <= 100.0
+    np.testing.assert_array_equal(info["robot_success"], inside)
+    loc = SwarmEnv(preset("kilobot"), 3, 8, seed=2, randomise=RANDOMISATIONS["table"])
+    loc.reset()
+    assert loc.world_draw.lamp_shift_mm is None and loc.world_draw.light_noise is None
+
+
+def test_evaluate_runs_64_robots_in_the_anchor_arena():
+    """learn evaluate asks the task for each size's world: phototaxis's 64 robots get the 724 mm arena."""
+    from learn.evaluate import evaluate_policies
+    from tests.fixtures import init_policy
+
+    p = dataclasses.replace(init_policy(WORLD, 1, (4,)), task=PHOTO.ref)
+    res = evaluate_policies({"mlp": p}, [4, 64], episodes=1, steps=3, out_dir=None, n_envs=1, gif=False,
+                            progress=False, log=lambda s: None, task=PHOTO)
+    assert "world" not in res["robots"]["4"] and res["robots"]["64"]["world"]["arena_half_mm"] == 362.0
+    assert res["robots"]["64"]["metrics"]["mlp"]["summary"]["ceiling"]["mean"] == pytest.approx(37 / 64)
