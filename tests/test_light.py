@@ -182,3 +182,19 @@ def test_evaluate_runs_64_robots_in_the_anchor_arena():
                             progress=False, log=lambda s: None, task=PHOTO)
     assert "world" not in res["robots"]["4"] and res["robots"]["64"]["world"]["arena_half_mm"] == 362.0
     assert res["robots"]["64"]["metrics"]["mlp"]["summary"]["ceiling"]["mean"] == pytest.approx(37 / 64)
+
+
+def test_fast_observe_equals_events_path_for_phototaxis():
+    """The light feature (noise, gains, dropout): the fast observation equals sim.events.observe bit for bit."""
+    w = dataclasses.replace(PHOTO.world(preset("kilobot", arena_half_mm=150.0)), light_dropout=0.3)
+    fast = SwarmEnv(w, 2, 12, seed=9, task=PHOTO)
+    slow = SwarmEnv(w, 2, 12, seed=9, task=PHOTO, fast_observe=False)
+    o1, o2 = fast.reset()[0], slow.reset()[0]
+    rng = np.random.default_rng(0)
+    changed = False
+    for _ in range(6):
+        np.testing.assert_array_equal(o1, o2)
+        changed |= bool((o1[..., w.obs_index("light") + 1] != 0).any())
+        a = rng.random((2, 12, 2))
+        o1, o2 = fast.step(a)[0], slow.step(a)[0]
+    assert changed
