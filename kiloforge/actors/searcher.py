@@ -6,9 +6,7 @@ floats as JSON floats, so a file reads back to exactly the searcher it was writt
 shipped ones are ``export/data/searcher_policy.npz`` (``TUNED["kilobot"]`` in ``preset("kilobot")``) and
 ``export/data/pusher_policy.npz`` (the same with :data:`sim.baselines.PUSHER`), so ``python -m export --policy
 searcher`` (or ``pusher``) renders them. When the preset or the tuned parameters change, rewrite them with
-``kiloforge.policies.save_policy(searcher_policy(preset("kilobot")), "export/data/searcher_policy.npz")`` and
-``save_policy(pusher_policy(preset("kilobot")), "export/data/pusher_policy.npz")``
-(tests/test_searcher_firmware.py fails on a stale file).
+``python -m tools.ship_rules`` (tests/test_searcher_firmware.py fails on a stale file).
 
 The integer searcher (:meth:`QuantizedSearcher.step_int`, rendered by
 ``firmware_templates/actors/searcher.c.j2``) runs the float searcher's rules in the same order on
