@@ -190,12 +190,16 @@ def test_firmware_in_the_loop_replays_on_host(exe):
 
 # --- export -------------------------------------------------------------------------------------
 @needs_cc
-def test_export_verify_host_writes_no_target_program(tmp_path, capsys):
-    """`python -m export --task aggregation --policy aggregator --verify host` passes and writes one program, no kilobot_target.c."""
+@pytest.mark.parametrize("verify", ["host", "avr"])
+def test_export_verify_writes_no_target_program(verify, tmp_path, capsys):
+    """`python -m export --task aggregation --policy aggregator --verify host|avr` passes (bit-exact; avr: in simavr)
+    and writes one program, no kilobot_target.c."""
     from export.cli.main import main
+    if verify == "avr" and avr.missing_tools(simulate=True):
+        pytest.skip("avr-gcc or simavr missing")
     out = tmp_path / "fw" / "agg.c"
     out.parent.mkdir()
-    rc = main(["--task", "aggregation", "--policy", "aggregator", "--out", str(out), "--verify", "host",
+    rc = main(["--task", "aggregation", "--policy", "aggregator", "--out", str(out), "--verify", verify,
                "--robots-calib", "4", "--calib-steps", "20", "--no-avr", "--quiet"])
     text = capsys.readouterr().out
     assert rc == 0 and "bit-exact" in text
