@@ -86,6 +86,8 @@ def dense_weights(name: str, W: np.ndarray, b: np.ndarray, e_in: int, e_out: int
         wq = numfmt.quantize(W * np.ldexp(1.0, ew)[:, None], 0)  # (n_out, n_in), in int8 by choice of ew
         bq = numfmt.round_half_up(b * np.ldexp(1.0, ew + e_in))  # (n_out,) int64 at the accumulator exponent
         bound = numfmt.acc_bound(wq, bq, shift)  # (n_out,) max |acc + 2^(s-1)| over every int8 input
+        # the bias alone must be an int32 too: a rounding constant can pull |b + 2^(s-1)| under 2^31 while b is not
+        bound = np.maximum(bound, np.abs(bq))
         bad = bound >= ACC32_LIMIT
         if not bad.any():
             return wq.astype(np.int8), bq.astype(np.int32), shift.astype(np.uint8), int(e_out)
