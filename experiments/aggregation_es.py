@@ -117,6 +117,30 @@ def evaluate(runs: list[Path], robots: list[int], episodes: int, seed: int) -> N
             for M in robots) + " |")
 
 
+def behaviour(runs: list[Path], robots: int, episodes: int, seed: int) -> None:
+    """Mean motor commands of each run's result for robots that hear nobody (empty RBF histogram) and the others."""
+    from kiloforge.policies import swarm_policy
+    from sim.env import SwarmEnv
+
+    for run in runs:
+        p = load_policy(result_of(run))
+        world = dataclasses.replace(p.world, episode_steps=500)
+        env = SwarmEnv(world, episodes, robots, seed=seed, task=TASK)
+        pol = swarm_policy(p, world)
+        obs, _ = env.reset()
+        pol.reset(episodes, robots, np.random.default_rng(seed))
+        rbf = world.obs_slice("rbf")
+        alone, cmds = [], []
+        for _ in range(world.episode_steps):
+            a = pol.act(obs)
+            alone.append(obs[..., rbf].sum(-1) == 0)
+            cmds.append(a)
+            obs, *_ = env.step(a)
+        lone, a = np.stack(alone), np.stack(cmds)
+        print(f"{run}: hears nobody {lone.mean():.0%} of robot-steps, mean commands {a[lone].mean(0).round(2).tolist()}; "
+              f"hears a neighbour: {a[~lone].mean(0).round(2).tolist()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m experiments.aggregation_es", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -129,9 +153,16 @@ def main() -> None:
     e.add_argument("--robots", type=int, nargs="+", default=[16, 32])
     e.add_argument("--episodes", type=int, default=20)
     e.add_argument("--seed", type=int, default=HELD_OUT_SEED)
+    b = sub.add_parser("behaviour", help="mean motor commands of runs' results, alone and among neighbours")
+    b.add_argument("runs", type=Path, nargs="+")
+    b.add_argument("--robots", type=int, default=16)
+    b.add_argument("--episodes", type=int, default=10)
+    b.add_argument("--seed", type=int, default=HELD_OUT_SEED)
     a = ap.parse_args()
     if a.cmd == "train":
         train(a.recipe, a.seeds, a.out)
+    elif a.cmd == "behaviour":
+        behaviour(a.runs, a.robots, a.episodes, a.seed)
     else:
         missing = [str(r) for r in a.runs if not result_of(r).exists()]
         if missing:
