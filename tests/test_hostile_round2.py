@@ -24,3 +24,96 @@ def test_bias_beyond_int32_is_never_wrapped(e_in, e_out, f):
     assert bq[0] < 0
     assert int(numfmt.acc_bound(wq, bq, shift).max()) < numfmt.ACC32_LIMIT
     np.testing.assert_allclose(bq[0] * 2.0 ** -(int(shift[0]) + e), b[0], rtol=1e-6)
+
+
+# --- a user's task (--task file.py:Class): what its code raises or returns is one line -----------------------
+_TASK = """import numpy as np
+from sim.tasks.localisation import Localisation
+class T(Localisation):
+    name = "hostile"
+{body}
+"""
+_HOOK_ARGS = {"world": "self, cfg", "spawn": "self, env", "step_info": "self, env", "reward": "self, env, u, info",
+              "state": "self, env", "state_dim": "self, cfg, n", "episode_metrics": "self, *a, **k",
+              "has_ceiling": "self, cfg"}
+_BAD_BODIES = ["raise ValueError('bad\\nvalue')", "raise ZeroDivisionError", "raise KeyError('k')", "assert False, 'no'",
+               "return None", "return 'text'", "return np.full((7, 3), np.nan)"]
+#: (hook, body): every hook with each way of failing, plus returns of the right kind but wrong content
+TASK_HOOKS = [(h, b) for h in _HOOK_ARGS for b in _BAD_BODIES] + [
+    ("spawn", "b, p, h = super().spawn(env)\n        return b, p * 1e6, h"),
+    ("spawn", "b, p, h = super().spawn(env)\n        return b, p[:, :1], h"),
+    ("spawn", "b, p, h = super().spawn(env)\n        return None, p, h"),
+    ("reward", "return np.full(env.n_envs, np.inf)"), ("state_dim", "return -1"), ("state_dim", "return True"),
+    ("step_info", "return {1: np.zeros(env.n_envs)}"),
+]
+TASK_ATTRS = ["metrics = 5", "metrics = ()", "metrics = ('final_success',)", "features = 'wall'", "features = (1, 2)",
+              "beacon = 1", "description = None", "baselines = {'random': 3}", "success_label = b'x'",
+              "@property\n    def metrics(self):\n        raise RuntimeError('m')"]
+TASK_IMPORTS = ["raise SystemExit(7)", "import sys\nsys.exit('bye')", "class E(BaseException): pass\nraise E('x')",
+                "raise GeneratorExit", "x = 1\x00", "raise ValueError('a\\rb\\x1b[2J')"]
+
+
+def _hostile_task(tmp_path, source: str):
+    from sim.tasks import get_task
+
+    f = tmp_path / "t.py"
+    f.write_text(source)
+    return get_task(f"{f}:T")
+
+
+def _exercise(task) -> None:
+    from sim.config import preset
+    from sim.env import SwarmEnv
+
+    cfg = task.world(preset("kilobot"))
+    env = SwarmEnv(cfg, 1, 3, seed=0, task=task)
+    env.reset()
+    env.step(np.full((1, 3, 2), 0.5))
+    env.state()
+    task.episode_metrics(cfg, 3, np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2)))
+    task.has_ceiling(cfg)
+
+
+def _one_line(excinfo, *words: str) -> None:
+    msg = str(excinfo.value)
+    assert "\n" not in msg and "\r" not in msg and all(w in msg for w in words), msg
+
+
+@pytest.mark.parametrize("hook,body", TASK_HOOKS)
+def test_task_hook_failure_is_one_line(tmp_path, hook, body):
+    """A user task's hook that raises or returns the wrong kind of value is one InputError naming the hook."""
+    from kiloforge.errors import InputError
+
+    task = _hostile_task(tmp_path, _TASK.format(body=f"    def {hook}({_HOOK_ARGS[hook]}):\n        {body}\n"))
+    with pytest.raises(InputError) as e:
+        _exercise(task)
+    _one_line(e, f"{hook}()", "t.py:T")
+
+
+@pytest.mark.parametrize("attr", TASK_ATTRS)
+def test_task_attribute_of_the_wrong_kind_is_one_line(tmp_path, attr):
+    """A user task's attribute of the wrong type, or one that raises, is refused when the task is loaded."""
+    from kiloforge.errors import InputError
+
+    with pytest.raises(InputError) as e:
+        _hostile_task(tmp_path, _TASK.format(body=f"    {attr}\n"))
+    _one_line(e, "t.py:T")
+
+
+@pytest.mark.parametrize("code", TASK_IMPORTS)
+def test_task_file_that_exits_or_raises_while_importing_is_one_line(tmp_path, code):
+    """A task file that exits, or raises a BaseException, at import is one InputError, not the end of the command."""
+    from kiloforge.errors import InputError
+
+    with pytest.raises(InputError) as e:
+        _hostile_task(tmp_path, code + "\n")
+    _one_line(e, "t.py")
+
+
+def test_guarded_user_task_still_runs(tmp_path):
+    """The guard changes nothing for a well-behaved user task: same episode as its unguarded class."""
+    from sim.tasks.localisation import Localisation
+
+    task = _hostile_task(tmp_path, _TASK.format(body="    pass\n"))
+    assert isinstance(task, Localisation) and task.name == "hostile"
+    _exercise(task)

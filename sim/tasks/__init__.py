@@ -14,6 +14,7 @@ from pathlib import Path
 from kiloforge.errors import InputError
 
 from .base import LEGACY_TASK, Metric, Task, TaskRef
+from .guard import check_attributes, guarded
 from .aggregation import Aggregation
 from .localisation import Localisation
 from .phototaxis import Phototaxis
@@ -54,12 +55,13 @@ def _checked(cls: object, where: str) -> Task:
     if not isinstance(getattr(cls, "name", None), str):
         raise InputError(f"{where} has no 'name' (a class attribute, e.g. name = \"dispersion\")")
     try:
-        task = cls()
+        task = guarded(cls, where)()
         TaskRef(task.name, task.version)
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
     except Exception as e:  # a user's constructor: report it in one line
         raise InputError(f"{where} could not be created: {type(e).__name__}: {e}") from None
+    check_attributes(task, where)
     keys = [m.key for m in task.metrics]
     if task.primary_metric not in keys:
         raise InputError(f"{where}: primary_metric {task.primary_metric!r} is not among its metrics {keys}")
@@ -82,11 +84,15 @@ def _from_file(spec: str) -> Task:
         mspec.loader.exec_module(module)
     except SyntaxError as e:
         sys.modules.pop(mod_name, None)
-        raise InputError(f"task file {path_s}: syntax error at line {e.lineno}: {e.msg}") from None
+        at = f" at line {e.lineno}" if e.lineno else ""
+        raise InputError(f"task file {path_s}: syntax error{at}: {e.msg}") from None
     except InputError:
         sys.modules.pop(mod_name, None)
         raise
-    except Exception as e:
+    except KeyboardInterrupt:  # Ctrl-C or a signal: the command's own handling says what is left
+        sys.modules.pop(mod_name, None)
+        raise
+    except BaseException as e:  # its code, SystemExit included, ends the import, not the command's contract
         sys.modules.pop(mod_name, None)
         raise InputError(f"task file {path_s} failed to import: {type(e).__name__}: {e}") from None
     if not hasattr(module, cls_name):
