@@ -33,6 +33,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -134,6 +135,19 @@ def check_name_lengths(path: str | os.PathLike, temp: bool = True) -> None:
                           f"{path_max} this file system allows")
 
 
+def _special_kind(path: Path) -> str:
+    """'' when ``path`` does not exist or is a regular file or a symbolic link, else what it is (a device, ...)."""
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        return ""
+    for test, kind in ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return ""
+
+
 def _check_dir(path: Path) -> None:
     check_name_lengths(path)
     d = _dir_of(path)
@@ -143,6 +157,9 @@ def _check_dir(path: Path) -> None:
         raise OutputError(f"cannot write '{path}': '{d}' is not a directory")
     if path.is_dir():
         raise OutputError(f"cannot write '{path}': it is a directory")
+    kind = _special_kind(path)
+    if kind:  # replacing it would turn e.g. /dev/null (run as root) into a regular file
+        raise OutputError(f"cannot write '{printable(path)}': it is {kind}, not a regular file")
     if not os.access(d, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write '{path}': directory '{d}' is not writable")
 

@@ -1,6 +1,8 @@
 """Hostile inputs of an independent round before issue 47's (found outside the repository, kept here as generated variants)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -117,3 +119,76 @@ def test_guarded_user_task_still_runs(tmp_path):
     task = _hostile_task(tmp_path, _TASK.format(body="    pass\n"))
     assert isinstance(task, Localisation) and task.name == "hostile"
     _exercise(task)
+
+
+# --- an output path that names a device, a named pipe or a socket --------------------------------------------
+def _special(tmp_path, kind: str):
+    import os
+    import socket
+
+    target = tmp_path / f"special-{kind}"
+    if kind.endswith("fifo"):
+        os.mkfifo(target)
+    else:
+        s = socket.socket(socket.AF_UNIX)
+        s.bind(str(target))
+        s.close()
+    if kind.startswith("link"):
+        (tmp_path / "link").symlink_to(target)
+        return tmp_path / "link", target
+    return target, target
+
+
+SPECIAL = ["fifo", "socket", "link-fifo", "link-socket"]
+
+
+#: a set of files replaces a link among its names (never follows it), so only the one-file writers meet a linked one
+SPECIAL_WRITES = [(w, k) for w in ("write_atomic", "atomic_path", "write_files_atomic") for k in SPECIAL
+                  if not (w == "write_files_atomic" and k.startswith("link"))]
+
+
+@pytest.mark.parametrize("writer,kind", SPECIAL_WRITES)
+def test_special_file_is_never_replaced(tmp_path, writer, kind):
+    """A write to a named pipe or socket (or a link to one) is one OutputError and leaves it as it was (as root,
+    the same write would have turned /dev/null into a regular file)."""
+    import stat
+
+    from kiloforge import io as kio
+    from kiloforge.errors import OutputError
+
+    path, target = _special(tmp_path, kind)
+    before = target.lstat()
+    with pytest.raises(OutputError, match="not a regular file"):
+        if writer == "write_atomic":
+            kio.write_atomic(path, b"x")
+        elif writer == "atomic_path":
+            with kio.atomic_path(path) as tmp:
+                tmp.write_bytes(b"x")
+        else:
+            kio.write_files_atomic({path: b"x", tmp_path / "record.json": b"{}"})
+    after = target.lstat()
+    assert stat.S_IFMT(after.st_mode) == stat.S_IFMT(before.st_mode) and after.st_ino == before.st_ino
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted({path.name, target.name})
+
+
+@pytest.mark.parametrize("kind", SPECIAL[:2])
+def test_rehash_and_export_refuse_a_special_out(tmp_path, capsys, kind):
+    """`export rehash --out` and `export --out` at a named pipe or socket: exit 2, one line, nothing replaced."""
+    import shutil
+
+    from export.cli.main import main
+
+    path, target = _special(tmp_path, kind)
+    src = tmp_path / "p.npz"
+    shutil.copy(Path(__file__).parents[1] / "export" / "data" / "default_policy.npz", src)
+    out = tmp_path / "k.c"
+    for argv in (["rehash", str(src), "--out", str(path)],
+                 ["--out", str(out), "--robots-calib", "2", "--calib-steps", "4", "--quiet", "--no-avr"]):
+        if argv[0] == "--out":
+            target.rename(out)
+            target = out
+        capsys.readouterr()
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "not a regular file" in err, err
+        assert not target.is_file()
