@@ -192,3 +192,58 @@ def test_rehash_and_export_refuse_a_special_out(tmp_path, capsys, kind):
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and "not a regular file" in err, err
         assert not target.is_file()
+
+
+# --- ONNX: no file beside the model is opened -------------------------------------------------------------
+BESIDE = ["{}.world.json", "{}.world.json->secret", "{}.world.json->/dev/zero"]
+
+
+@pytest.mark.parametrize("beside", BESIDE)
+def test_onnx_never_opens_a_world_json_beside_the_model(tmp_path, monkeypatch, capsys, beside):
+    """A model without metadata is refused asking for --world-json, even with a (planted, valid or linked)
+    <model>.world.json beside it; that file is never opened."""
+    import builtins
+    import json
+    import os
+
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.cli.main import main
+    from sim.config import preset
+
+    d = preset("kilobot").history_dim(2)
+    inits = [numpy_helper.from_array(np.zeros((d, 2), np.float32), "w")]
+    g = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "g",
+                          [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", d])],
+                          [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 2])], inits)
+    model = tmp_path / "actor.onnx"
+    onnx.save(helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]), str(model))
+    name, _, link = beside.partition("->")
+    planted = tmp_path / name.format("actor")
+    if not link:
+        planted.write_text(json.dumps({"world": "kilobot", "t_prev": 2}))
+    else:
+        secret = tmp_path / "secret" if link == "secret" else Path(link)
+        if link == "secret":
+            secret.write_text(json.dumps({"world": "kilobot", "t_prev": 2}))
+        planted.symlink_to(secret)
+    opened = []
+    real_open = os.open
+
+    def spy(path, *a, **k):
+        opened.append(os.fspath(path))
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(os, "open", spy)
+    monkeypatch.setattr(builtins, "open", lambda f, *a, **k: (opened.append(os.fspath(f)), io_open(f, *a, **k))[1])
+    capsys.readouterr()
+    rc = main(["--onnx", str(model), "--out", str(tmp_path / "k.c"), "--robots-calib", "2", "--calib-steps", "4",
+               "--quiet", "--no-avr"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--world-json" in err and len(err.strip().splitlines()) == 1, err
+    assert not [p for p in opened if "world.json" in p or p.endswith("secret")], opened
+    assert not (tmp_path / "k.c").exists()
+
+
+io_open = open

@@ -22,8 +22,9 @@ The world (sensing constants) and ``t_prev`` come from the model's ``metadata_pr
 file: ``{"world": "kilobot", "t_prev": 20}`` (a preset), ``{"world": {"preset": "kilobot",
 "comm_radius_mm": 70}, "t_prev": 20}`` (a preset with overrides), ``{"world": {...all WorldConfig
 fields...}, "t_prev": 20}`` (missing fields take the ``thesis`` defaults), or the WorldConfig fields at
-the top level next to ``t_prev``, given as ``world_json`` (CLI: ``--world-json``) or found beside the model as
-``<model>.world.json``.
+the top level next to ``t_prev``, given as ``world_json`` (CLI: ``--world-json``). No file beside the model is
+ever opened (docs/hardening.md: a file the command was not given, such as a planted ``<model>.world.json`` in a
+shared directory, never chooses the world).
 
 Every user mistake raises :class:`OnnxImportError` (a :class:`~kiloforge.errors.PolicyError`) with a
 one-line message that names the file, and the node and op where relevant.
@@ -145,12 +146,6 @@ def _world_from_metadata(meta: dict[str, str], where: str) -> tuple[WorldConfig,
     return _world_from_obj({"world": world_obj, "t_prev": meta[META_T_PREV]}, f"{where}: metadata", t_prev_text=True)
 
 
-def default_world_json_path(model_path: str | os.PathLike) -> Path:
-    """Where a world JSON beside a model is looked for: ``actor.onnx`` → ``actor.world.json``."""
-    p = Path(model_path)
-    return p.with_name(p.stem + ".world.json")
-
-
 def _resolve_world(meta: dict[str, str], world_json: Any, model_path: Path) -> tuple[WorldConfig, int | None, str]:
     where = str(model_path)
     from_meta = _world_from_metadata(meta, where)
@@ -172,12 +167,8 @@ def _resolve_world(meta: dict[str, str], world_json: Any, model_path: Path) -> t
         return from_meta[0], from_meta[1], "metadata"
     if given is not None:
         return given[0], given[1], src
-    beside = default_world_json_path(model_path)
-    if beside.is_file():
-        w, t = _read_world_json(beside)
-        return w, t, f"json:{beside}"
     raise OnnxImportError(f"{where}: no kiloforge metadata ('{META_WORLD}', '{META_T_PREV}'); give the world with "
-                          f"--world-json W.json ({{\"world\": \"kilobot\" or {{...}}, \"t_prev\": N}}) or put it in {beside.name}")
+                          f"--world-json W.json ({{\"world\": \"kilobot\" or {{...}}, \"t_prev\": N}})")
 
 
 # --- the graph walk ----------------------------------------------------------------------------
