@@ -74,6 +74,9 @@ def build_parser() -> ArgumentParser:
     pl.add_argument("runs", nargs="+", help="run directories")
     pl.add_argument("--out", default=None, help="PNG path (default learning_curves.png here)")
     pl.add_argument("--title", default=None)
+    pl.add_argument("--task", default=None, metavar="TASK",
+                    help="the runs' task, needed when they were trained for a task file (path/to/file.py:ClassName): "
+                         "plot never imports code that a run folder names (default: the task their config.json names)")
     return p
 
 
@@ -105,9 +108,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_plot(args: argparse.Namespace) -> int:
     from kiloforge.errors import InputError, printable
     from kiloforge.io import check_writable
-    from sim.tasks import DEFAULT_TASK
+    from sim.tasks import DEFAULT_TASK, get_task, recorded_task
 
-    from .evaluate import success_panel
+    from .evaluate import primary_column, success_panel
     from .plots import plot_learning_curves
     from .runfiles import ALGORITHM_NAMES, read_config, read_metrics
 
@@ -115,11 +118,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     groups: dict[str, list] = {}
     algorithms: list[str] = []
-    tasks: set[str] = set()
-    for run in args.runs:
-        cfg = read_config(run)
-        tasks.add(str(cfg.get("task", DEFAULT_TASK)))
-        rows = read_metrics(run)
+    configs = [(run, read_config(run)) for run in args.runs]
+    tasks = {str(cfg.get("task", DEFAULT_TASK)) for _, cfg in configs}
+    if len(tasks) > 1:
+        raise InputError(f"the runs train different tasks ({', '.join(sorted(tasks))}); plot each task's runs apart")
+    # the user's --task, or the one the configs name, by name only: a run folder never makes us import its code
+    task = get_task(args.task) if args.task else recorded_task(tasks.pop(), "the runs' config.json", "--task")
+    for run, cfg in configs:
+        rows = read_metrics(run, ("env_steps", "eval_return", primary_column(task)))
         sizes = cfg.get("n_robots", "?")
         sizes = "/".join(map(str, sizes)) if isinstance(sizes, list) else sizes
         label = f"{cfg.get('exp_name', '?')}: {sizes} robots, T_prev {cfg.get('t_prev', '?')}"
@@ -128,9 +134,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
         algorithms += [name] if name not in algorithms else []
     out = Path(args.out or "learning_curves.png")
     title = args.title or f"{' / '.join(algorithms)} learning curves (mean ± 2 std over seeds)"
-    if len(tasks) > 1:
-        raise InputError(f"the runs train different tasks ({', '.join(sorted(tasks))}); plot each task's runs apart")
-    plot_learning_curves(groups, out, title=title, success=success_panel(tasks.pop()))
+    plot_learning_curves(groups, out, title=title, success=success_panel(task))
     print(f"wrote {printable(out)}")
     return 0
 

@@ -51,8 +51,8 @@ def read_config(run_dir: str | os.PathLike) -> dict[str, Any]:
     return cfg
 
 
-def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
-    """metrics.csv of a run directory as a list of float dicts (empty fields are NaN)."""
+def read_metrics(run_dir: str | os.PathLike, columns: tuple[str, ...] = PLOTTED_COLUMNS) -> list[dict]:
+    """metrics.csv of a run directory as a list of float dicts (empty fields are NaN); ``columns`` must be there."""
     path = Path(run_dir) / "metrics.csv"
     if not os.path.lexists(path):
         raise InputError(f"{quote(run_dir)} has no metrics.csv; is it a training run directory?")
@@ -71,9 +71,9 @@ def read_metrics(run_dir: str | os.PathLike) -> list[dict]:
     except csv.Error as e:
         raise InputError(f"{name}: not valid CSV ({e})") from None
     if not table:
-        raise InputError(f"{name} is empty; expected a header with {', '.join(PLOTTED_COLUMNS)}")
+        raise InputError(f"{name} is empty; expected a header with {', '.join(columns)}")
     header = table[0]
-    missing = [c for c in PLOTTED_COLUMNS if c not in header]
+    missing = [c for c in columns if c not in header]
     if missing or len(set(header)) != len(header):
         why = f"no column {', '.join(missing)}" if missing else "a column name appears twice"
         raise InputError(f"{name}: its header has {why}")

@@ -247,3 +247,49 @@ def test_onnx_never_opens_a_world_json_beside_the_model(tmp_path, monkeypatch, c
 
 
 io_open = open
+
+
+# --- a run folder never makes `learn plot` import code --------------------------------------------------------
+PLANTED_SPECS = ["{d}/evil.py:T", "run/evil.py:T", "./run/evil.py:T", "{d}/evil.py:Missing", "{d}/a:b/evil.py:T",
+                 "run/../run/evil.py:T"]
+NEAR = Path(__file__).parent / "tasks" / "near_beacon.py"
+
+
+def _run_folder(tmp_path, task: str, column: str) -> Path:
+    import json
+
+    run = tmp_path / "run"
+    run.mkdir(exist_ok=True)
+    (run / "config.json").write_text(json.dumps({"exp_name": "x", "algorithm": "es", "task": task, "n_robots": 4,
+                                                 "t_prev": 2}))
+    (run / "metrics.csv").write_text(f"env_steps,eval_return,{column}\n100,1.5,0.25\n200,2.5,0.5\n")
+    return run
+
+
+@pytest.mark.parametrize("spec", PLANTED_SPECS)
+def test_plot_never_imports_a_task_file_a_run_folder_names(tmp_path, monkeypatch, capsys, spec):
+    """`learn plot` of a run whose config.json names a task file: one line asking for --task, the file never runs."""
+    from kiloforge.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    marker = tmp_path / "ran"
+    spec = spec.format(d=tmp_path)
+    run = _run_folder(tmp_path, spec, "eval_final_success")
+    evil = Path(spec.rpartition(":")[0])
+    evil = evil if evil.is_absolute() else tmp_path / evil
+    evil.parent.mkdir(parents=True, exist_ok=True)
+    evil.write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    capsys.readouterr()
+    assert main(["plot", str(run), "--out", str(tmp_path / "lc.png")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and ("--task" in err or "unknown task" in err), err
+    assert not marker.exists() and not (tmp_path / "lc.png").exists()
+
+
+def test_plot_of_a_task_file_run_with_the_users_task(tmp_path, monkeypatch, capsys):
+    """With --task given by the user, a run of a task file plots its own primary metric column."""
+    from kiloforge.cli import main
+
+    run = _run_folder(tmp_path, f"{NEAR}:NearBeacon", "eval_final_near")
+    assert main(["plot", str(run), "--out", str(tmp_path / "lc.png"), "--task", f"{NEAR}:NearBeacon"]) == 0
+    assert (tmp_path / "lc.png").stat().st_size > 0

@@ -20,7 +20,7 @@ from .localisation import Localisation
 from .phototaxis import Phototaxis
 
 __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS", "TASK_HELP", "Task", "TaskRef",
-           "check_policy_task", "get_task", "task_names"]
+           "check_policy_task", "get_task", "is_task_file", "recorded_task", "task_names"]
 
 ENTRY_POINT_GROUP = "kiloforge.tasks"
 DEFAULT_TASK = "localisation"
@@ -100,6 +100,20 @@ def _from_file(spec: str) -> Task:
     return _checked(getattr(module, cls_name), f"{path_s}:{cls_name}")
 
 
+def is_task_file(spec: object) -> bool:
+    """True for a ``path/to/file.py:ClassName`` spec (importing it runs that file)."""
+    return isinstance(spec, str) and ":" in spec and spec.partition(":")[0].endswith(".py")
+
+
+def recorded_task(spec: object, where: str, flag: str) -> Task:
+    """The task a file records (a run's config.json): a built-in or installed plug-in, by name. A task *file* named
+    by a file is never imported (the file may come from someone else): InputError asking for ``flag``."""
+    if is_task_file(spec):
+        raise InputError(f"{where} names the task file {spec!r}, and code a file names is never imported; if you "
+                         f"trust that file, give it yourself: {flag} {spec}")
+    return get_task(spec)
+
+
 def get_task(spec: "str | Task | None" = None) -> Task:
     """The task named by ``spec``: None (the default, localisation), a built-in or plug-in name, a
     ``file.py:Class`` path, or a Task instance (returned as it is). InputError in one line otherwise."""
@@ -111,7 +125,7 @@ def get_task(spec: "str | Task | None" = None) -> Task:
         raise InputError(f"task must be a name or path/to/file.py:ClassName, got {spec!r}")
     if spec in TASKS:
         return TASKS[spec]()
-    if ":" in spec and spec.partition(":")[0].endswith(".py"):
+    if is_task_file(spec):
         return _from_file(spec)
     eps = _entry_points()
     if spec in eps:
