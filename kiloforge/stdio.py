@@ -13,6 +13,7 @@
 """
 from __future__ import annotations
 
+import errno
 import io
 import os
 import sys
@@ -23,6 +24,45 @@ from .errors import os_error_text, printable
 from .io import published_count, published_since
 
 EXIT_BROKEN_PIPE = 141  #: 128 + SIGPIPE: the reader of standard output went away
+
+
+class _Closed(io.TextIOBase):
+    """A standard stream whose descriptor was closed when the program started (``>&-``, ``2>&-``): Python sets it
+    to None. Standard output fails every write as a closed descriptor does (one line, exit 2, as ``>/dev/full``);
+    standard error, where nothing can be said, takes what is written and drops it."""
+
+    def __init__(self, fails: bool) -> None:
+        super().__init__()
+        self._fails = fails
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        if self._fails and text:
+            raise OSError(errno.EBADF, "it was closed")
+        return len(text)
+
+
+def closed_streams() -> None:
+    """Standard streams closed by the caller: their descriptors 0-2 are held on the null device, so no file a
+    command opens takes their number (a tool run later would write its output into it), and None streams become
+    :class:`_Closed`."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            try:
+                null = os.open(os.devnull, os.O_RDWR)
+                if null != fd:
+                    os.dup2(null, fd)
+                    os.close(null)
+            except OSError:
+                pass
+    if sys.stdout is None:
+        sys.stdout = _Closed(fails=True)
+    if sys.stderr is None:
+        sys.stderr = _Closed(fails=False)
 
 
 def tolerant_streams() -> None:
@@ -91,6 +131,7 @@ class _Watched:
 def guarded_output(prog: str, run: Callable[[], int]) -> int:
     """``run()``'s exit status, with the streams and errors of the module doc handled for ``prog`` (a
     ``SystemExit`` of a parser's ``--help`` goes on, after standard output was flushed)."""
+    closed_streams()
     tolerant_streams()
     watched = sys.stdout = _Watched(sys.stdout)
     try:

@@ -293,3 +293,31 @@ def test_plot_of_a_task_file_run_with_the_users_task(tmp_path, monkeypatch, caps
     run = _run_folder(tmp_path, f"{NEAR}:NearBeacon", "eval_final_near")
     assert main(["plot", str(run), "--out", str(tmp_path / "lc.png"), "--task", f"{NEAR}:NearBeacon"]) == 0
     assert (tmp_path / "lc.png").stat().st_size > 0
+
+
+# --- standard streams closed by the caller (`>&-`, `2>&-`) ----------------------------------------------------
+CLOSED_STREAM_CMDS = [["--version"], ["export", "budget", "--history", "20"], ["sim", "--version"],
+                      ["export", "--out", "k.c", "--robots-calib", "2", "--calib-steps", "4", "--no-avr", "--quiet"]]
+
+
+@pytest.mark.parametrize("closed", [(1,), (1, 2), (0, 1)])
+@pytest.mark.parametrize("cmd", CLOSED_STREAM_CMDS)
+def test_closed_standard_streams_are_one_line(tmp_path, cmd, closed):
+    """A command whose standard output (and maybe input or error) was closed: never a traceback; with standard
+    error open, exit 0 or one line and exit 2; no file the command writes takes a closed descriptor's number."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    res = subprocess.run([sys.executable, "-m", "kiloforge", *cmd], cwd=tmp_path, env=env, stderr=subprocess.PIPE,
+                         preexec_fn=lambda: [os.close(fd) for fd in closed], timeout=300)
+    err = res.stderr.decode()
+    assert "Traceback" not in err, err
+    if 2 not in closed:
+        lines = err.strip().splitlines()
+        assert (res.returncode, lines) == (0, []) or (res.returncode == 2 and len(lines) == 1
+                                                       and "standard output" in err), (res.returncode, err)
+    for f in tmp_path.iterdir():  # nothing a tool printed ended up inside an output
+        assert b"wrote " not in f.read_bytes()
