@@ -1,8 +1,8 @@
 """What makes evolution strategies learn aggregation from random weights (issue 42, item 5)?
 
-    python -m experiments.aggregation_es train --recipe default --seeds 1 2 3 --out runs/aggexp   # the best recipe
-    python -m experiments.aggregation_es train --recipe robots8 --seeds 1 --out runs/aggexp
-    python -m experiments.aggregation_es evaluate runs/aggexp/default_s1 runs/aggexp/default_s2 … [--episodes 20]
+    python -m experiments.aggregation_es train --recipe bias --seeds 1 2 3 --out runs/aggexp   # the best recipe
+    python -m experiments.aggregation_es train --recipe default --seeds 1 2 3 --out runs/aggexp
+    python -m experiments.aggregation_es evaluate runs/aggexp/bias_s1 runs/aggexp/bias_s2 … [--episodes 20]
 
 ``train`` runs ``python -m learn train-es --task aggregation --demo-policy none`` (random initial weights, no
 demonstrations) with one of the :data:`RECIPES` for every training seed, into ``OUT/RECIPE_sSEED`` (a curriculum
@@ -47,7 +47,7 @@ RECIPES: dict[str, list[dict]] = {
     "sigma": [dict(n_robots=(16,), sigma=0.1, lr=0.03)],
     "bias": [dict(n_robots=(16,), init_bias=0.5)],
 }
-BEST = "default"  #: the recipe docs/results/aggregation.md recommends
+BEST = "bias"  #: the recipe docs/results/aggregation.md recommends
 
 
 def stage_config(stage: dict, seed: int, init_policy: str) -> ESConfig:
