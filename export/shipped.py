@@ -22,6 +22,8 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
     "searcher": "searcher_policy.npz",  #: sim.baselines' hand-written searcher, TUNED["kilobot"]
     "pusher": "pusher_policy.npz",  #: the same with sim.baselines.PUSHER
 }, "aggregation": {
+    #: learned from random weights by evolution strategies (docs/results/aggregation.md: the default recipe, seed 2)
+    "default": "aggregation_policy.npz",
     "aggregator": "aggregator_policy.npz",  #: sim.tasks.aggregation's hand-written rule, tuned AggregatorParams
 }}
 

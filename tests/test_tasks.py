@@ -225,3 +225,15 @@ def test_sweep_refuses_other_tasks():
     with pytest.raises(ConfigError, match="task aggregation is not supported by learn sweep"):
         build_grid(trainer="es", task=["aggregation"], seeds=[1])
     assert build_grid(trainer="es", task=["localisation"], seeds=[1]).axes["task"] == ["localisation"]
+
+
+def test_shipped_aggregation_default_is_an_aggregation_policy():
+    """--task aggregation --policy default is the shipped learned policy: task aggregation v1, its world's layout."""
+    from export.shipped import load_task_policy, shipped_names
+
+    assert {"default", "aggregator"} <= set(shipped_names("aggregation"))
+    p = load_task_policy(None, "aggregation")
+    assert p.task_ref == TaskRef("aggregation", 1) and p.kind == "mlp"
+    get_task("aggregation").check_world(p.world)  # no beacon, wall + RBF inputs
+    with pytest.raises(InputError, match="trained for task aggregation v1, not localisation v1"):
+        load_task_policy(Path(__file__).parents[1] / "export" / "data" / "aggregation_policy.npz", "localisation")
