@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from kiloforge.errors import InputError
+from kiloforge.xorshift import rng_seed, xorshift32
 
 from .config import WorldConfig
 from .kinematics import Collider, thesis_move, tick_move
@@ -288,6 +289,11 @@ class SwarmEnv:
         self._prev_wall = np.zeros((B, M), np.float32)
         self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
         self._sensors = draw_sensors(self.cfg, M, self._rng_light)  # per-robot light sensor gain and offset
+        self._rand_word = self.rand_hard = None
+        if self.cfg.has_feature("random"):  # last from the init stream: worlds without it draw as before
+            self.rand_hard = np.stack([g.integers(0, 256, M) for g in self._rng_init]).astype(np.uint8)  # setup()'s rand_hard()
+            uids = np.broadcast_to(np.arange(1, M + 1), (B, M))  # searcher i has kilo_uid i + 1
+            self._rand_word = rng_seed(uids.ravel(), self.rand_hard.ravel()).reshape(B, M)
         self.t = 0
         self._tick0 = 0
         if self.tick_level_radio:
@@ -391,7 +397,10 @@ class SwarmEnv:
     def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm, self._sensors,
                                self.world_draw)
-        obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held)
+        if self._rand_word is not None:  # the firmware steps its word once per control step
+            self._rand_word = xorshift32(self._rand_word)
+        obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held,
+                                    self._rand_word)
         self._light_held = held_light(light, self._light_held)
         self.sensing = flags
         if self.cfg.has_feature("wall"):

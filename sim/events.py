@@ -130,7 +130,7 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
 
 
 def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-            prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and the robots' new sensing flags (B, M) uint8.
 
     ``light`` (B, M) int: ambient-light readings at the control tick (-1 = busy, keep last flag).
@@ -142,7 +142,7 @@ def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: 
     summ = summarise(events, cfg, B, M)
     obs = np.zeros((B, M, cfg.obs_dim), np.float64)
     for name in cfg.features:
-        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg, prev_light)
+        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg, prev_light, rand_word)
     return obs.astype(np.float32), summ.target_heard.astype(np.uint8)
 
 

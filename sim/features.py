@@ -21,6 +21,10 @@ was held before). The firmware block quantises both at the input exponent: level
 change the difference of levels.
 ``target``: ``min(d / comm_radius, 1)`` when the beacon was heard this period, else -1.
 ``nbr_sensing``: 1 when a table entry's latest message says its sender senses the target.
+``random``: ``b / 128`` with b the signed top byte of the robot's xorshift32 word (:mod:`kiloforge.xorshift`),
+stepped once per control step; the word starts at ``rng_seed(kilo_uid, rand_hard)`` (searcher i has kilo_uid
+i + 1; the simulator draws each robot's rand_hard byte from the env's init stream at reset). The firmware
+block writes ``(b · ONE) >> 7``: the same draw at the input exponent. Symmetry breaking for rule kinds.
 ``rbf``: bin k is ``Σ ψ_k(d) / rbf_norm`` over the table entries within the communication radius,
 ``ψ_k(d) = exp(-(d - μ_k)² / (2σ²))`` (summed in sender order).
 """
@@ -32,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from kiloforge.errors import InputError
+from kiloforge.xorshift import top_byte
 
 #: annotations only: sim.config imports this module, so it cannot import sim.config or sim.events
 WorldConfig = PeriodSummary = Any
@@ -48,6 +53,7 @@ class Feature:
     input_name: str = ""  #: the input's name in ONNX metadata (default: the feature's name)
     parts: tuple[str, ...] = ()  #: several named inputs (``<name>_<part>``), else one
     reads_light: bool = False  #: reads get_ambientlight() (the program reads it once per control step)
+    random: bool = False  #: reads the robot's xorshift32 word (stepped once per control step)
 
     def width(self, cfg: WorldConfig) -> int:
         return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
@@ -61,6 +67,8 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
             needs_beacon=True, input_name="target_dist"),
     Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the beacon, else 0",
             needs_beacon=True, uses_flag=True),
+    Feature("random", "a uniform draw in [-1, 1) from the robot's xorshift32 stream, new each control period",
+            random=True),
     Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True),
 )}
 
@@ -112,10 +120,16 @@ def light_feature(light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
     return np.stack([np.maximum(h, 0.0), change], axis=-1) / 1024.0
 
 
+def random_feature(rand_word: np.ndarray) -> np.ndarray:
+    """(B, M, 1) float64 ``random`` feature: the words' signed top bytes / 128."""
+    return (top_byte(rand_word) / 128.0)[..., None]
+
+
 def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-              prev_light: np.ndarray | None = None) -> np.ndarray:
+              prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> np.ndarray:
     """Feature ``name`` of every robot in float64, shape (B, M, width): the definition the firmware block
-    and the fast path follow. ``prev_light`` (B, M): the held reading before this step (-1: none)."""
+    and the fast path follow. ``prev_light`` (B, M): the held reading before this step (-1: none).
+    ``rand_word`` (B, M) uint32: the robots' xorshift32 words after this step's draw (``random``)."""
     B, M = light.shape
     if name == "wall":
         return wall_flag(light, prev_wall, cfg)[..., None]
@@ -127,6 +141,9 @@ def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.n
         sensing_nbr = np.zeros(B * M)
         np.maximum.at(sensing_nbr, summ.table_env * M + summ.table_rx, summ.table_flag.astype(np.float64))
         return sensing_nbr.reshape(B, M, 1)
+    if name == "random":
+        assert rand_word is not None, "the random feature needs the robots' xorshift32 words"
+        return random_feature(rand_word)
     if name == "rbf":
         hist = np.zeros((B * M, cfg.n_rbf))
         np.add.at(hist, summ.table_env * M + summ.table_rx, rbf(cfg, summ.table_dist_mm))

@@ -49,7 +49,7 @@ import numpy as np
 from . import compiled, grid
 from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
-from .features import light_feature
+from .features import light_feature, random_feature
 from .light import SensorDraw, sensor_readings
 from .variants import WorldDraw
 
@@ -376,7 +376,7 @@ def _run_ends(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-                 prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sim.events.observe` straight from the period's message arrays (no sorted event list).
 
     Per (receiver, sender) run of messages: the first tick ranks the sender for the neighbour table,
@@ -407,6 +407,9 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
     if cfg.has_feature("light"):
         obs[..., cfg.obs_slice("light")] = light_feature(light, np.full((B, M), -1) if prev_light is None else prev_light)
+    if cfg.has_feature("random"):
+        assert rand_word is not None, "the random feature needs the robots' xorshift32 words"
+        obs[..., cfg.obs_slice("random")] = random_feature(rand_word)
     heard = np.zeros(B * M, bool)
     tdist = np.zeros(B * M)
     tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
@@ -436,8 +439,9 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
 
 
 def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-                   fast: bool = True, prev_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   fast: bool = True, prev_light: np.ndarray | None = None,
+                   rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and new sensing flags (B, M) uint8 for a period."""
     if fast:
-        return observe_fast(period, light, prev_wall, cfg, prev_light)
-    return observe(period.events(), light, prev_wall, cfg, prev_light)
+        return observe_fast(period, light, prev_wall, cfg, prev_light, rand_word)
+    return observe(period.events(), light, prev_wall, cfg, prev_light, rand_word)

@@ -119,7 +119,7 @@ def test_layers():
 #: kiloforge's foundation, the floor below sim: what every package uses and nothing of ours but itself
 FOUNDATION = {"kiloforge", "kiloforge.errors", "kiloforge.validate", "kiloforge.io", "kiloforge.progress",
               "kiloforge.cliparse", "kiloforge.interrupts", "kiloforge.sighold", "kiloforge.extras", "kiloforge.plotting",
-              "kiloforge.numfmt", "kiloforge.stdio"}
+              "kiloforge.numfmt", "kiloforge.stdio", "kiloforge.xorshift"}
 #: the programs, the top floor: the ``__main__`` modules, the ``kiloforge`` command, the console scripts and the
 #: command lines that sit above the package they are named after (``python -m sim`` plays policy artifacts)
 PROGRAMS = {"sim.__main__", "learn.__main__", "export.__main__", "kiloforge.__main__", "kiloforge.cli",

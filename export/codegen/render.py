@@ -30,6 +30,7 @@ from kiloforge import numfmt
 from kiloforge.actors.base import CDefine, CDense, QuantizedActor, RenderSpec
 from kiloforge.actors.registry import kind_of
 from kiloforge.errors import QuantizeError
+from kiloforge.xorshift import SEED_ADD, SEED_MUL
 from sim.config import ACTION_DIM, WorldConfig
 from sim.features import FEATURES
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
@@ -172,6 +173,9 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
         *([_define("KF_N_RBF", _u(w.n_rbf), "RBF histogram bins")] if w.has_feature("rbf") else []),
         *([_define("KF_LIGHT_THRESHOLD", f"((int16_t){c_int(w.light_threshold, 'int16_t')})",
                    "ambient-light ADC counts: wall flag = reading >= this")] if w.has_feature("wall") else []),
+        *([_define("KF_RAND_SEED_MUL", c_int(SEED_MUL, "uint32_t"),
+                   "random feature: xorshift32 seed = (kilo_uid * MUL + ADD) ^ rand_hard() (never 0)"),
+           _define("KF_RAND_SEED_ADD", c_int(SEED_ADD, "uint32_t"))] if w.has_feature("random") else []),
         _define("KF_ONE", f"((int8_t){c_int(one, 'int8_t')})", f"1.0 at the input exponent e_in = {qp.e_in}"),
         *([_define("KF_MINUS_ONE", f"((int8_t){c_int(-one, 'int8_t')})", "-1.0: target not heard")]
           if w.has_feature("target") else []),

@@ -44,6 +44,7 @@ import numpy as np
 
 from kiloforge import numfmt
 from kiloforge.actors.base import QuantizedActor
+from kiloforge.xorshift import rng_seed, top_byte, xorshift32
 from sim.config import ROLE_TARGET, WorldConfig
 from sim.events import HeardEvents, PeriodSummary, summarise
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
@@ -166,9 +167,24 @@ def _int_rbf(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
     return np.minimum(rbf, numfmt.INT8_MAX)
 
 
+def _int_random(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """random.c.j2: the signed top byte b of the word (already stepped this control step) as (b · KF_ONE) >> 7."""
+    return ((top_byte(emu.rand_word) * int(emu.qp.one_q)) >> 7)[:, None]
+
+
+def host_rand_hard(uids: np.ndarray) -> np.ndarray:
+    """(R,) the byte rand_hard() returns in setup() under the host build's kilolib stand-in
+    (firmware_templates/host/kilolib_host.c: its 8-bit xorshift (7, 5, 3), state ``(uid ^ 0xA5) | 1``)."""
+    x = (np.asarray(uids, np.int64) ^ 0xA5) & 0xFF | 1
+    x ^= (x << 7) & 0xFF
+    x ^= x >> 5
+    x ^= (x << 3) & 0xFF
+    return x.astype(np.uint8)
+
+
 #: each observation feature's integer twin: (emulator, the period's summary) -> (R, width) int64
 INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]] = {
-    "wall": _int_wall, "light": _int_light, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf}
+    "wall": _int_wall, "light": _int_light, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf, "random": _int_random}
 
 
 def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarray:
@@ -201,7 +217,7 @@ class FirmwareEmulator:
 
     def __init__(self, qp: QuantizedActor, uids: Iterable[int], calib: np.ndarray | None = None, *,
                  target_uids: Iterable[int] | None = None, msg_type: int = fw.DEFAULT_MSG_TYPE,
-                 rxq_capacity: int = fw.RXQ_CAPACITY) -> None:
+                 rxq_capacity: int = fw.RXQ_CAPACITY, rand_hard: np.ndarray | None = None) -> None:
         self.qp = qp
         self.world: WorldConfig = qp.world
         self.P = int(self.world.period_ticks)
@@ -211,6 +227,8 @@ class FirmwareEmulator:
         self.R = R
         calib = np.tile(np.asarray(fw.DEFAULT_CALIB, np.uint8), (R, 1)) if calib is None else calib
         self.calib = np.asarray(calib, np.uint8)
+        # each robot's rand_hard() byte in setup() (the random feature's seed); default: the host build's
+        self.rand_hard = host_rand_hard(self.uids) if rand_hard is None else np.asarray(rand_hard, np.uint8)
         assert self.calib.shape == (R, 4), f"calib must be (R, 4), got {self.calib.shape}"
         targets = (self.world.target_uid,) if target_uids is None else tuple(int(u) for u in target_uids)
         assert self.world.beacon or target_uids is None, "target uids in a world without a beacon"
@@ -243,6 +261,7 @@ class FirmwareEmulator:
         self.light_level = np.zeros(R, np.int64)  # light.c.j2's held level and whether one is held
         self.light_valid = np.zeros(R, bool)
         self.light_obs = np.zeros((R, 2), np.int64)
+        self.rand_word = rng_seed(self.uids, self.rand_hard)  # random.c.j2's word as setup() seeds it
         self.q = np.zeros((R, 2), np.uint8)
         self.state = self.qp.setup_state(self.uids)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
@@ -311,6 +330,8 @@ class FirmwareEmulator:
             self.light_level = np.where(ok, now, self.light_level)
             self.light_valid |= ok
             self.light_obs = np.stack([self.light_level, change], 1)
+        if w.has_feature("random"):
+            self.rand_word = xorshift32(self.rand_word)
         obs = np.zeros((R, w.obs_dim), np.int64)
         for name in w.features:
             obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)

@@ -26,33 +26,8 @@ from sim.motion import action_to_u8
 
 from ..errors import InputError, PolicyError
 from ..validate import show
+from ..xorshift import SEED_ADD, SEED_MUL, rng_seed, top_byte, xorshift32  # noqa: F401  (the kinds import them here)
 from .base import ActorKind, FloatPolicy, QuantizedActor, Resize
-
-SEED_MUL = 0x9E3779B1  #: kilo_uid -> xorshift32 seed: uid * SEED_MUL + SEED_ADD (mod 2**32)
-SEED_ADD = 0x7F4A7C15
-
-
-def rng_seed(uids: np.ndarray) -> np.ndarray:
-    """(R,) uint32 xorshift32 state setup() leaves for these kilo_uids (never 0).
-
-    >>> rng_seed(np.array([0, 1])).tolist()
-    [2135587861, 495056326]
-    """
-    x = (np.asarray(uids, np.uint64) * SEED_MUL + SEED_ADD) & 0xFFFFFFFF
-    return np.where(x == 0, 1, x).astype(np.uint32)
-
-
-def xorshift32(x: np.ndarray) -> np.ndarray:
-    """One step of Marsaglia's xorshift32 (13, 17, 5) on uint32 words.
-
-    >>> xorshift32(np.array([1], np.uint32)).tolist()
-    [270369]
-    """
-    x = np.asarray(x, np.uint32)
-    x = x ^ (x << np.uint32(13))
-    x = x ^ (x >> np.uint32(17))
-    return x ^ (x << np.uint32(5))
-
 
 def draw_bytes(word: np.ndarray) -> np.ndarray:
     """(R, 4) int64 bytes of xorshift32 words, least significant first."""
