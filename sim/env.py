@@ -401,7 +401,8 @@ class SwarmEnv:
             self._rand_word = xorshift32(self._rand_word)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held,
                                     self._rand_word)
-        self._light_held = held_light(light, self._light_held)
+        if self.cfg.has_feature("light"):  # only the light feature reads the held reading
+            self._light_held = held_light(light, self._light_held)
         self.sensing = flags
         if self.cfg.has_feature("wall"):
             self._prev_wall = obs[..., self.cfg.obs_index("wall")].copy()
