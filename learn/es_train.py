@@ -326,7 +326,8 @@ class TaskFitness:
     """The ES fitness of a task (a :class:`learn.es_pool.Fitness`): part i is swarm size ``n_robots[i]``, a
     member's mean final success of ``task`` (a :func:`sim.tasks.get_task` name, resolved where it runs; a
     ``file.py:Class`` task must be at the same path on every worker) over that size's ``episodes[i]``
-    episodes, episode e seeded by the generation's child ``(1 + i, e)`` (common random numbers)."""
+    episodes in the task's world for that size (``Task.world_for``), episode e seeded by the generation's child
+    ``(1 + i, e)`` (common random numbers)."""
 
     task: str
     pop: PopulationMLP
@@ -342,7 +343,8 @@ class TaskFitness:
 
     def __call__(self, members: torch.Tensor, part: int, seed: np.random.SeedSequence) -> np.ndarray:
         seeds = [_child(seed, 1 + part, e) for e in range(self.episodes[part])]
-        res = rollout_population(self.pop, members, self.world, self.n_robots[part], seeds, self.t_prev,
+        M = self.n_robots[part]
+        res = rollout_population(self.pop, members, self.task_spec.world_for(self.world, M), M, seeds, self.t_prev,
                                  self.randomise[part], self.task_spec)
         return res.final_coverage.mean(axis=1)
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
-from sim.tasks import Task
+from sim.tasks import Task, get_task
 
 from .augment import PhantomNeighbours
 from .config import randomisation
@@ -24,8 +24,11 @@ from .rewards import LearningReward
 
 def make_env(world: WorldConfig, n_envs: int, n_robots: int, seed: int, randomise: str = "none",
              task: "Task | str | None" = None) -> SwarmEnv:
-    """A SwarmEnv of ``task`` (default localisation), domain-randomised when ``randomise`` names a randomisation."""
-    return SwarmEnv(world, n_envs=n_envs, n_robots=n_robots, seed=seed, randomise=randomisation(randomise), task=task)
+    """A SwarmEnv of ``task`` (default localisation) in the task's world for ``n_robots`` (``Task.world_for``),
+    domain-randomised when ``randomise`` names a randomisation."""
+    task = get_task(task)
+    return SwarmEnv(task.world_for(world, n_robots), n_envs=n_envs, n_robots=n_robots, seed=seed,
+                    randomise=randomisation(randomise), task=task)
 
 
 def size_shares(n: int, robots: tuple[int, ...], mix: str) -> list[int]:

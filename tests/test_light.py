@@ -198,3 +198,31 @@ def test_fast_observe_equals_events_path_for_phototaxis():
         a = rng.random((2, 12, 2))
         o1, o2 = fast.step(a)[0], slow.step(a)[0]
     assert changed
+
+
+def test_trainers_play_each_swarm_size_in_the_tasks_world_for_it():
+    """ES fitness, evaluators and training groups of phototaxis at 64 robots run in world_for's larger arena."""
+    torch = pytest.importorskip("torch")
+    from learn.es import PopulationMLP, rollout_population
+    from learn.es_pool import child
+    from learn.es_train import TaskFitness
+    from learn.evaluate import Evaluator
+    from learn.groups import make_env
+    from learn.networks import Actor
+
+    world = dataclasses.replace(WORLD, episode_steps=3)
+    big = PHOTO.world_for(world, 64)
+    assert big.arena_half_mm > world.arena_half_mm
+    assert make_env(world, 1, 64, 0, task=PHOTO).cfg == big and make_env(world, 1, 16, 0, task=PHOTO).cfg == world
+    assert Evaluator(world, 64, 1, 0, task=PHOTO).env.cfg == big
+    torch.manual_seed(0)
+    actor = Actor(world.history_dim(2), (4,))
+    pop = PopulationMLP.of(actor.net)
+    theta = torch.nn.utils.parameters_to_vector(actor.net.parameters()).detach()[None]
+    ss = np.random.SeedSequence(3)
+    got = TaskFitness("phototaxis", pop, world, 2, (64,), (None,), (4,))(theta, 0, ss)
+    seeds = [child(ss, 1, e) for e in range(4)]
+    want = rollout_population(pop, theta, big, 64, seeds, 2, None, PHOTO).final_coverage.mean(axis=1)
+    small = rollout_population(pop, theta, world, 64, seeds, 2, None, PHOTO).final_coverage.mean(axis=1)
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, small)
