@@ -279,7 +279,7 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
         suite["centre pivot"] = (r(cfg, pivot_offset_mm=0.0), None)
     else:
         suite["leg pivot"] = (r(cfg, pivot_offset_mm=LEG_PIVOT_MM), None)
-    if cfg.collisions:
+    if cfg.collisions and cfg.beacon:  # a world without a beacon has no beacon to tape or free
         suite["beacon fixed" if cfg.beacon_mobility > 0 else "beacon pushed"] = (
             r(cfg, beacon_mobility=0.0 if cfg.beacon_mobility > 0 else 1.0), None)
     return suite

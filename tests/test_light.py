@@ -67,11 +67,12 @@ def test_bad_lamps_are_one_line_errors():
 
 
 def test_suite_gains_light_variants_only_with_lamps():
-    """The robustness suite adds lamp variants for worlds with lamps; localisation's suite is unchanged."""
+    """The suite adds lamp variants for worlds with lamps, a beacon variant only with a beacon; localisation's is unchanged."""
     names = set(robustness_suite(WORLD))
     assert {"lamps dimmer", "lamps brighter", "lamp shifted", "noisier light sensor"} <= names
     assert not any("lamp" in n or "light sensor" in n for n in robustness_suite(preset("kilobot")))
     assert "dim light" not in names and "dim light" in robustness_suite(preset("kilobot"))  # phototaxis: unlit walls
+    assert "beacon pushed" not in names and "beacon pushed" in robustness_suite(preset("kilobot"))  # no beacon
     shifted = robustness_suite(WORLD)["lamp shifted"][0]
     assert shifted.lamp_list[0].x == 50.0
 
