@@ -106,6 +106,12 @@ class WorldConfig:
     #: down; a searcher touching it takes the whole push), 1 = pushed like any robot (a Kilobot
     #: beacon standing on the table). Collision worlds only; the task follows the beacon's position
     beacon_mobility: float = 0.0
+    #: the beacon's body: 0 = a robot's disc (above); > 0 = the beacon rides on a heavy disc of this radius that
+    #: robots push together (:mod:`sim.body`: it moves only when their summed push exceeds ``body_friction``)
+    body_radius_mm: float = 0.0
+    #: the heavy body's static friction in full robot pushes: the summed push must exceed this to move it
+    #: (k robots pushing the same way move it, k - 1 do not, for k - 1 < body_friction < k)
+    body_friction: float = 0.0
     # --- motion -----------------------------------------------------------------------------
     #: tick-level worlds: a pivot turns the robot about a point this far from its centre (a leg;
     #: 0 = about the centre). Its centre then moves along an arc around that point
@@ -173,6 +179,11 @@ class WorldConfig:
         need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
         need(0.0 <= self.beacon_mobility <= 1.0, f"beacon_mobility must be in [0, 1], got {self.beacon_mobility}")
         need(self.pivot_offset_mm >= 0, f"pivot_offset_mm must be >= 0, got {self.pivot_offset_mm}")
+        need(0 <= self.body_radius_mm < self.arena_half_mm,
+             f"body_radius_mm must be in [0, arena_half_mm), got {self.body_radius_mm}")
+        need(0 <= self.body_friction <= 1e3, f"body_friction must be in [0, 1000], got {self.body_friction}")
+        need(self.body_radius_mm == 0 or (self.beacon and self.collisions and self.robot_radius_mm > 0),
+             "body_radius_mm > 0 needs a beacon and a collision world (robots push the body)")
         need(0.0 <= self.pivot_angle_deg <= 180.0, f"pivot_angle_deg must be in [0, 180], got {self.pivot_angle_deg}")
         need(self.pivot_offset_mm == 0 or self.tick_level,
              "pivot_offset_mm > 0 needs a tick-level world (the thesis kinematics turn about the centre)")
@@ -322,7 +333,8 @@ class WorldConfig:
 #: fields added after policy artifacts were first written, and the value that older worlds had
 _LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5,
                                  "beacon": True, "obs_features": LEGACY_FEATURES, "lamps": "", "light_noise": 0.0,
-                                 "light_gain_spread": 0.0, "light_offset_spread": 0.0}
+                                 "light_gain_spread": 0.0, "light_offset_spread": 0.0, "body_radius_mm": 0.0,
+                                 "body_friction": 0.0}
 
 THESIS = WorldConfig()
 

@@ -36,6 +36,7 @@ from kiloforge.errors import InputError
 from kiloforge.xorshift import rng_seed, xorshift32
 
 from .config import WorldConfig
+from .body import body_depth, push_body
 from .kinematics import Collider, thesis_move, tick_move
 from .motion import action_to_u8
 from .variants import Randomisation, WorldDraw
@@ -208,9 +209,20 @@ class SwarmEnv:
         return self.task.state_dim(self.cfg, self.n_robots)
 
     @property
+    def _heavy_body(self) -> bool:
+        """True when the beacon rides on a heavy body robots push together (:mod:`sim.body`)."""
+        return self.cfg.body_radius_mm > 0 and self.target is not None
+
+    @property
+    def _disc_body(self) -> np.ndarray | None:
+        """The beacon as a disc of the per-tick contacts (None without one, or when it rides on a heavy body)."""
+        return None if self._heavy_body else self.target
+
+    @property
     def _pushable(self) -> bool:
         """True when collisions can move the beacon (so the radio needs its position per tick)."""
-        return self._collider is not None and self.target is not None and bool(np.any(np.asarray(self._mobility) > 0))
+        return (self._collider is not None and self._disc_body is not None
+                and bool(np.any(np.asarray(self._mobility) > 0)))
 
     @property
     def tick_level_radio(self) -> bool:
@@ -264,10 +276,13 @@ class SwarmEnv:
             allpos = pos if target is None else np.concatenate([pos, target[:, None, :]], axis=1)  # (B, M [+ 1], 2)
             p = grid.pairs_within(allpos, diam, self.cfg.arena_half_mm)
             p_bad = p.dist < diam  # touching exactly is allowed
-            if not p_bad.any():
+            bad = np.zeros((B, M), bool)
+            if target is not None and self.cfg.body_radius_mm > 0:  # robots on the heavy body
+                bad |= body_depth(pos, target, self.cfg)[0] > 0
+                p_bad &= p.j != M
+            if not (p_bad.any() or bad.any()):
                 return
             redo = np.where(p.j[p_bad] == M, p.i[p_bad], p.j[p_bad])  # the later robot of the pair
-            bad = np.zeros((B, M), bool)
             bad[p.env[p_bad], redo] = True
             for e in np.flatnonzero(bad.any(1)):  # loop over envs with overlaps
                 idx = np.flatnonzero(bad[e])
@@ -357,14 +372,18 @@ class SwarmEnv:
             if self.tick_level_radio:
                 record = np.empty((P, B, M, 2))
                 beacon = np.empty((P, B, 2)) if self._pushable else None
-            tick_move(self.pos, self.heading, q, cfg, self._collider, self.target, record,
+            tick_move(self.pos, self.heading, q, cfg, self._collider, self._disc_body, record,
                       target_record=beacon, motion=self.world_draw.motion, beacon_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
-                self._collider.resolve(self.pos, self.target, beacon_mobility=self._mobility)
-            if self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand at the new place
-                record = np.broadcast_to(self.pos, (P, B, M, 2))
+                self._collider.resolve(self.pos, self._disc_body, beacon_mobility=self._mobility)
+        if self._heavy_body:  # once per period, after the robots' moves (sim.body)
+            push_body(self.pos, self.target, cfg, self._collider)
+            if record is not None:
+                record[-1] = self.pos
+        if not cfg.tick_level and self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand still
+            record = np.broadcast_to(self.pos, (P, B, M, 2))
         self.target_dist = self._target_distance()
         obs, info = self._sense(self._hear(record, self.target_dist, beacon))
         reward = self.task.reward(self, u, info)
@@ -396,7 +415,7 @@ class SwarmEnv:
 
     def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm, self._sensors,
-                               self.world_draw)
+                               self.world_draw, self.target if self._heavy_body else None)
         if self._rand_word is not None:  # the firmware steps its word once per control step
             self._rand_word = xorshift32(self._rand_word)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held,

@@ -17,7 +17,9 @@ plus each lamp of ``WorldConfig.lamps``:
     ``radius``, the spot's nominal radius). ``edge = 0`` is a hard edge (peak at ``d <= radius``).
 ``side:angle_deg,peak``
     a lamp at one side of the table, in direction ``angle_deg`` from the centre (0 = the +x wall):
-    a linear gradient, ``peak`` at that wall's centre line, 0 at the opposite wall.
+    a linear gradient, ``peak`` at that wall's centre line, 0 at the opposite wall. A heavy body
+    (``WorldConfig.body_radius_mm``) casts a shadow in its light: behind the body, within its radius of
+    the line from the lamp through its centre, :data:`BODY_SHADE` of the lamp's light is missing.
 
 Lamps are separated by ``;``. A reading is ``clip(rint(field · gain + offset + noise), 0, 1023)``
 with a per-robot ``gain = 1 + light_gain_spread · N(0, 1)`` (at least :data:`MIN_GAIN`) and
@@ -40,6 +42,9 @@ ADC_MAX = 1023  #: get_ambientlight() is a 10-bit ADC conversion: 0..1023 (platf
 MIN_GAIN = 0.1  #: per-robot sensor gains are clipped to at least this
 LAMP_KINDS = {"spot": ("x", "y", "radius", "edge", "peak"), "side": ("angle_deg", "peak")}
 MAX_LAMPS = 8
+#: the share of a side lamp's light a heavy body (:mod:`sim.body`) keeps from the floor behind it (an assumption:
+#: the rest reaches it scattered)
+BODY_SHADE = 0.8
 
 
 @dataclass(frozen=True)
@@ -95,10 +100,23 @@ def spot_profile(d_mm: np.ndarray, radius: float, edge: float) -> np.ndarray:
     return np.clip((radius + 0.5 * edge - d_mm) / edge, 0.0, 1.0)
 
 
+def in_shadow(pos: np.ndarray, body: np.ndarray, radius: float, angle_deg: float) -> np.ndarray:
+    """(B, M) True where ``pos`` (B, M, 2) lies in the shadow a disc of ``radius`` at ``body`` (B, 2) casts in the
+    parallel light of a side lamp in direction ``angle_deg``: behind the disc's centre, less than ``radius`` off
+    the line through it."""
+    a = math.radians(angle_deg)
+    rel = pos - body[:, None, :]
+    along = rel[..., 0] * math.cos(a) + rel[..., 1] * math.sin(a)
+    across = rel[..., 1] * math.cos(a) - rel[..., 0] * math.sin(a)
+    return (along < 0) & (np.abs(across) < radius)
+
+
 def lamp_field(pos: np.ndarray, lamps: Sequence[Lamp], arena_half_mm: float, brightness: np.ndarray | None = None,
-               shift_mm: np.ndarray | None = None) -> np.ndarray:
+               shift_mm: np.ndarray | None = None, body: np.ndarray | None = None,
+               body_radius: float = 0.0) -> np.ndarray:
     """(B, M) float64 sum of the lamps' light at ``pos`` (B, M, 2): ``brightness`` (B,) factors on every
-    peak, ``shift_mm`` (B, 2) moves every lamp (per env; None: nominal)."""
+    peak, ``shift_mm`` (B, 2) moves every lamp (per env; None: nominal); ``body`` (B, 2): a heavy body of
+    ``body_radius`` there shades :data:`BODY_SHADE` of each side lamp's light behind it (:func:`in_shadow`)."""
     B, M = pos.shape[:2]
     p = pos if shift_mm is None else pos - shift_mm[:, None, :]
     out = np.zeros((B, M))
@@ -109,7 +127,10 @@ def lamp_field(pos: np.ndarray, lamps: Sequence[Lamp], arena_half_mm: float, bri
         else:
             a = math.radians(lamp.angle_deg)
             t = (p[..., 0] * math.cos(a) + p[..., 1] * math.sin(a)) / arena_half_mm  # -1 far wall .. 1 lamp's wall
-            out += lamp.peak * np.clip(0.5 * (1.0 + t), 0.0, 1.0)
+            side = lamp.peak * np.clip(0.5 * (1.0 + t), 0.0, 1.0)
+            if body is not None:
+                side = np.where(in_shadow(pos, body, body_radius, lamp.angle_deg), (1.0 - BODY_SHADE) * side, side)
+            out += side
     return out if brightness is None else out * brightness[:, None]
 
 
@@ -131,10 +152,12 @@ def draw_sensors(cfg, n_robots: int, rngs: Sequence[np.random.Generator]) -> Sen
 
 def sensor_readings(base: np.ndarray, pos: np.ndarray, cfg, lamps: Sequence[Lamp], rngs: Sequence[np.random.Generator],
                     sensors: SensorDraw | None, brightness: np.ndarray | None = None,
-                    shift_mm: np.ndarray | None = None, noise: np.ndarray | None = None) -> np.ndarray:
+                    shift_mm: np.ndarray | None = None, noise: np.ndarray | None = None,
+                    body: np.ndarray | None = None) -> np.ndarray:
     """(B, M) int16 readings before dropout: ``base`` (B, M) plus the lamps, gain, offset, noise (``noise``
-    (B,) std per env, else ``cfg.light_noise``), rounded and clipped to the ADC's range."""
-    v = base + lamp_field(pos, lamps, cfg.arena_half_mm, brightness, shift_mm)
+    (B,) std per env, else ``cfg.light_noise``), rounded and clipped to the ADC's range; ``body`` (B, 2) the
+    heavy body's centre, whose shadow darkens the side lamps (None: no body)."""
+    v = base + lamp_field(pos, lamps, cfg.arena_half_mm, brightness, shift_mm, body, cfg.body_radius_mm)
     if sensors is not None:
         v = v * sensors.gain + sensors.offset
     sd = cfg.light_noise if noise is None else noise[:, None]

@@ -282,13 +282,14 @@ def _messages(pos_ticks: np.ndarray, target: np.ndarray | None, target_ticks: np
 
 def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.Generator],
                    wall_zone_mm: np.ndarray | None = None, sensors: "SensorDraw | None" = None,
-                   draw: "WorldDraw | None" = None) -> np.ndarray:
+                   draw: "WorldDraw | None" = None, body: np.ndarray | None = None) -> np.ndarray:
     """Ambient-light readings (B, M) int16 at the control tick (-1 = dropout).
 
     ``wall_zone_mm`` (B, 4): per env, how far from the +x, +y, -x, -y walls the reading is high
     (uneven light); default ``cfg.wall_sense_mm`` for every wall. Worlds with graded light
     (``cfg.graded_light``: lamps, noise, per-robot ``sensors``; :mod:`sim.light`) add the lamps and the
-    sensor model, with ``draw``'s per-env lamp brightness, shift and noise when randomised.
+    sensor model, with ``draw``'s per-env lamp brightness, shift and noise when randomised; ``body`` (B, 2):
+    the heavy body's centre, which shades the side lamps (:func:`sim.light.lamp_field`).
     """
     a = cfg.arena_half_mm
     if wall_zone_mm is None:
@@ -302,7 +303,7 @@ def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.G
     if cfg.graded_light:
         d = draw if draw is not None else _NO_DRAW
         light = sensor_readings(light.astype(np.float64), pos, cfg, cfg.lamp_list, rngs, sensors,
-                                d.lamp_brightness, d.lamp_shift_mm, d.light_noise)
+                                d.lamp_brightness, d.lamp_shift_mm, d.light_noise, body)
     if cfg.light_dropout > 0:
         M = pos.shape[1]
         u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
