@@ -1,12 +1,13 @@
-"""What makes evolution strategies learn aggregation from random weights (issue 42, item 5)?
+"""What makes evolution strategies learn a new task from random weights (issue 42 item 5, issue 43 item 5)?
 
-    python -m experiments.aggregation_es train --recipe bias --seeds 1 2 3 --out runs/aggexp   # the best recipe
-    python -m experiments.aggregation_es train --recipe default --seeds 1 2 3 --out runs/aggexp
-    python -m experiments.aggregation_es evaluate runs/aggexp/bias_s1 runs/aggexp/bias_s2 … [--episodes 20]
+    python -m experiments.task_es train --task aggregation --recipe bias --seeds 1 2 3 --out runs/aggexp
+    python -m experiments.task_es train --task phototaxis --recipe sizes --seeds 1 2 3 --out runs/photoexp
+    python -m experiments.task_es evaluate --task phototaxis runs/photoexp/sizes_s1 … [--robots 16 32 64] [--episodes 20]
+    python -m experiments.task_es behaviour --task aggregation runs/aggexp/default_s1 …
 
-``train`` runs ``python -m learn train-es --task aggregation --demo-policy none`` (random initial weights, no
-demonstrations) with one of the :data:`RECIPES` for every training seed, into ``OUT/RECIPE_sSEED`` (a curriculum
-recipe runs its stages in ``OUT/RECIPE_sSEED/stageN``, each starting from the previous stage's ``policy_best.npz``).
+``train`` runs ``python -m learn train-es --task TASK --demo-policy none`` (random initial weights, no
+demonstrations) with one of the task's :data:`RECIPES` for every training seed, into ``OUT/RECIPE_sSEED`` (a recipe of
+several stages runs them in ``OUT/RECIPE_sSEED/stageN``, each starting from the previous stage's ``policy_best.npz``).
 Every stage runs a fixed number of generations (``generations``; ``max_minutes`` is only a safety stop), so a run is
 the same on any machine.
 An ``init_bias`` recipe starts from random weights whose output layer's bias is that value (the actor's outputs are
@@ -15,8 +16,8 @@ it is written as a policy artifact ``init.npz`` and passed as ``init_policy``; n
 
 ``evaluate`` plays every run's result (the last stage's ``policy_best.npz``, selected on the run's own evaluation
 episodes) and the task's hand-written and random baselines on held-out episodes (``sim.config.HELD_OUT_SEED``,
-never used for training or selection) at 16 and 32 robots, 500 steps, and prints final_cluster per run and seed.
-Results: docs/results/aggregation.md.
+never used for training or selection), 500 steps, and prints the task's primary metric per run and size.
+Results: docs/results/aggregation.md, docs/results/phototaxis.md.
 """
 from __future__ import annotations
 
@@ -33,26 +34,30 @@ from learn.config import ESConfig
 from learn.es_train import actor_algo, train_es
 from learn.evaluate import evaluate_policies
 from sim.config import HELD_OUT_SEED
+from sim.tasks import get_task
 
-TASK = "aggregation"
-COMMON = dict(task=TASK, demo_policy="none", eval_every=5, eval_episodes=8, generations=200, max_minutes=12)
+COMMON = dict(demo_policy="none", eval_every=5, eval_episodes=8, generations=200, max_minutes=12)
 
-#: recipe name -> stages; a stage is ESConfig overrides plus ``init_bias`` (output bias of the random start, first
-#: stage only) and ``max_minutes``.
-RECIPES: dict[str, list[dict]] = {
-    "default": [dict(n_robots=(16,))],  # train-es's own ES settings: 16 pairs, sigma 0.02, lr 0.01, 300 steps
-    "robots8": [dict(n_robots=(8,))],  # the swarm size of the monkeypatched trial that stalled
-    "curriculum": [dict(n_robots=(8,), generations=100), dict(n_robots=(16,), generations=100)],
-    "pairs8": [dict(n_robots=(16,), pairs=8)],
-    "sigma": [dict(n_robots=(16,), sigma=0.1, lr=0.03)],
-    "bias": [dict(n_robots=(16,), init_bias=0.5)],
+#: task -> recipe name -> stages; a stage is ESConfig overrides plus ``init_bias`` (output bias of the random start,
+#: first stage only)
+RECIPES: dict[str, dict[str, list[dict]]] = {
+    "aggregation": {
+        "default": [dict(n_robots=(16,))],  # train-es's own ES settings: 16 pairs, sigma 0.02, lr 0.01, 300 steps
+        "robots8": [dict(n_robots=(8,))],  # the swarm size of the monkeypatched trial that stalled
+        "curriculum": [dict(n_robots=(8,), generations=100), dict(n_robots=(16,), generations=100)],
+        "pairs8": [dict(n_robots=(16,), pairs=8)],
+        "sigma": [dict(n_robots=(16,), sigma=0.1, lr=0.03)],
+        "bias": [dict(n_robots=(16,), init_bias=0.5)],
+    },
+    "phototaxis": {
+        "default": [dict(n_robots=(16,))],
+        # 16 robots until it gathers, then every evaluated size (64 in the anchor's larger arena, Task.world_for)
+        "sizes": [dict(n_robots=(16,), generations=150), dict(n_robots=(16, 32, 64), generations=100, max_minutes=45)],
+    },
 }
-BEST = "bias"  #: the recipe docs/results/aggregation.md recommends
-
-
-def stage_config(stage: dict, seed: int, init_policy: str) -> ESConfig:
+def stage_config(task: str, stage: dict, seed: int, init_policy: str) -> ESConfig:
     fields = {k: v for k, v in stage.items() if k != "init_bias"}
-    return ESConfig(**(COMMON | fields), seed=seed, init_policy=init_policy)
+    return ESConfig(**(COMMON | fields), task=task, seed=seed, init_policy=init_policy)
 
 
 def write_init(cfg: ESConfig, bias: float, path: Path) -> str:
@@ -65,22 +70,22 @@ def write_init(cfg: ESConfig, bias: float, path: Path) -> str:
     with torch.no_grad():
         out.bias.fill_(bias)
     path.parent.mkdir(parents=True, exist_ok=True)
-    art = algo.artifact(world, {"trainer": "experiments.aggregation_es random init", "seed": cfg.seed,
+    art = algo.artifact(world, {"trainer": "experiments.task_es random init", "seed": cfg.seed,
                                 "output_bias": bias})
     save_policy(dataclasses.replace(art, task=cfg.task_spec().ref), path)
     return str(path)
 
 
-def train(recipe: str, seeds: list[int], out: Path) -> None:
+def train(task: str, recipe: str, seeds: list[int], out: Path) -> None:
     for seed in seeds:
         run = out / f"{recipe}_s{seed}"
-        stages = RECIPES[recipe]
+        stages = RECIPES[task][recipe]
         init, t0 = "", time.perf_counter()
         for k, stage in enumerate(stages):
             d = run if len(stages) == 1 else run / f"stage{k}"
             if k == 0 and "init_bias" in stage:
-                init = write_init(stage_config(stage, seed, ""), stage["init_bias"], run / "init.npz")
-            train_es(stage_config(stage, seed, init), d, progress=False)
+                init = write_init(stage_config(task, stage, seed, ""), stage["init_bias"], run / "init.npz")
+            train_es(stage_config(task, stage, seed, init), d, progress=False)
             init = str(d / "policy_best.npz")
         print(f"{run}: {time.perf_counter() - t0:.0f} s")
 
@@ -90,23 +95,23 @@ def result_of(run: Path) -> Path:
     return (stages[-1] if stages else run) / "policy_best.npz"
 
 
-def final_cluster(res: dict, M: int, name: str) -> tuple[float, float]:
-    """(mean, 95 % CI over episodes) of ``name``'s final_cluster at ``M`` robots in an evaluate_policies result."""
-    s = res["robots"][str(M)]["metrics"][name]["summary"]["final_cluster"]
-    return s["mean"], s["ci95"]
+def evaluate(task: str, runs: list[Path], robots: list[int], episodes: int, seed: int) -> None:
+    key = get_task(task).primary_metric
 
+    def cell(res: dict, M: int, name: str) -> tuple[float, float]:
+        s = res["robots"][str(M)]["metrics"][name]["summary"][key]
+        return s["mean"], s["ci95"]
 
-def evaluate(runs: list[Path], robots: list[int], episodes: int, seed: int) -> None:
     rows: dict[str, dict[int, tuple[float, float]]] = {}
     baselines: dict[str, dict[int, tuple[float, float]]] = {}
     for i, run in enumerate(runs):
         name = str(run)
         res = evaluate_policies({name: load_policy(result_of(run))}, robots, episodes, 500, None, seed=seed,
-                                baselines=i == 0, gif=False, progress=False, log=lambda s: None, task=TASK)
-        rows[name] = {M: final_cluster(res, M, name) for M in robots}
+                                baselines=i == 0, gif=False, progress=False, log=lambda s: None, task=task)
+        rows[name] = {M: cell(res, M, name) for M in robots}
         if i == 0:
-            baselines = {b: {M: final_cluster(res, M, b) for M in robots} for b in ("hand-written", "random")}
-    print(f"final_cluster on {episodes} held-out episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
+            baselines = {b: {M: cell(res, M, b) for M in robots} for b in get_task(task).baselines}
+    print(f"{key} on {episodes} held-out episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
     print("| policy | " + " | ".join(f"{M} robots" for M in robots) + " |")
     print("|---|" + "---:|" * len(robots))
     for name, r in (rows | baselines).items():
@@ -117,7 +122,7 @@ def evaluate(runs: list[Path], robots: list[int], episodes: int, seed: int) -> N
             for M in robots) + " |")
 
 
-def behaviour(runs: list[Path], robots: int, episodes: int, seed: int) -> None:
+def behaviour(task: str, runs: list[Path], robots: int, episodes: int, seed: int) -> None:
     """Mean motor commands of each run's result for robots that hear nobody (empty RBF histogram) and the others."""
     from kiloforge.policies import swarm_policy
     from sim.env import SwarmEnv
@@ -125,7 +130,7 @@ def behaviour(runs: list[Path], robots: int, episodes: int, seed: int) -> None:
     for run in runs:
         p = load_policy(result_of(run))
         world = dataclasses.replace(p.world, episode_steps=500)
-        env = SwarmEnv(world, episodes, robots, seed=seed, task=TASK)
+        env = SwarmEnv(world, episodes, robots, seed=seed, task=task)
         pol = swarm_policy(p, world)
         obs, _ = env.reset()
         pol.reset(episodes, robots, np.random.default_rng(seed))
@@ -142,13 +147,14 @@ def behaviour(runs: list[Path], robots: int, episodes: int, seed: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m experiments.aggregation_es", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m experiments.task_es", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train", help="train-es from random weights with a recipe, one run per seed")
-    t.add_argument("--recipe", choices=sorted(RECIPES), default=BEST)
+    t.add_argument("--recipe", required=True, help="a recipe of the task: " + "; ".join(
+        f"{task}: {', '.join(r)}" for task, r in RECIPES.items()))
     t.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    t.add_argument("--out", type=Path, default=Path("runs/aggexp"))
-    e = sub.add_parser("evaluate", help="held-out final_cluster of runs against hand-written and random")
+    t.add_argument("--out", type=Path, required=True)
+    e = sub.add_parser("evaluate", help="held-out primary metric of runs against the task's baselines")
     e.add_argument("runs", type=Path, nargs="+")
     e.add_argument("--robots", type=int, nargs="+", default=[16, 32])
     e.add_argument("--episodes", type=int, default=20)
@@ -158,16 +164,20 @@ def main() -> None:
     b.add_argument("--robots", type=int, default=16)
     b.add_argument("--episodes", type=int, default=10)
     b.add_argument("--seed", type=int, default=HELD_OUT_SEED)
+    for p in (t, e, b):
+        p.add_argument("--task", required=True, choices=sorted(RECIPES))
     a = ap.parse_args()
+    if a.cmd == "train" and a.recipe not in RECIPES[a.task]:
+        ap.error(f"task {a.task} has no recipe {a.recipe!r}; its recipes: {', '.join(RECIPES[a.task])}")
     if a.cmd == "train":
-        train(a.recipe, a.seeds, a.out)
+        train(a.task, a.recipe, a.seeds, a.out)
     elif a.cmd == "behaviour":
-        behaviour(a.runs, a.robots, a.episodes, a.seed)
+        behaviour(a.task, a.runs, a.robots, a.episodes, a.seed)
     else:
         missing = [str(r) for r in a.runs if not result_of(r).exists()]
         if missing:
             ap.error(f"no policy_best.npz in {', '.join(missing)}")
-        evaluate(a.runs, a.robots, a.episodes, a.seed)
+        evaluate(a.task, a.runs, a.robots, a.episodes, a.seed)
 
 
 if __name__ == "__main__":
