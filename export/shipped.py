@@ -25,6 +25,9 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
     #: learned from random weights by evolution strategies (docs/results/aggregation.md: the default recipe, seed 2)
     "default": "aggregation_policy.npz",
     "aggregator": "aggregator_policy.npz",  #: sim.tasks.aggregation's hand-written rule, tuned AggregatorParams
+}, "phototaxis": {
+    "stop_in_light": "stop_in_light_policy.npz",  #: sim.tasks.phototaxis' StopInLight, tuned StopInLightParams
+    "run_and_tumble": "run_and_tumble_policy.npz",  #: sim.tasks.phototaxis' RunAndTumble, tuned RunAndTumbleParams
 }}
 
 

@@ -23,13 +23,16 @@ from kiloforge.actors.gru import QuantGRUCell, QuantizedGRU
 from kiloforge.actors.lstm import QuantizedLSTM, QuantLSTMCell
 from kiloforge.actors.mlp import QuantizedMLP
 from kiloforge.actors.registry import kind_of
+from kiloforge.actors.run_and_tumble import QuantizedRunAndTumble
 from kiloforge.actors.searcher import RUN_TABLE_SIZE, QuantizedSearcher
+from kiloforge.actors.stop_in_light import QuantizedStopInLight
 from kiloforge.io import write_atomic
 from kiloforge.numfmt import HIDDEN_EXP, QuantLayer
 from sim.baselines import SearcherParams
 from sim.config import preset
 from sim.tasks import get_task
 from sim.tasks.aggregation import NBR_MAX, AggregatorParams
+from sim.tasks.phototaxis import RunAndTumbleParams, StopInLightParams
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 GOLDEN_VERSION = "golden"  #: generator version written into the golden banner
@@ -120,9 +123,21 @@ def golden_aggregator() -> QuantizedAggregator:
                                world=world, policy_hash=GOLDEN_HASH, **sensing_tables(world, E_IN))
 
 
+def golden_light_rules() -> tuple[QuantizedStopInLight, QuantizedRunAndTumble]:
+    """The hand-written light rules with non-default parameters and fixed integer thresholds, in phototaxis's layout
+    (no beacon)."""
+    world = get_task("phototaxis").world(WORLD)
+    common = dict(tumble_t=2048, e_in=E_IN, world=world, policy_hash=GOLDEN_HASH, **sensing_tables(world, E_IN))
+    return (QuantizedStopInLight(params=StopInLightParams(threshold=700, run_steps=32, turn_max_steps=3), level_t=44,
+                                 **common),  # 44 = ceil(700 * 2**6 / 2**10)
+            QuantizedRunAndTumble(params=RunAndTumbleParams(fall=40, run_steps=32, turn_max_steps=7), fall_t=-2,
+                                  **common))  # -2 = ceil(-40 * 2**6 / 2**10)
+
+
 def golden_policies() -> dict[str, QuantizedActor]:
     """Kind name -> its golden quantised policy."""
-    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher(), golden_aggregator())}
+    return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher(), golden_aggregator(),
+                                *golden_light_rules())}
 
 
 def render(qp: QuantizedActor) -> dict[str, str]:

@@ -49,18 +49,12 @@ from ..artifact import plain_provenance
 from ..errors import QuantizeError
 from .base import (BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor, RenderSpec,
                    check_world_and_task, invalid, sensing_tables)
-from .rules import SEED_ADD, SEED_MUL, OwnSeeds, RuleKind, UidStreams, draw_bytes, params_from_meta, rng_seed, xorshift32
+from .rules import (PROB_BITS, PROB_ONE, SEED_ADD, SEED_MUL, OwnSeeds, RuleActor, RuleKind, UidStreams, draw_bytes,
+                    params_from_meta, prob_threshold, rng_seed, xorshift32)
 
-PROB_BITS = 16  #: a probability P is drawn as r < ceil(P * 2**16) with r a uniform 16-bit number
-PROB_ONE = 1 << PROB_BITS
 STATE_BYTES = 4 + 3  #: rng (uint32) + resting, turn_left, turn_dir (uint8)
 FEATURES = ("wall", "rbf")  #: the observation features the rule reads
 TASK = "aggregation"  #: the task the rule is for
-
-
-def prob_threshold(p: np.ndarray) -> np.ndarray:
-    """int64 thresholds ceil(P * 2**16) in 0..2**16: ``r / 2**16 < P`` exactly when ``r < threshold``."""
-    return np.ceil(np.asarray(p, np.float64) * PROB_ONE).astype(np.int64)
 
 
 def firmware_draws(p: AggregatorParams, w1: np.ndarray, w2: np.ndarray
@@ -167,7 +161,7 @@ class AggregatorState:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class QuantizedAggregator(QuantizedActor):
+class QuantizedAggregator(RuleActor, QuantizedActor):
     """The integer rule (module doc): the float parameters and their firmware thresholds."""
 
     kind: ClassVar[str] = "aggregator"
@@ -184,19 +178,6 @@ class QuantizedAggregator(QuantizedActor):
         for t in (self.stop_t, self.leave_t):
             assert t.shape == (NBR_MAX + 1,) and t.dtype == np.uint32 and t.max() <= PROB_ONE, "threshold table"
         assert 0 <= self.tumble_t <= PROB_ONE, "tumble_t out of range"
-
-    @property
-    def layers(self) -> list:
-        """No dense layers."""
-        return []
-
-    @property
-    def layer_sizes(self) -> list[int]:
-        return [self.world.tuple_dim, ACTION_DIM]
-
-    def initial_state(self, n: int) -> AggregatorState:
-        """The state of n robots with kilo_uid 0..n-1 (the emulator calls :meth:`setup_state` with the real ones)."""
-        return self.setup_state(np.arange(n))
 
     def setup_state(self, uids: np.ndarray) -> AggregatorState:
         """What setup() leaves: every field 0, the generator seeded from kilo_uid."""

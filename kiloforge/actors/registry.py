@@ -13,9 +13,11 @@ from .base import ActorKind
 from .gru import GRU
 from .lstm import LSTM
 from .mlp import MLP
+from .run_and_tumble import RUN_AND_TUMBLE
 from .searcher import SEARCHER
+from .stop_in_light import STOP_IN_LIGHT
 
-KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER, AGGREGATOR)}
+KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER, AGGREGATOR, STOP_IN_LIGHT, RUN_AND_TUMBLE)}
 
 
 def kind_named(name: object) -> ActorKind:

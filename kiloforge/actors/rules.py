@@ -1,6 +1,6 @@
 """What the hand-written (rule) kinds share: their random stream, their calibration and their error report.
 
-A rule kind (``searcher``, ``aggregator``) has no weights: its firmware runs a float rule's steps on the int8
+A rule kind (``searcher``, ``aggregator``, ``stop_in_light``, ``run_and_tumble``) has no weights: its firmware runs a float rule's steps on the int8
 observation every kind builds, with a few bytes of state. Its randomness is a per-robot xorshift32 word
 (Marsaglia's 13/17/5 triple) seeded in ``setup()`` from ``kilo_uid`` (``uid * 0x9E3779B1 + 0x7F4A7C15``, never
 0); kilolib's ``rand_soft`` is not used: its generator is kilolib's and no emulator could follow it bit for bit,
@@ -28,6 +28,15 @@ from ..errors import InputError, PolicyError
 from ..validate import show
 from ..xorshift import SEED_ADD, SEED_MUL, rng_seed, top_byte, xorshift32  # noqa: F401  (the kinds import them here)
 from .base import ActorKind, FloatPolicy, QuantizedActor, Resize
+
+PROB_BITS = 16  #: a probability P is drawn as r < ceil(P * 2**16) with r a uniform 16-bit number
+PROB_ONE = 1 << PROB_BITS
+
+
+def prob_threshold(p: np.ndarray) -> np.ndarray:
+    """int64 thresholds ceil(P * 2**16) in 0..2**16: ``r / 2**16 < P`` exactly when ``r < threshold``."""
+    return np.ceil(np.asarray(p, np.float64) * PROB_ONE).astype(np.int64)
+
 
 def draw_bytes(word: np.ndarray) -> np.ndarray:
     """(R, 4) int64 bytes of xorshift32 words, least significant first."""
@@ -131,6 +140,24 @@ def params_from_meta(cls: type, meta_params: Any, later: Mapping[str, Any] | Non
         return cls(**meta_params)
     except InputError as e:
         raise PolicyError(f"policy: {e}") from None
+
+
+class RuleActor:
+    """Mixin of a rule kind's quantised actor (before QuantizedActor): no dense layers, one tuple in, the state of
+    n robots what :meth:`setup_state` gives kilo_uids 0..n-1."""
+
+    @property
+    def layers(self) -> list:
+        """No dense layers."""
+        return []
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        return [self.world.tuple_dim, ACTION_DIM]  # type: ignore[attr-defined]
+
+    def initial_state(self, n: int) -> Any:
+        """The state of n robots with kilo_uid 0..n-1 (the emulator calls ``setup_state`` with the real ones)."""
+        return self.setup_state(np.arange(n))  # type: ignore[attr-defined]
 
 
 class RuleKind(ActorKind):

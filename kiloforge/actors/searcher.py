@@ -57,7 +57,8 @@ from ..artifact import plain_provenance
 from ..errors import QuantizeError
 from .base import (BudgetItem, BudgetOption, BudgetSpec, CDefine, CTable, FloatPolicy, QuantizedActor, RenderSpec,
                    check_world_and_task, invalid, sensing_tables)
-from .rules import SEED_ADD, SEED_MUL, OwnSeeds, RuleKind, UidStreams, draw_bytes, params_from_meta, rng_seed, xorshift32
+from .rules import (SEED_ADD, SEED_MUL, OwnSeeds, RuleActor, RuleKind, UidStreams, draw_bytes, params_from_meta, rng_seed,
+                    xorshift32)
 
 BIG = 1 << 20  #: "run until something happens" (periods), as in sim.baselines
 RUN_TABLE_SIZE = 256  #: one entry per value of the run-length draw byte
@@ -187,7 +188,7 @@ class SearcherState:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class QuantizedSearcher(QuantizedActor):
+class QuantizedSearcher(RuleActor, QuantizedActor):
     """The integer searcher (module doc): the float parameters and their firmware constants."""
 
     kind: ClassVar[str] = "searcher"
@@ -202,19 +203,6 @@ class QuantizedSearcher(QuantizedActor):
         assert 0 <= self.speed_q <= 255 and 0 <= self.stop_q <= numfmt.INT8_MAX, "speed_q / stop_q out of range"
         assert 0 <= self.margin_q <= numfmt.INT8_MAX, "margin_q out of range"
         assert self.run_table.shape == (RUN_TABLE_SIZE,) and self.run_table.dtype == np.uint16, "run_table shape/dtype"
-
-    @property
-    def layers(self) -> list:
-        """No dense layers."""
-        return []
-
-    @property
-    def layer_sizes(self) -> list[int]:
-        return [self.world.tuple_dim, ACTION_DIM]
-
-    def initial_state(self, n: int) -> SearcherState:
-        """The state of n robots with kilo_uid 0..n-1 (the emulator calls :meth:`setup_state` with the real ones)."""
-        return self.setup_state(np.arange(n))
 
     def setup_state(self, uids: np.ndarray) -> SearcherState:
         """What setup() leaves: every field 0, the generator seeded from kilo_uid."""

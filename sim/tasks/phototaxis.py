@@ -38,7 +38,9 @@ import numpy as np
 
 from kiloforge.errors import InputError
 
+from ..baselines import COUNTER_MAX, check_fields
 from ..config import ACTION_DIM, WorldConfig
+from ..light import ADC_MAX
 from .base import BeaconlessTask, Metric
 
 SPOT_RADIUS_MM = 100.0  #: the spot's nominal radius (half intensity; "inside" = centre within it)
@@ -147,27 +149,57 @@ class Phototaxis(BeaconlessTask):
         return success_metrics(rewards, success, self.primary_metric, self.mean_metric, ceiling=c)
 
 
+#: what the baselines' parameters may be: readings and their change in ADC counts, the mean run a 16-bit
+#: probability 1 / run_steps, the pivots a uint8 counter (the firmware's fields; the simulator accepts the same)
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "threshold": (0, ADC_MAX), "fall": (0, ADC_MAX), "run_steps": (1, 0xFFFF), "turn_max_steps": (1, COUNTER_MAX)}
+
+
 @dataclass(frozen=True)
 class StopInLightParams:
-    """Constants of :class:`StopInLight`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.920 at 16 robots)."""
+    """Constants of :class:`StopInLight`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.920 at 16 robots).
+    Each is checked against :data:`PARAM_RANGES` (InputError naming it and its range)."""
 
     threshold: int = 550  #: stop while the held reading is at least this (ADC counts)
     run_steps: int = 5  #: mean straight run of the walk outside the light (periods, geometric)
     turn_max_steps: int = 2  #: a random turn pivots 1..this many periods
 
+    def __post_init__(self) -> None:
+        check_fields(self, PARAM_RANGES, "stop_in_light")
+
 
 @dataclass(frozen=True)
 class RunAndTumbleParams:
-    """Constants of :class:`RunAndTumble`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.515 at 16 robots)."""
+    """Constants of :class:`RunAndTumble`, tuned by ``python -m tools.tune_phototaxis`` (seed 777: 0.515 at 16 robots).
+    Each is checked against :data:`PARAM_RANGES`."""
 
     fall: int = 12  #: tumble when the reading fell by more than this since the last period (ADC counts)
     run_steps: int = 40  #: otherwise tumble with probability 1 / this per period (so walls do not trap it)
     turn_max_steps: int = 6  #: a tumble pivots 1..this many periods
 
+    def __post_init__(self) -> None:
+        check_fields(self, PARAM_RANGES, "run_and_tumble")
 
-class _LightWalker:
+
+def tumble_prob(p: StopInLightParams | RunAndTumbleParams) -> float:
+    """P(a random turn starts) per period: geometric runs of mean ``run_steps``."""
+    return 1.0 / p.run_steps
+
+
+def stops(p: StopInLightParams, level: np.ndarray) -> np.ndarray:
+    """StopInLight stands where the held reading ``level`` (ADC counts) is at least the threshold."""
+    return level >= p.threshold
+
+
+def falls(p: RunAndTumbleParams, change: np.ndarray) -> np.ndarray:
+    """RunAndTumble tumbles where the reading's ``change`` (ADC counts) fell by more than ``fall``."""
+    return change < -p.fall
+
+
+class LightWalker:
     """The shared walk of the light baselines: straight, or a pivot of 1..k periods in a random direction;
-    reads the ``light`` feature (level and change in counts / 1024). Vectorised over (B, M)."""
+    reads the ``light`` feature (level and change in counts / 1024). Vectorised over (B, M). Its random
+    numbers come from :meth:`draws` (the firmware's twin draws them from xorshift32: kiloforge/actors/light_rules.py)."""
 
     def __init__(self, cfg: WorldConfig) -> None:
         self.cfg = cfg
@@ -183,13 +215,20 @@ class _LightWalker:
         """(level, change) in ADC counts."""
         return obs[..., self.i] * 1024.0, obs[..., self.i + 1] * 1024.0
 
-    def walk(self, stop: np.ndarray, tumble: np.ndarray, turn_max: int) -> np.ndarray:
-        """Actions: stopped robots stand; others start a turn where ``tumble`` (unless turning), else drive on."""
+    def draws(self, shape: tuple[int, ...], turn_max: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One period's draws: uniform [0, 1) for a random turn, its pivot periods (1..turn_max), its direction
+        (True: left)."""
         assert self.rng is not None, "act before reset"
+        u = self.rng.random(shape)
+        return u, self.rng.integers(1, turn_max + 1, shape), self.rng.random(shape) < 0.5
+
+    def walk(self, stop: np.ndarray, tumble: np.ndarray, steps: np.ndarray, left: np.ndarray) -> np.ndarray:
+        """Actions: stopped robots stand; others start a turn of ``steps`` pivots towards ``left`` where ``tumble``
+        (unless turning), else drive on."""
         shape = stop.shape
         start = tumble & (self.turn_left == 0) & ~stop
-        self.turn_left = np.where(start, self.rng.integers(1, turn_max + 1, shape), self.turn_left)
-        self.turn_dir = np.where(start, self.rng.random(shape) < 0.5, self.turn_dir)
+        self.turn_left = np.where(start, steps, self.turn_left)
+        self.turn_dir = np.where(start, left, self.turn_dir)
         turning = ~stop & (self.turn_left > 0)
         a = np.zeros(shape + (ACTION_DIM,))
         a[~stop & ~turning] = 1.0
@@ -199,7 +238,7 @@ class _LightWalker:
         return a
 
 
-class StopInLight(_LightWalker):
+class StopInLight(LightWalker):
     """Stop while the reading is above a threshold; elsewhere a random walk (straight runs, random turns)."""
 
     def __init__(self, cfg: WorldConfig, params: StopInLightParams | None = None) -> None:
@@ -208,13 +247,11 @@ class StopInLight(_LightWalker):
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         level, _ = self.counts(obs)
-        stop = level >= self.p.threshold
-        assert self.rng is not None, "StopInLight.act before reset"
-        tumble = self.rng.random(stop.shape) < 1.0 / self.p.run_steps
-        return self.walk(stop, tumble, self.p.turn_max_steps)
+        u, steps, left = self.draws(level.shape, self.p.turn_max_steps)
+        return self.walk(stops(self.p, level), u < tumble_prob(self.p), steps, left)
 
 
-class RunAndTumble(_LightWalker):
+class RunAndTumble(LightWalker):
     """Straight while the reading rises or holds; a turn of a random 1..k periods when it falls (and, as a
     bacterium's run-and-tumble, now and then at random, so a robot against a wall gets away)."""
 
@@ -224,6 +261,5 @@ class RunAndTumble(_LightWalker):
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         _, change = self.counts(obs)
-        assert self.rng is not None, "RunAndTumble.act before reset"
-        tumble = (change < -self.p.fall) | (self.rng.random(change.shape) < 1.0 / self.p.run_steps)
-        return self.walk(np.zeros(change.shape, bool), tumble, self.p.turn_max_steps)
+        u, steps, left = self.draws(change.shape, self.p.turn_max_steps)
+        return self.walk(np.zeros(change.shape, bool), falls(self.p, change) | (u < tumble_prob(self.p)), steps, left)
