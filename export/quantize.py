@@ -24,6 +24,25 @@ from kiloforge.actors.base import FloatPolicy, QuantizedActor
 from kiloforge.actors.registry import kind_of
 from sim.config import ACTION_DIM
 from sim.env import SwarmEnv
+from sim.rollout import EpisodeLoop
+
+
+class _TupleRecorder:
+    """A swarm policy that keeps the input tuples ``[a_{t-1}, o_t]`` (R, T, D) of every robot it drives."""
+
+    def __init__(self, actor, n_envs: int, n_robots: int, steps: int, tuple_dim: int) -> None:
+        self.actor = actor
+        self.prev = np.zeros((n_envs, n_robots, ACTION_DIM), np.float32)  # a_{-1} = 0
+        self.xs = np.empty((n_envs * n_robots, steps, tuple_dim), np.float32)
+
+    def begin(self, k: int, obs: np.ndarray, info) -> None:
+        self.actor.reset(*obs.shape[:2])
+
+    def act(self, t: int, obs: np.ndarray, info) -> np.ndarray:
+        self.xs[:, t] = np.concatenate([self.prev, obs.astype(np.float32)], -1).reshape(self.xs.shape[0], -1)
+        u = self.actor.act(obs)  # (B, M, 2) float64 in [0, 1]
+        self.prev = u.astype(np.float32)
+        return u
 
 
 def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Sequence[int] = (4, 16), seed: int = 0,
@@ -51,23 +70,14 @@ def record_sequences(policy: FloatPolicy, episodes: int = 1, n_robots: int | Seq
         from kiloforge.progress import progress_bar
         bar = progress_bar(total=len(counts) * episodes * T, desc="calibrating", unit="step", leave=False)
     chunks: list[np.ndarray] = []
+    observe = None if bar is None else lambda *_: bar.update(1)
     try:
         for ci, m in enumerate(counts):
             for ep in range(episodes):
                 env = SwarmEnv(run_world, n_envs, m, seed=int(seeds[ci * episodes + ep].generate_state(1)[0]), task=task)
-                obs, _ = env.reset()  # (B, M, obs_dim)
-                actor = kind.swarm_policy(policy, run_world)
-                actor.reset(n_envs, m)
-                prev = np.zeros((n_envs, m, ACTION_DIM), np.float32)
-                xs = np.empty((n_envs * m, T, world.tuple_dim), np.float32)
-                for t in range(T):
-                    xs[:, t] = np.concatenate([prev, obs.astype(np.float32)], -1).reshape(n_envs * m, -1)
-                    u = actor.act(obs)  # (B, M, 2) float64 in [0, 1]
-                    prev = u.astype(np.float32)
-                    obs, _, _, _, _ = env.step(u)
-                    if bar is not None:
-                        bar.update(1)
-                chunks.append(xs)
+                tuples = _TupleRecorder(kind.swarm_policy(policy, run_world), n_envs, m, T, world.tuple_dim)
+                EpisodeLoop(env).run(tuples.act, begin=tuples.begin, observe=observe)
+                chunks.append(tuples.xs)
     finally:
         if bar is not None:
             bar.close()

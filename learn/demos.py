@@ -33,6 +33,7 @@ import torch
 from sim.baselines import PUSHER, HandWrittenSearcher, make_policy
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
+from sim.rollout import EpisodeLoop
 
 from .replay import EpisodeReplay
 
@@ -60,18 +61,21 @@ def collect_demos(world: WorldConfig, n_robots: int, episodes: int, n_envs: int,
     replay = EpisodeReplay(batches * n_envs * T, T, M, world.tuple_dim, world.state_dim(M), t_prev, device, with_obs)
     env = SwarmEnv(world, n_envs=n_envs, n_robots=M, seed=int(rng.integers(2 ** 31)))
     policy = demonstrator(world, stop_dist, kind)
-    for _ in range(batches):
-        obs, _ = env.reset(seed=int(rng.integers(2 ** 31)))
+
+    def begin(k: int, obs: np.ndarray, info) -> None:
         policy.reset(n_envs, M, np.random.default_rng(rng.integers(2 ** 63)))
         replay.begin(np.concatenate([np.zeros((n_envs, M, ACTION_DIM), np.float32), obs.astype(np.float32)], -1),
                      env.state())
-        for _ in range(T):
-            a = policy.act(obs).astype(np.float32)  # (B, M, 2) in {0, speed, 1}
-            obs, reward, _, truncated, _ = env.step(a)
-            replay.add(np.concatenate([a, obs.astype(np.float32)], -1), env.state(), reward)
-        assert np.all(truncated), "the env did not truncate after episode_steps steps"
-        if progress is not None:
-            progress(n_envs)
+
+    def act(t: int, obs: np.ndarray, info) -> np.ndarray:
+        return policy.act(obs).astype(np.float32)  # (B, M, 2) in {0, speed, 1}
+
+    def observe(t: int, a: np.ndarray, obs: np.ndarray, reward: np.ndarray, info) -> None:
+        replay.add(np.concatenate([a, obs.astype(np.float32)], -1), env.state(), reward)
+
+    end = None if progress is None else lambda k: progress(n_envs)
+    env_seeds = (int(rng.integers(2 ** 31)) for _ in range(batches))  # drawn lazily: each before its batch's policy seed
+    EpisodeLoop(env).run(act, env_seeds, begin, observe, end)
     return replay
 
 

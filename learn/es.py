@@ -32,6 +32,7 @@ from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.history import History
 from sim.metrics import final_coverage
+from sim.rollout import EpisodeLoop
 
 ACTIVATIONS = {"elu": torch.nn.functional.elu, "relu": torch.relu, "tanh": torch.tanh,
                "sigmoid": torch.sigmoid, "identity": lambda x: x}
@@ -108,21 +109,19 @@ def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConf
         f"actor input {pop.in_dim} != history width {world.history_dim(t_prev)} (t_prev {t_prev})"
     seeds = [episode_seeds[e] for _ in range(K) for e in range(E)]  # env index k * E + e
     env = SwarmEnv(world, n_envs=K * E, n_robots=M, seed=seeds, randomise=randomise, task=task)
-    obs, _ = env.reset()
     history = History(t_prev, world.obs_dim)
-    h = history.reset(obs)
-    T = world.episode_steps
-    coverage = np.zeros((K * E, T))
-    returns = np.zeros(K * E)
     th = theta.float()
-    for t in range(T):
+    prev = None  # the members' last actions (float32), as the history holds them
+
+    def act(t: int, obs: np.ndarray, info) -> np.ndarray:
+        nonlocal prev
+        h = history.reset(obs) if t == 0 else history.push(prev, obs)
         x = torch.from_numpy(h).reshape(K, E * M, -1)
-        a = pop.forward(th, x).clamp_(0.0, 1.0).reshape(K * E, M, -1).numpy()
-        obs, reward, _, _, info = env.step(a.astype(np.float64))
-        coverage[:, t] = info["success"]
-        returns += reward
-        h = history.push(a, obs)
-    return PopulationResult(final_coverage(coverage).reshape(K, E), returns.reshape(K, E))
+        prev = pop.forward(th, x).clamp_(0.0, 1.0).reshape(K * E, M, -1).numpy()
+        return prev.astype(np.float64)
+
+    loop = EpisodeLoop(env).run(act)
+    return PopulationResult(final_coverage(loop.success).reshape(K, E), loop.returns.reshape(K, E))
 
 
 def centred_ranks(f: np.ndarray) -> np.ndarray:

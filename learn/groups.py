@@ -13,6 +13,7 @@ import numpy as np
 
 from sim.config import ACTION_DIM, WorldConfig
 from sim.env import SwarmEnv
+from sim.rollout import EpisodeLoop
 from sim.tasks import Task, get_task
 
 from .augment import PhantomNeighbours
@@ -66,25 +67,28 @@ class EnvGroup:
         self.reward = LearningReward(cfg.reward, world, cfg.gamma, cfg.shaping_weight, cfg.extra_action_penalty)
         self.acting = algo.acting(B, M, world)
         self.demos: EpisodeReplay | None = None
-        self.ep_return = np.zeros(B)
+        self.loop = EpisodeLoop(self.env)  # stepped by the trainer, in lockstep with the other groups
 
     def begin(self, env_rng: np.random.Generator) -> None:
         """Start a batch of B synchronised episodes."""
-        obs, _ = self.env.reset(seed=int(env_rng.integers(2 ** 31)))
+        obs, _ = self.loop.begin(int(env_rng.integers(2 ** 31)))
         self.noise.reset()
         self.phantoms.reset(self.n_envs)
         first = self.acting.reset(self.phantoms(obs))  # (B, M, tuple_dim): (a_0 = 0, o_0)
         self.replay.begin(first, self.env.state())
         self.reward.reset(self.env)
-        self.ep_return = np.zeros(self.n_envs)
 
     def step(self) -> np.ndarray:
         """One control step of every env with exploration noise; returns ``truncated`` (B,)."""
         a = np.clip(self.acting.act() + self.noise.sample(), 0.0, 1.0).astype(np.float32)  # (B, M, 2)
-        obs, reward, _, truncated, info = self.env.step(a)
+        obs, reward, truncated, info = self.loop.step(a)
         obs = self.phantoms(obs)
         self.acting.push(a, obs)
         r_learn = self.reward(self.env, reward, info, a)
         self.replay.add(np.concatenate([a, obs.astype(np.float32, copy=False)], axis=-1), self.env.state(), r_learn)
-        self.ep_return += reward
         return truncated
+
+    @property
+    def ep_return(self) -> np.ndarray:
+        """(B,) the returns of the current episodes so far."""
+        return self.loop.returns

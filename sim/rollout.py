@@ -7,6 +7,11 @@ which :meth:`SwarmPolicy.reset` clears at the start of each batch of synchronise
 :class:`HistoryActor` turns any function of the flat Algorithm-4 history (a trained actor, a policy
 artifact's ``act``, the int8 emulator) into a :class:`SwarmPolicy`.
 
+:class:`EpisodeLoop` is the one loop that steps an env through episodes (reset, commands from a policy
+callback, step, the team reward and the task's success recorded, hooks for what else a caller keeps):
+:func:`rollout`, the closed-loop verification, calibration, demonstrations, evolution strategies and the
+learners' env groups all step through it, and :class:`TaskEpisodes` asks the task for the metrics.
+
 :func:`rollout` runs ``episodes`` episodes, ``env.n_envs`` at a time, and returns rewards, coverage
 and (optionally) trajectories for plotting. Same env config, same policy, same seed ⇒ same result.
 """
@@ -14,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -85,8 +90,26 @@ class Trajectories:
     actions: np.ndarray  # (E, T, M, 2) float32, the commands sent
 
 
+class TaskEpisodes(EpisodeSteps):
+    """A record of E episodes of T steps of a task: ``cfg``, ``n_robots``, team ``rewards`` and the task's ``coverage``
+    (its success) (E, T), ``task``, and optionally each episode's final ``beacon``; its metrics are the task's."""
+
+    cfg: WorldConfig
+    n_robots: int
+    rewards: np.ndarray
+    task: Any
+
+    def metrics(self, ceiling: bool = False):
+        """The task's metrics of these episodes (:meth:`sim.tasks.Task.episode_metrics`); ``ceiling``: also
+        relative to the task's upper bound (localisation: each episode's packing ceiling)."""
+        from .tasks import get_task
+
+        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage,
+                                                   getattr(self, "beacon", None), ceiling)
+
+
 @dataclass
-class RolloutResult(EpisodeSteps):
+class RolloutResult(TaskEpisodes):
     """Per-episode records of a :func:`rollout`."""
 
     cfg: WorldConfig
@@ -99,20 +122,84 @@ class RolloutResult(EpisodeSteps):
     beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode (None: no beacon)
     task: Any = None  #: the env's task (sim.tasks.Task): its metrics; None: localisation
 
-    def metrics(self, ceiling: bool = False):
-        """The task's metrics of these episodes (:meth:`sim.tasks.Task.episode_metrics`); ``ceiling``: also
-        relative to the task's upper bound (localisation: each episode's packing ceiling)."""
-        from .tasks import get_task
-
-        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage, self.beacon,
-                                                   ceiling)
-
 
 def robot_success(info, n_envs: int, n_robots: int) -> np.ndarray:
     """(B, M) bool: the robots the task counts as successful this step (its ``robot_success`` info entry,
     all False when it has none); plots and animations highlight them."""
     flags = info.get("robot_success")
     return np.zeros((n_envs, n_robots), bool) if flags is None else flags
+
+
+class EpisodeLoop:
+    """The one stepping loop: batches of ``env.n_envs`` synchronised episodes of ``env.cfg.episode_steps`` steps.
+
+    :meth:`begin` resets the env (a seed, or None to go on with its streams); :meth:`step` sends the commands
+    (``send``: ``env.step`` by default, ``env.step_u8`` for the firmware's uint8 commands) and keeps, in the
+    rows of the current batch, each step's team reward and the task's success (``info["success"]``) in
+    ``rewards`` and ``success`` (E, T) and the episodes' running ``returns`` (E,), summed step by step.
+    Batch k fills row block ``k % batches`` (``batches=1``: every batch reuses the same rows).
+    :meth:`run` drives whole batches from a policy callback; learners that step several envs in
+    lockstep call :meth:`begin` and :meth:`step` themselves.
+    """
+
+    def __init__(self, env, batches: int = 1, send: Callable | None = None) -> None:
+        assert batches >= 1, f"batches must be >= 1, got {batches}"
+        self.env = env
+        self.batches = int(batches)
+        self.send = env.step if send is None else send
+        B, M, T = env.n_envs, env.n_robots, env.cfg.episode_steps
+        self.steps = T
+        self.shape = (B, M, ACTION_DIM)
+        self.rewards = np.zeros((self.batches * B, T))
+        self.success = np.zeros((self.batches * B, T))
+        self.returns = np.zeros(self.batches * B)
+        self.k = -1  #: the current batch
+        self.t = 0  #: steps taken in it
+        self.rows = slice(0, B)  #: its rows of the records
+
+    def begin(self, seed: Any = None):
+        """Start the next batch: ``env.reset(seed)``; returns its (obs, info)."""
+        self.k += 1
+        B = self.shape[0]
+        b = self.k % self.batches
+        self.rows = slice(b * B, (b + 1) * B)
+        self.t = 0
+        self.returns[self.rows] = 0.0
+        return self.env.reset(seed=seed)
+
+    def step(self, a: np.ndarray):
+        """Send commands ``a`` (B, M, 2), record the step; returns (obs, reward, truncated, info)."""
+        assert a.shape == self.shape, f"policy returned {a.shape}, expected {self.shape}"
+        obs, r, _, truncated, info = self.send(a)
+        t, rows = self.t, self.rows
+        self.rewards[rows, t] = r
+        self.success[rows, t] = info["success"]
+        self.returns[rows] += r
+        self.t = t + 1
+        if self.t == self.steps:
+            assert np.all(truncated), "env did not truncate after cfg.episode_steps steps"
+        return obs, r, truncated, info
+
+    def run(self, act: Callable, seeds: Iterable = (None,), begin: Callable | None = None,
+            observe: Callable | None = None, end: Callable | None = None) -> "EpisodeLoop":
+        """One batch per seed (``seeds`` may be a lazy iterable: each is drawn just before its reset).
+
+        ``act(t, obs, info)`` gives the commands of step t; hooks: ``begin(k, obs, info)`` after batch k's reset,
+        ``observe(t, a, obs, reward, info)`` after each step, ``end(k)`` after the batch's last step.
+        """
+        T = self.steps
+        for seed in seeds:
+            obs, info = self.begin(seed)
+            if begin is not None:
+                begin(self.k, obs, info)
+            for t in range(T):
+                a = act(t, obs, info)
+                obs, r, _, info = self.step(a)
+                if observe is not None:
+                    observe(t, a, obs, r, info)
+            if end is not None:
+                end(self.k)
+        return self
 
 
 def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, record: bool | int = False,
@@ -130,13 +217,14 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     B, M, cfg = env.n_envs, env.n_robots, env.cfg
     T = cfg.episode_steps
     n_batches = math.ceil(episodes / B)
-    root = np.random.SeedSequence(seed)
-    batch_seqs = root.spawn(n_batches)
+    env_seeds, pol_seqs = [], []
+    for ss in np.random.SeedSequence(seed).spawn(n_batches):
+        env_ss, pol_ss = ss.spawn(2)
+        env_seeds.append(int(env_ss.generate_state(1, np.uint32)[0]))
+        pol_seqs.append(pol_ss)
 
     n_rec = episodes if record is True else max(0, min(int(record), episodes))
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
-    rewards = np.zeros((n_batches * B, T))
-    coverage = np.zeros((n_batches * B, T))
     has_beacon = env.cfg.beacon
     beacon = np.zeros((n_batches * B, 2)) if has_beacon else None
     if n_rec:
@@ -145,6 +233,35 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
         tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32) if has_beacon else None
         inr = np.zeros((rec_batches * B, T + 1, M), bool)
         acts = np.zeros((rec_batches * B, T, M, 2), np.float32)
+    loop = EpisodeLoop(env, n_batches)
+
+    def begin(k: int, obs, info) -> None:
+        policy.reset(B, M, np.random.default_rng(pol_seqs[k]))
+        if k < rec_batches:
+            rows = loop.rows
+            pos[rows, 0] = env.pos
+            head[rows, 0] = env.heading
+            if has_beacon:
+                tgt[rows, 0] = env.target
+            inr[rows, 0] = robot_success(info, B, M)
+
+    def act(t: int, obs, info) -> np.ndarray:
+        return np.asarray(policy.act(obs), np.float64)
+
+    def observe(t: int, a, obs, r, info) -> None:
+        if loop.k < rec_batches:
+            rows = loop.rows
+            pos[rows, t + 1] = env.pos
+            head[rows, t + 1] = env.heading
+            if has_beacon:
+                tgt[rows, t + 1] = env.target
+            inr[rows, t + 1] = robot_success(info, B, M)
+            acts[rows, t] = a
+        if bar is not None:
+            bar.update(1)
+
+    def end(k: int) -> None:
+        beacon[loop.rows] = env.target
 
     bar = None
     if progress:
@@ -152,37 +269,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
 
         bar = progress_bar(total=n_batches * T, unit="step", desc=f"{episodes} episodes", leave=False)
     try:
-        for k, ss in enumerate(batch_seqs):
-            env_ss, pol_ss = ss.spawn(2)
-            env_seed = int(env_ss.generate_state(1, np.uint32)[0])
-            obs, info = env.reset(seed=env_seed)
-            policy.reset(B, M, np.random.default_rng(pol_ss))
-            rows = slice(k * B, (k + 1) * B)
-            rec = k < rec_batches
-            if rec:
-                pos[rows, 0] = env.pos
-                head[rows, 0] = env.heading
-                if has_beacon:
-                    tgt[rows, 0] = env.target
-                inr[rows, 0] = robot_success(info, B, M)
-            for t in range(T):
-                a = np.asarray(policy.act(obs), np.float64)
-                assert a.shape == (B, M, ACTION_DIM), f"policy returned {a.shape}, expected {(B, M, ACTION_DIM)}"
-                obs, r, terminated, truncated, info = env.step(a)
-                rewards[rows, t] = r
-                coverage[rows, t] = info["success"]
-                if rec:
-                    pos[rows, t + 1] = env.pos
-                    head[rows, t + 1] = env.heading
-                    if has_beacon:
-                        tgt[rows, t + 1] = env.target
-                    inr[rows, t + 1] = robot_success(info, B, M)
-                    acts[rows, t] = a
-                if bar is not None:
-                    bar.update(1)
-            assert np.all(truncated), "env did not truncate after cfg.episode_steps steps"
-            if has_beacon:
-                beacon[rows] = env.target
+        loop.run(act, env_seeds, begin, observe if (n_rec or bar is not None) else None, end if has_beacon else None)
     finally:
         if bar is not None:
             bar.close()
@@ -190,6 +277,6 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     traj = None
     if n_rec:
         traj = Trajectories(pos[:n_rec], head[:n_rec], None if tgt is None else tgt[:n_rec], inr[:n_rec], acts[:n_rec])
-    return RolloutResult(cfg=cfg, n_robots=M, seed=seed, rewards=rewards[:episodes],
-                         coverage=coverage[:episodes], trajectories=traj,
+    return RolloutResult(cfg=cfg, n_robots=M, seed=seed, rewards=loop.rewards[:episodes],
+                         coverage=loop.success[:episodes], trajectories=traj,
                          beacon=None if beacon is None else beacon[:episodes], task=env.task)

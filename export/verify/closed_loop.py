@@ -42,7 +42,8 @@ from kiloforge.policies import swarm_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.events import HeardEvents
-from sim.metrics import EpisodeSteps, Summary, summarise
+from sim.metrics import Summary, summarise
+from sim.rollout import EpisodeLoop, TaskEpisodes
 from sim.tasks import Task, get_task
 
 from .emulator import FirmwareEmulator, events_from_sim
@@ -112,16 +113,19 @@ class _FloatController:
     """The float actor (its kind's swarm policy); commands go through SwarmEnv.step."""
 
     label = "float"
+    command_dtype = np.float32  #: what a record keeps of the commands
 
     def __init__(self, policy: FloatPolicy, cfg: WorldConfig) -> None:
         self.actor = swarm_policy(policy, cfg)
 
+    def send(self, env):
+        return env.step
+
     def start(self, env, obs: np.ndarray, info) -> None:
         self.actor.reset(env.n_envs, env.n_robots)
 
-    def step(self, env, obs: np.ndarray, info):
-        a = self.actor.act(obs)  # (B, M, 2) float64 in [0, 1]
-        return env.step(a), a.astype(np.float32)
+    def act(self, env, obs: np.ndarray, info) -> np.ndarray:
+        return self.actor.act(obs)  # (B, M, 2) float64 in [0, 1]
 
     def heard(self, info, period: int) -> None:
         pass
@@ -131,6 +135,7 @@ class _FirmwareController:
     """The int8 firmware emulator, R = B * M searchers; commands go through SwarmEnv.step_u8."""
 
     label = "int8"
+    command_dtype = np.uint8
 
     def __init__(self, qp: QuantizedActor, cfg: WorldConfig, spread: bool | None = None) -> None:
         self.qp = qp
@@ -147,11 +152,13 @@ class _FirmwareController:
         self.emu.reset()  # setup(): the first control step starts a new history
         self.heard(info, 0)  # the listening period of SwarmEnv.reset
 
-    def step(self, env, obs: np.ndarray, info):
+    def send(self, env):
+        return env.step_u8
+
+    def act(self, env, obs: np.ndarray, info) -> np.ndarray:
         B, M = env.n_envs, env.n_robots
         q, _ = self.emu.control_step(np.asarray(info["light"]).reshape(B * M))  # (R, 2) uint8
-        q = q.reshape(B, M, 2)
-        return env.step_u8(q), q
+        return q.reshape(B, M, 2)
 
     def heard(self, info, period: int) -> None:
         ev = info["events"]
@@ -165,7 +172,7 @@ class _FirmwareController:
 # Runs
 # --------------------------------------------------------------------------------------------
 @dataclass
-class LoopResult(EpisodeSteps):
+class LoopResult(TaskEpisodes):
     """Per-episode records of one closed-loop run (E episodes, T steps, M robots)."""
 
     label: str  #: "float" or "int8"
@@ -185,11 +192,6 @@ class LoopResult(EpisodeSteps):
     def episodes_per_s(self) -> float:
         return self.episodes / max(self.wall_s, 1e-9)
 
-    def metrics(self) -> Any:
-        """The task's metrics of the episodes (:meth:`sim.tasks.Task.episode_metrics`; localisation: return, final
-        coverage, time to find and the coverage curves)."""
-        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage, None)
-
 
 def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, n_envs: int | None,
          record: bool, bar, task: Task | None) -> LoopResult:
@@ -202,37 +204,36 @@ def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, 
     T = cfg.episode_steps
     seeds = batch_env_seeds(seed, math.ceil(episodes / B))
     E = len(seeds) * B
-    rewards = np.zeros((E, T))
-    coverage = np.zeros((E, T))
     pos = head = cmds = None
     if record:
         pos = np.zeros((E, T + 1, M, 2))
         head = np.zeros((E, T + 1, M))
-        cmds = None
+        cmds = np.zeros((E, T, M, 2), controller.command_dtype)
     env = SwarmEnv(cfg, B, M, seed=seeds[0], task=task)
-    t0 = time.perf_counter()
-    for k, env_seed in enumerate(seeds):
-        rows = slice(k * B, (k + 1) * B)
-        obs, info = env.reset(seed=env_seed)
+    loop = EpisodeLoop(env, len(seeds), send=controller.send(env))
+
+    def begin(k: int, obs, info) -> None:
         controller.start(env, obs, info)
         if record:
-            pos[rows, 0], head[rows, 0] = env.pos, env.heading
-        for t in range(T):
-            (obs, r, _term, trunc, info), c = controller.step(env, obs, info)
-            controller.heard(info, t + 1)
-            rewards[rows, t] = r
-            coverage[rows, t] = info["success"]
-            if record:
-                pos[rows, t + 1], head[rows, t + 1] = env.pos, env.heading
-                if cmds is None:
-                    cmds = np.zeros((E, T, M, 2), c.dtype)
-                cmds[rows, t] = c
-            if bar is not None:
-                bar.update(B)
-        assert np.all(trunc), "env did not truncate after cfg.episode_steps steps"
+            pos[loop.rows, 0], head[loop.rows, 0] = env.pos, env.heading
+
+    def act(t: int, obs, info) -> np.ndarray:
+        return controller.act(env, obs, info)
+
+    def observe(t: int, c, obs, r, info) -> None:
+        controller.heard(info, t + 1)
+        if record:
+            rows = loop.rows
+            pos[rows, t + 1], head[rows, t + 1] = env.pos, env.heading
+            cmds[rows, t] = c
+        if bar is not None:
+            bar.update(B)
+
+    t0 = time.perf_counter()
+    loop.run(act, seeds, begin, observe)
     wall = time.perf_counter() - t0
     keep = slice(0, episodes)
-    return LoopResult(controller.label, cfg, M, int(seed), B, rewards[keep], coverage[keep], wall,
+    return LoopResult(controller.label, cfg, M, int(seed), B, loop.rewards[keep], loop.success[keep], wall,
                       None if pos is None else pos[keep], None if head is None else head[keep],
                       None if cmds is None else cmds[keep], task)
 
