@@ -59,3 +59,16 @@ def test_mirrored_start_keeps_distances_and_turns_the_same_way():
     step = np.array([np.sin(d), -np.cos(d)])  # its forward unit vector (sin d, cos d), mirrored
     ours = np.array([np.cos(heading[0] + 0.1), np.sin(heading[0] + 0.1)])
     np.testing.assert_allclose(step, ours, atol=1e-12)
+
+
+def test_phototaxis_bench_refuses_without_kilombo_and_its_doctests_pass():
+    """tests/bench/bench_kilombo_phototaxis.py without Kilombo: exit 2, one line naming --kilombo-dir; its doctests pass."""
+    from tests.bench import bench_kilombo_phototaxis
+
+    env = {k: v for k, v in os.environ.items() if k != "KILOMBO_DIR"}
+    r = subprocess.run([sys.executable, "-m", "tests.bench.bench_kilombo_phototaxis"], capture_output=True, text=True,
+                       env=env, cwd=ROOT, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and r.stdout == "" and len(lines) == 1 and "--kilombo-dir" in lines[0], r.stderr
+    result = doctest.testmod(bench_kilombo_phototaxis, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted >= 1 and result.failed == 0

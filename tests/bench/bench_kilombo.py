@@ -85,24 +85,44 @@ def kilombo_params(cfg: WorldConfig, steps: int, seed: int) -> dict[str, Any]:
         "commsRadius": int(round(cfg.comm_radius_mm)), "msgSuccessRate": 1.0 - cfg.msg_loss,
         "distanceNoise": cfg.dist_noise_mm, "distanceCoefficient": 1.0,
         "speed": cfg.v_max_mm_s, "turnRate": math.degrees(cfg.omega_max_rad_s), "pushDisplacement": 1.0,
-        "kfLogFile": "log.txt", "kfLogEvery": cfg.period_ticks, "kfTxPeriod": 15, "kfPinUid": -1,
+        "kfLogFile": "log.txt", "kfLogEvery": cfg.period_ticks, "kfTxPeriod": 15, "kfPinUid": -1, "kfUidOffset": 0,
         "kfArenaHalf": cfg.arena_half_mm, "kfWallRadius": cfg.robot_radius_mm, "kfWallSense": cfg.wall_sense_mm,
         "kfLightFloor": cfg.light_floor, "kfLightWall": cfg.light_wall,
+        **kilombo_lamps(cfg),
     }
 
 
-def kilombo_bots(target: np.ndarray, pos: np.ndarray, heading: np.ndarray) -> dict[str, Any]:
+def kilombo_lamps(cfg: WorldConfig, gain: np.ndarray | None = None, offset: np.ndarray | None = None) -> dict[str, Any]:
+    """The adapter's light keys for ``cfg``'s lamps and sensor noise (sim/light.py); ``gain`` / ``offset``: per
+    Kilombo ID 0.. (default 1 and 0). Kilombo never returns -1, so the world's dropout has no key.
+
+    >>> from sim.config import preset
+    >>> kilombo_lamps(dataclasses.replace(preset("kilobot"), lamps="spot:10,-20,100,40,600;side:90,300"))["kfSpots"]
+    [[10.0, -20.0, 100.0, 40.0, 600.0]]
+    """
+    return {"kfSpots": [[lamp.x, lamp.y, lamp.radius, lamp.edge, lamp.peak] for lamp in cfg.lamp_list
+                        if lamp.kind == "spot"],
+            "kfSides": [[lamp.angle_deg, lamp.peak] for lamp in cfg.lamp_list if lamp.kind == "side"],
+            "kfLightNoise": cfg.light_noise,
+            "kfLightGain": [] if gain is None else [float(v) for v in gain],
+            "kfLightOffset": [] if offset is None else [float(v) for v in offset]}
+
+
+def kilombo_bots(target: np.ndarray | None, pos: np.ndarray, heading: np.ndarray) -> dict[str, Any]:
     """Kilombo's bot file for one episode: uid 0 the beacon at ``target`` (2,), searcher i (uid i + 1)
     at ``pos[i]`` (M, 2) with ``heading[i]`` (M,), mirrored into Kilombo's frame: (x, -y), pi/2 + phi.
+    Without a beacon (``target`` None) robot i is Kilombo's ID i: Kilombo indexes its robots by ID, so IDs are
+    0..n-1 (the adapter's ``kfUidOffset`` 1 makes the program see uid i + 1, as in our closed loop).
 
     >>> b = kilombo_bots(np.array([1.0, 2.0]), np.array([[3.0, -4.0]]), np.array([0.0]))["bot_states"]
     >>> [(s["ID"], s["x_position"], s["y_position"], round(s["direction"], 4)) for s in b]
     [(0, 1.0, -2.0, 0.0), (1, 3.0, 4.0, 1.5708)]
     """
-    states = [{"ID": BEACON_UID, "x_position": float(target[0]), "y_position": float(-target[1]),
-               "direction": 0.0}]
+    states = [] if target is None else [{"ID": BEACON_UID, "x_position": float(target[0]),
+                                         "y_position": float(-target[1]), "direction": 0.0}]
+    first = len(states)
     for i in range(pos.shape[0]):
-        states.append({"ID": i + 1, "x_position": float(pos[i, 0]), "y_position": float(-pos[i, 1]),
+        states.append({"ID": first + i, "x_position": float(pos[i, 0]), "y_position": float(-pos[i, 1]),
                        "direction": float(math.pi / 2 + heading[i])})
     return {"bot_states": states, "ticks": 0}
 
@@ -204,6 +224,17 @@ class Episodes:
         self.starts = starts[:episodes]
 
 
+def run_episode(binary: Path, work: Path, params: dict[str, Any], bots: dict[str, Any], what: str) -> str:
+    """One Kilombo run of ``binary`` in ``work`` with this parameter and bot file; its standard output."""
+    (work / "kilombo.json").write_text(json.dumps(params))
+    (work / "bots.json").write_text(json.dumps(bots))
+    r = subprocess.run([str(binary), "-p", "kilombo.json", "-b", "bots.json"], cwd=work, capture_output=True,
+                       text=True)
+    if r.returncode != 0:
+        raise ExportError(f"Kilombo run failed ({what}, exit {r.returncode}): {r.stderr.strip()[-300:]}")
+    return r.stdout
+
+
 def run_kilombo(binary: Path, cfg: WorldConfig, eps: Episodes, steps: int, seed: int,
                 overrides: dict[str, Any], label: str, base: str | None, note: str) -> Row:
     """Every episode in Kilombo, one process each, in a scratch directory."""
@@ -214,12 +245,7 @@ def run_kilombo(binary: Path, cfg: WorldConfig, eps: Episodes, steps: int, seed:
         for e, (target, pos, heading) in enumerate(eps.starts):
             params = kilombo_params(cfg, steps, seed * 100_000 + e)
             params.update(overrides)
-            (work / "kilombo.json").write_text(json.dumps(params))
-            (work / "bots.json").write_text(json.dumps(kilombo_bots(target, pos, heading)))
-            r = subprocess.run([str(binary), "-p", "kilombo.json", "-b", "bots.json"], cwd=work,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-            if r.returncode != 0:
-                raise ExportError(f"Kilombo run failed (episode {e}, exit {r.returncode}): {r.stderr.strip()[-300:]}")
+            run_episode(binary, work, params, kilombo_bots(target, pos, heading), f"episode {e}")
             xy = log_positions((work / "log.txt").read_text(), pos.shape[0] + 1, cfg.period_ticks, steps)
             cov = coverage_curve(xy, cfg.comm_radius_mm)[None]
             finals.append(episode_metrics(np.zeros_like(cov), cov).final_coverage[0])
