@@ -51,7 +51,7 @@ def test_every_template_is_rendered():
     """Every *.j2 in firmware_templates/ is loaded by some render (here: the golden and a wide policy)."""
     golden_files()  # every kind's partial
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
-    light = dataclasses.replace(preset("kilobot"), beacon=False, obs_features="light,rbf")  # the light feature's block
+    light = dataclasses.replace(preset("kilobot"), beacon=False, obs_features="light,rbf,random")  # light and random
     render_firmware(synthetic_qpolicy(light, 2, (5,)), generator_version="t")
     gru = random_gru_policy(preset("kilobot"), 4)
     render_firmware(quantize_gru(gru, calibration_from_sequences(gru, np.zeros((1, 2, gru.in_dim)))),
