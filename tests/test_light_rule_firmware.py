@@ -251,3 +251,15 @@ def test_avr_build_fits_the_budget(name):
     assert b.with_exact(exact).ok, b.table()
     assert exact["flash"] <= FLASH_LIMIT_B and exact["sram_user"] <= SRAM_LIMIT_B, exact
     assert abs(b.flash_analytic - exact["flash"]) <= 0.1 * exact["flash"], (b.flash_analytic, exact)
+
+
+@needs_cc
+@pytest.mark.parametrize("name", NAMES)
+def test_sanitized_build_on_garbage_state_equals_emulator(name, tmp_path):
+    """ASan/UBSan host build, state filled with garbage before setup(): no finding and bit-exact on a fuzzed stream."""
+    exe = build_host(render_firmware(shipped(name)[1], generator_version="test")[POLICY_FILE], tmp_path,
+                     name=f"{name}-asan", sanitize=True)
+    inputs = _stream(4, _threshold(name), n_robots=24, n_steps=40)
+    want = FirmwareEmulator(shipped(name)[1], inputs.uids, inputs.calib).run(inputs)
+    got = run_host(exe, inputs, WORLD.period_ticks, WORLD.obs_dim, fill="0xA5")
+    np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
