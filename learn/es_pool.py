@@ -34,11 +34,19 @@ from typing import Callable, Protocol
 import numpy as np
 import torch
 
+from kiloforge.errors import KiloforgeError
+
 from .config import ConfigError
 
 MAX_TRIES = 3  #: a block is given to workers at most this many times (each time one died running it)
 POLL_S = 0.2  #: seconds between two looks at a stop request while workers run (and between probes of a restarting one)
 RESTART_S = 600.0  #: an actor that is not back this long after it failed ends the run (with an error)
+RESUME_HINT = "the run directory keeps its last checkpoint, if any (--resume continues it)"
+
+
+class WorkersFailed(KiloforgeError):
+    """The workers cannot evaluate a generation (a block killed its worker MAX_TRIES times, or a worker did not
+    come back); the trainer stops without writing, so the last checkpoint stands."""
 RAY_HINT = "pip install 'kiloforge[sweep]'"  #: what installs Ray (pyproject.toml)
 
 
@@ -252,7 +260,8 @@ class RayPool:
             now = time.monotonic()
             for actor, (since, probe_at) in list(restarting.items()):
                 if now - since > RESTART_S:
-                    raise RuntimeError(f"an ES worker did not come back within {RESTART_S} s of failing")
+                    raise WorkersFailed(f"an ES worker did not come back within {RESTART_S:g} s of failing; "
+                                        + RESUME_HINT)
                 if now >= probe_at and all(act is not actor for act, _ in running.values()):
                     running[actor.ready.remote()] = (actor, None)
             while todo and idle:
@@ -275,8 +284,9 @@ class RayPool:
                     part, a, b = item
                     deaths[item] += 1
                     if deaths[item] >= MAX_TRIES:
-                        raise RuntimeError(f"ES workers died {MAX_TRIES} times evaluating members {a}..{b - 1} "
-                                           f"(part {part}): {str(e).splitlines()[0]}") from None
+                        raise WorkersFailed(f"ES workers died {MAX_TRIES} times evaluating members {a}..{b - 1} "
+                                            f"(part {part}), the last time: {str(e).splitlines()[0]}; "
+                                            + RESUME_HINT) from None
                     self.log(f"a Ray worker died evaluating members {a}..{b - 1}; they run again")
                     todo.appendleft(item)
                     continue

@@ -230,3 +230,30 @@ def test_unreachable_ray_address_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--ray-address 127.0.0.1:{port}" in err[0], err
     assert not (tmp_path / "r").exists()
+
+
+
+def test_a_block_that_kills_its_worker_every_time_stops_the_run(ray_session, tmp_path):
+    """A task whose members kill their Ray worker each time: after MAX_TRIES deaths WorkersFailed, a one-line
+    KiloforgeError (the CLI prints it as one line, exit 2) that says how to resume."""
+    from kiloforge.errors import KiloforgeError
+    from learn.es_pool import MAX_TRIES, WorkersFailed
+    from learn.es_train import actor_algo, get_theta, task_fitness
+    from learn.es import PopulationMLP
+    from learn.interrupt import StopRequest
+
+    task = tmp_path / "dying.py"
+    task.write_text("import os\nfrom sim.tasks.aggregation import Aggregation\n\n\n"
+                    "class Dying(Aggregation):\n    name = 'dying'\n\n"
+                    "    def spawn(self, env):\n"
+                    f"        if os.getpid() != {os.getpid()}:  # in a Ray worker\n"
+                    "            os._exit(1)\n"
+                    "        return super().spawn(env)\n")
+    cfg = ESConfig(**SMALL, task=f"{task}:Dying")
+    world = cfg.world_config()
+    algo = actor_algo(cfg, world)
+    fitness = task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(cfg.n_robots))
+    with RayPool(1, log=_quiet) as pool, StopRequest() as stop, pytest.raises(WorkersFailed) as e:
+        pool.evaluate(fitness, get_theta(algo), cfg.sigma, cfg.pairs, np.random.SeedSequence(0), stop)
+    assert isinstance(e.value, KiloforgeError) and "\n" not in str(e.value)
+    assert f"died {MAX_TRIES} times" in str(e.value) and "--resume" in str(e.value)
