@@ -31,6 +31,7 @@ from .config import WorldConfig
 from .kinematics import OVERLAP_TOL_MM, RELAX_MARGIN_MM, Collider
 
 HOLD_ROUNDS = 12  #: rim projection / robot separation rounds per hold-off at most
+PRESS_FRAC = 0.1  #: a robot presses on the body (a full push) when it drove this share of a period's travel into it
 JAM_TOL_MM = 0.5  #: a robot still this deep in the body after the rounds is jammed: the body's move is undone
 
 
@@ -45,7 +46,7 @@ def body_depth(pos: np.ndarray, body: np.ndarray, cfg: WorldConfig) -> tuple[np.
 
 def body_move(depth: np.ndarray, normal: np.ndarray, cfg: WorldConfig) -> np.ndarray:
     """(B, 2) the body's quasi-static move from the robots' overlaps (module doc, steps 1 and 2)."""
-    f = np.minimum(depth / (cfg.v_max_mm_s * cfg.control_period_s), 1.0)  # (B, M) push in full robot pushes
+    f = (depth >= PRESS_FRAC * cfg.v_max_mm_s * cfg.control_period_s).astype(np.float64)  # (B, M) pressing robots
     force = np.einsum("bm,bmk->bk", f, normal)
     mag = np.hypot(force[:, 0], force[:, 1])
     mean_push = np.einsum("bm,bmk->bk", f * depth, normal) / np.maximum(f.sum(axis=1), 1e-12)[:, None]

@@ -44,7 +44,7 @@ LAMP_KINDS = {"spot": ("x", "y", "radius", "edge", "peak"), "side": ("angle_deg"
 MAX_LAMPS = 8
 #: the share of a side lamp's light a heavy body (:mod:`sim.body`) keeps from the floor behind it (an assumption:
 #: the rest reaches it scattered)
-BODY_SHADE = 0.8
+BODY_SHADE = 0.9
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from .guard import check_attributes, guarded
 from .aggregation import Aggregation
 from .localisation import Localisation
 from .phototaxis import Phototaxis
+from .transport import Transport
 
 __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS", "TASK_HELP", "Task", "TaskRef",
            "check_policy_task", "get_task", "is_task_file", "recorded_task", "task_names"]
@@ -25,7 +26,7 @@ __all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS"
 ENTRY_POINT_GROUP = "kiloforge.tasks"
 DEFAULT_TASK = "localisation"
 #: the built-in tasks, by name
-TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation, Aggregation, Phototaxis)}
+TASKS: dict[str, type[Task]] = {cls.name: cls for cls in (Localisation, Aggregation, Phototaxis, Transport)}
 
 #: the help text of every command's ``--task``
 TASK_HELP = (f"the task: {', '.join(sorted(TASKS))}, an installed plug-in (entry point group {ENTRY_POINT_GROUP}) "
