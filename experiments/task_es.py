@@ -10,9 +10,11 @@ demonstrations) with one of the task's :data:`RECIPES` for every training seed, 
 several stages runs them in ``OUT/RECIPE_sSEED/stageN``, each starting from the previous stage's ``policy_best.npz``).
 Every stage runs a fixed number of generations (``generations``; ``max_minutes`` is only a safety stop), so a run is
 the same on any machine.
-An ``init_bias`` recipe starts from random weights whose output layer's bias is that value (the actor's outputs are
-clipped to [0, 1], so the default initialisation, outputs near 0, starts every robot standing still at the clip):
-it is written as a policy artifact ``init.npz`` and passed as ``init_policy``; nothing is learned from a behaviour.
+A recipe with ``init_bias`` starts from random weights whose output layer's bias is that value (the actor's outputs
+are clipped to [0, 1], so the default initialisation, outputs near 0, starts every robot standing still at the clip):
+``train-es --init-bias``. Aggregation's documented ``bias`` runs predate that flag: their ``init_artifact_bias``
+draws the random weights from ``torch.manual_seed(seed)``, writes them as a policy artifact ``init.npz`` and passes it
+as ``init_policy`` (the same start but other random weights than ``--init-bias``); nothing is learned from a behaviour.
 
 ``evaluate`` plays every run's result (the last stage's ``policy_best.npz``, selected on the run's own evaluation
 episodes) and the task's hand-written and random baselines on held-out episodes (``sim.config.HELD_OUT_SEED``,
@@ -31,15 +33,14 @@ import torch
 
 from kiloforge.policies import load_policy, save_policy
 from learn.config import ESConfig
-from learn.es_train import actor_algo, train_es
+from learn.es_train import actor_algo, set_output_bias, train_es
 from learn.evaluate import evaluate_policies
 from sim.config import HELD_OUT_SEED
 from sim.tasks import get_task
 
 COMMON = dict(demo_policy="none", eval_every=5, eval_episodes=8, generations=200, max_minutes=12)
 
-#: task -> recipe name -> stages; a stage is ESConfig overrides plus ``init_bias`` (output bias of the random start,
-#: first stage only)
+#: task -> recipe name -> stages; a stage is ESConfig overrides plus ``init_artifact_bias`` (first stage only, above)
 RECIPES: dict[str, dict[str, list[dict]]] = {
     "aggregation": {
         "default": [dict(n_robots=(16,))],  # train-es's own ES settings: 16 pairs, sigma 0.02, lr 0.01, 300 steps
@@ -47,16 +48,20 @@ RECIPES: dict[str, dict[str, list[dict]]] = {
         "curriculum": [dict(n_robots=(8,), generations=100), dict(n_robots=(16,), generations=100)],
         "pairs8": [dict(n_robots=(16,), pairs=8)],
         "sigma": [dict(n_robots=(16,), sigma=0.1, lr=0.03)],
-        "bias": [dict(n_robots=(16,), init_bias=0.5)],
+        "bias": [dict(n_robots=(16,), init_artifact_bias=0.5)],
     },
     "phototaxis": {
         "default": [dict(n_robots=(16,))],
-        # 16 robots until it gathers, then every evaluated size (64 in the anchor's larger arena, Task.world_for)
-        "sizes": [dict(n_robots=(16,), generations=150), dict(n_robots=(16, 32, 64), generations=100, max_minutes=45)],
+        # random start driving (output bias 0.5), 16 robots until it gathers; then every evaluated size (64 in the
+        # anchor's larger arena, Task.world_for) from the first stage's best, with half the population
+        "sizes": [dict(n_robots=(16,), init_bias=0.5, max_minutes=30),
+                  dict(n_robots=(16, 32, 64), generations=100, pairs=8, max_minutes=50)],
     },
 }
+
+
 def stage_config(task: str, stage: dict, seed: int, init_policy: str) -> ESConfig:
-    fields = {k: v for k, v in stage.items() if k != "init_bias"}
+    fields = {k: v for k, v in stage.items() if k != "init_artifact_bias"}
     return ESConfig(**(COMMON | fields), task=task, seed=seed, init_policy=init_policy)
 
 
@@ -66,9 +71,7 @@ def write_init(cfg: ESConfig, bias: float, path: Path) -> str:
     world = cfg.world_config()
     torch.manual_seed(cfg.seed)
     algo = actor_algo(cfg, world)
-    out = [m for m in algo.actor.net if isinstance(m, torch.nn.Linear)][-1]
-    with torch.no_grad():
-        out.bias.fill_(bias)
+    set_output_bias(algo, bias)
     path.parent.mkdir(parents=True, exist_ok=True)
     art = algo.artifact(world, {"trainer": "experiments.task_es random init", "seed": cfg.seed,
                                 "output_bias": bias})
@@ -83,8 +86,8 @@ def train(task: str, recipe: str, seeds: list[int], out: Path) -> None:
         init, t0 = "", time.perf_counter()
         for k, stage in enumerate(stages):
             d = run if len(stages) == 1 else run / f"stage{k}"
-            if k == 0 and "init_bias" in stage:
-                init = write_init(stage_config(task, stage, seed, ""), stage["init_bias"], run / "init.npz")
+            if k == 0 and "init_artifact_bias" in stage:
+                init = write_init(stage_config(task, stage, seed, ""), stage["init_artifact_bias"], run / "init.npz")
             train_es(stage_config(task, stage, seed, init), d, progress=False)
             init = str(d / "policy_best.npz")
         print(f"{run}: {time.perf_counter() - t0:.0f} s")

@@ -436,6 +436,10 @@ class ESConfig(ConfigBase):
     demo_policy: DemoPolicy = "searcher"  #: demonstrator: searcher or pusher (learn.demos), or none (random init)
     #: start from this MLP policy artifact (.npz: same world, t_prev and actor_hidden) instead of cloning; '' = clone
     init_policy: str = ""
+    #: --demo-policy none: start from random weights whose output layer's bias is this value, so the first commands
+    #: are near it (the actor's own start gives outputs near 0, clipped to [0, 1]: robots that stand still and a
+    #: long plateau); 0 = the actor's own initialisation (docs/training.md)
+    init_bias: float = 0.0
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
     #: the demonstrator stops once it hears the beacon within this fraction of the range (0 = the searcher's tuned
     #: value, 0.6 in the kilobot world; 0.94 crowds 32 robots better, docs/results/localisation.md)
@@ -493,6 +497,10 @@ class ESConfig(ConfigBase):
         need(self.bc_updates >= 0, f"bc_updates must be >= 0, got {self.bc_updates}")
         need(not self.init_policy or self.init_policy.endswith(".npz"),
              f"init_policy must be a policy artifact (.npz) or empty, got '{self.init_policy}'")
+        need(math.isfinite(self.init_bias) and -1.0 <= self.init_bias <= 2.0,
+             f"init_bias must be in [-1, 2] (0 = the actor's own initialisation), got {self.init_bias}")
+        need(not self.init_bias or (self.demo_policy == "none" and not self.init_policy),
+             "init_bias sets the output bias of a random start: give it with --demo-policy none and no --init-policy")
         for name in ("bc_lr", "sigma", "lr"):
             v = getattr(self, name)
             need(v > 0 and math.isfinite(v), f"{name} must be > 0, got {v}")

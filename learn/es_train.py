@@ -179,6 +179,10 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
                     load_weights(algo, init)
                     theta, init_hash = get_theta(algo), init.hash
                     log(f"starting from {cfg.init_policy} (policy hash {init.hash[:12]})")
+                elif cfg.init_bias:
+                    set_output_bias(algo, cfg.init_bias)
+                    theta = get_theta(algo)
+                    log(f"starting from random weights with the output bias at {cfg.init_bias:g}")
                 elif cfg.demo_policy != "none":
                     clone(cfg, world, algo, ss_demo, stop, progress, log)
                     theta = get_theta(algo)
@@ -279,6 +283,13 @@ def init_policy_of(cfg: ESConfig, algo: MAGDDPG, world):
                           f"it must be an MLP of the {world.name} world with t_prev {cfg.t_prev} and hidden "
                           f"{list(cfg.actor_hidden)}")
     return p
+
+
+def set_output_bias(algo: MAGDDPG, bias: float) -> None:
+    """Every output unit's bias of the actor's last layer set to ``bias`` (the other weights stay as drawn)."""
+    out = [m for m in algo.actor.net if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        out.bias.fill_(bias)
 
 
 def load_weights(algo: MAGDDPG, policy) -> None:

@@ -282,3 +282,23 @@ def test_init_policy_may_train_with_another_episode_length(tmp_path):
     other = ESConfig(**{**TINY, "world": "thesis"}, init_policy=start)
     with pytest.raises(ConfigError, match="differs from this run in world"):
         init_policy_of(other, actor_algo(other, other.world_config()), other.world_config())
+
+
+def test_init_bias_starts_random_weights_with_that_output_bias(tmp_path):
+    """--init-bias: a random start (no cloning) whose output biases are the value after one Adam step at most
+    lr away; the other layers are the plain random start's; refused with a demonstrator or an init policy."""
+    kw = {**TINY, "demo_policy": "none", "generations": 1, "seed": 5}
+    lines: list[str] = []
+    train_es(ESConfig(**kw, init_bias=0.5), tmp_path / "b", progress=False, log=lines.append)
+    train_es(ESConfig(**kw), tmp_path / "plain", progress=False, log=_quiet)
+    assert any("output bias at 0.5" in line for line in lines) and not (tmp_path / "b" / "policy_bc.npz").exists()
+    b, plain = load_policy(tmp_path / "b" / "policy_last.npz"), load_policy(tmp_path / "plain" / "policy_last.npz")
+    lr = ESConfig().lr
+    assert np.all(np.abs(np.asarray(b.biases[-1]) - 0.5) <= 1.01 * lr)
+    assert np.all(np.abs(np.asarray(plain.biases[-1]) - 0.5) > 0.1)
+    for x, y in zip(b.weights[:-1], plain.weights[:-1]):  # same draw; one Adam step apart at most
+        assert np.max(np.abs(np.asarray(x) - np.asarray(y))) <= 2.02 * lr
+    with pytest.raises(ConfigError, match="init_bias sets the output bias of a random start"):
+        ESConfig(demo_policy="searcher", init_bias=0.5).validate()
+    with pytest.raises(ConfigError, match="init_bias must be in"):
+        ESConfig(demo_policy="none", init_bias=float("inf")).validate()
