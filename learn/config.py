@@ -130,7 +130,7 @@ class ConfigBase:
              "use --demo-policy none (random initial weights)")
 
     def world_config(self) -> WorldConfig:
-        """The world this run trains in: the world preset (with ``episode_steps`` when set) with the task's beacon
+        """The world this run trains in: the world preset (with ``episode_steps`` when set) with the task's bodies
         and observation layout (:meth:`sim.tasks.Task.world`)."""
         world = world_preset(self.world, episode_steps=self.episode_steps) if self.episode_steps else world_preset(self.world)
         return self.task_spec().world(world)
@@ -177,7 +177,7 @@ class ExperimentConfig(ConfigBase):
     episode_steps: int = 0  #: control steps per episode; 0 = the world's (kilobot: 300, thesis: 200)
     randomise: Randomise = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
     randomise_eval: bool = False  #: also randomise the evaluation envs
-    reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (coverage, not squared), potential (team + shaping)
+    reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (the task's success, not squared), potential (team + shaping)
     shaping_weight: float = 1.0  #: weight of the potential-based shaping term (reward potential)
     # --- critic ------------------------------------------------------------------------------
     critic: choice(CRITICS) = "concat"  #: centralised critic: concat (thesis: full state + joint action) or mean (mean embedding, any swarm size)
@@ -416,7 +416,7 @@ class RecurrentConfig(ExperimentConfig):
 
 @dataclass
 class ESConfig(ConfigBase):
-    """Evolution strategies (learn.es): OpenAI-ES on final coverage, from a behaviour-cloned MLP. Field docs double as --help."""
+    """Evolution strategies (learn.es): OpenAI-ES on the task's final success, from a behaviour-cloned MLP. Field docs double as --help."""
 
     algorithm: ClassVar[str] = "es"
 
@@ -426,8 +426,8 @@ class ESConfig(ConfigBase):
     size_weights: tuple[int, ...] = ()  #: relative weight of each swarm size in the fitness (empty = equal)
     episode_steps: int = 0  #: control steps of a training episode; 0 = the world's (kilobot: 300)
     randomise: Randomise = "none"  #: domain randomisation of the training episodes (a name in sim.variants.RANDOMISATIONS)
-    #: per swarm size, the randomisation of its training episodes (one name per --robots entry, e.g. table table
-    #: table-free-beacon); empty = --randomise for every size
+    #: per swarm size, the randomisation of its training episodes (one name of sim.variants.RANDOMISATIONS per
+    #: --robots entry); empty = --randomise for every size
     size_randomise: tuple[str, ...] = ()
     # --- actor (an MLP over the T_prev history, as MAGDDPG's) ---------------------------------
     t_prev: HistoryLength = 20  #: history length T_prev in (previous action, observation) tuples
@@ -441,7 +441,7 @@ class ESConfig(ConfigBase):
     #: long plateau); 0 = the actor's own initialisation (docs/training.md)
     init_bias: float = 0.0
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
-    #: the demonstrator stops once it hears the beacon within this fraction of the range (0 = the searcher's tuned
+    #: the demonstrator stops once its target is heard within this fraction of the range (0 = the searcher's tuned
     #: value, 0.6 in the kilobot world; 0.94 crowds 32 robots better, docs/results/localisation.md)
     demo_stop_dist: float = 0.0
     bc_updates: int = 6000  #: behaviour-cloning Adam steps

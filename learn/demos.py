@@ -17,7 +17,7 @@ Any actor (MLP or recurrent) can start from a *demonstrator* instead of from scr
 The demonstrator is the hand-written searcher of :mod:`sim.baselines` with one change: it always
 turns left (``turn_sign=+1``). A deterministic actor cannot imitate "left or right at random" (the
 mean of the two is "straight on"); with a fixed turn direction the searcher is as good (thesis world:
-0.96 vs 0.97 final coverage with 2 robots) and an actor can copy it. ``--demo-policy pusher`` clones
+0.96 vs 0.97 final success with 2 robots) and an actor can copy it. ``--demo-policy pusher`` clones
 the crowd variant (:data:`sim.baselines.PUSHER`) instead, turning left except at the target, where its
 turns alternate (``turn_sign=2``; on held-out episodes at 32 robots 0.550, always left 0.548, turning at random
 0.566), which an actor can still read off the last turn in its history.

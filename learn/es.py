@@ -4,7 +4,7 @@ OpenAI-ES (Salimans, Ho, Chen, Sidor & Sutskever 2017, "Evolution strategies as 
 alternative to reinforcement learning"): around the current weights θ, draw ``pairs`` Gaussian
 directions ε_i, run the actor with θ + σ ε_i and θ − σ ε_i (antithetic pairs) in the simulator,
 and move θ along Σ_i (F(θ + σ ε_i) − F(θ − σ ε_i)) ε_i / (2 n σ) with Adam, where F is a fitness
-shaped into centred ranks. No critic, no credit assignment: the swarm's own final coverage at
+shaped into centred ranks. No critic, no credit assignment: the swarm's own final success at
 several swarm sizes is what is ascended, which is what the exported policy is judged on.
 
 * **One batched pass.** Every population member drives its own environments; the members' MLPs run
@@ -13,9 +13,9 @@ several swarm sizes is what is ascended, which is what the exported policy is ju
 * **Common random numbers.** For each swarm size and episode, every member meets the same episode
   (same spawn, same radio and light streams, same domain-randomisation draw): the pair difference
   then measures the weights, not the luck of the episode.
-* **Fitness per size, ranks per size.** Each size's fitness (the members' mean final coverage over
+* **Fitness per size, ranks per size.** Each size's fitness (the members' mean final success over
   that size's episodes) becomes centred ranks in [−0.5, 0.5] (:func:`centred_ranks`); the sizes'
-  ranks are averaged with the size weights, so a size whose coverage varies little still counts.
+  ranks are averaged with the size weights, so a size whose success varies little still counts.
 * Deterministic actor, exactly the exported one: the history of :class:`sim.history.History` and
   actions clipped to [0, 1], as :class:`sim.rollout.HistoryActor` and the firmware do.
 """
@@ -31,7 +31,7 @@ from torch import nn
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.history import History
-from sim.metrics import final_coverage
+from sim.metrics import final_success
 from sim.rollout import EpisodeLoop
 
 ACTIVATIONS = {"elu": torch.nn.functional.elu, "relu": torch.relu, "tanh": torch.tanh,
@@ -87,9 +87,9 @@ class PopulationMLP:
 
 @dataclass
 class PopulationResult:
-    """Per member (K,) and episode (E,): final coverage and return."""
+    """Per member (K,) and episode (E,): the task's final success and return."""
 
-    final_coverage: np.ndarray  # (K, E)
+    final_success: np.ndarray  # (K, E)
     returns: np.ndarray  # (K, E)
 
 
@@ -102,7 +102,7 @@ def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConf
     One SwarmEnv of K·E envs: env (k, e) is member k in episode e, seeded with ``episode_seeds[e]``,
     so all members meet exactly the same episodes (env e of a batch equals the single env with that
     seed sequence). Episodes last ``world.episode_steps``; fitness is the final value of the task's success
-    (``task``: a :class:`sim.tasks.Task` or name, default localisation, whose success is coverage).
+    (``task``: a :class:`sim.tasks.Task` or name, default localisation).
     """
     K, E, M = theta.shape[0], len(episode_seeds), n_robots
     assert pop.in_dim == world.history_dim(t_prev), \
@@ -121,7 +121,7 @@ def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConf
         return prev.astype(np.float64)
 
     loop = EpisodeLoop(env).run(act)
-    return PopulationResult(final_coverage(loop.success).reshape(K, E), loop.returns.reshape(K, E))
+    return PopulationResult(final_success(loop.success).reshape(K, E), loop.returns.reshape(K, E))
 
 
 def centred_ranks(f: np.ndarray) -> np.ndarray:

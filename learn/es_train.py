@@ -1,4 +1,4 @@
-"""``train_es``: the evolution-strategies run — clone the demonstrator, then ascend final coverage.
+"""``train_es``: the evolution-strategies run — clone the demonstrator, then ascend the task's final success.
 
 Read top to bottom: seeding (one ``SeedSequence``; every generation's perturbations and episodes are
 drawn from its own child ``(seed, generation)``, so a resumed run needs only the generation index,
@@ -6,7 +6,7 @@ the weights and Adam's moments to continue exactly), the actor (MAGDDPG's MLP ov
 history, so artifacts, export and evaluation are the ones of every other run), behaviour cloning of
 the searcher on every swarm size (:mod:`learn.demos`), then the generations (:mod:`learn.es`). Every
 ``eval_every`` generations the current weights play fixed evaluation episodes of ``eval_steps``
-steps at every swarm size; the best mean final coverage over the sizes is ``policy_best.npz``.
+steps at every swarm size; the best mean of the task's primary metric over the sizes is ``policy_best.npz``.
 
 The run directory is the one of :mod:`learn.rundir` (config.json, world.json, metrics.csv,
 learning_curve.png, checkpoint.pt, policy_bc/best/last.npz, summary.json; with ``keep_evaluated`` also
@@ -189,10 +189,10 @@ def _train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool, progress:
                     export("policy_bc.npz", {})
                     bc = evaluate()
                     teacher = demonstrator(eval_world, cfg.demo_stop_dist, cfg.demo_policy)
-                    demo = {M: metrics_row(ev(teacher))["eval_final_coverage"] for M, ev in zip(cfg.n_robots, evaluators)}
+                    demo = {M: metrics_row(ev(teacher))[primary] for M, ev in zip(cfg.n_robots, evaluators)}
                     write_atomic(run_dir / "demos.json", json.dumps(finite_or_none(
-                        {"clone": bc, "demonstrator_final_coverage": demo}), indent=2, sort_keys=True) + "\n")
-                    log(f"behaviour clone: final coverage {bc['eval_final_coverage']:.3f} "
+                        {"clone": bc, f"demonstrator_{task.primary_metric}": demo}), indent=2, sort_keys=True) + "\n")
+                    log(f"behaviour clone: {primary_label} {bc[primary]:.3f} "
                         f"(demonstrator {np.mean(list(demo.values())):.3f})")
                 log_row(evaluate(), float("nan"))
                 save()
@@ -357,7 +357,7 @@ class TaskFitness:
         M = self.n_robots[part]
         res = rollout_population(self.pop, members, self.task_spec.world_for(self.world, M), M, seeds, self.t_prev,
                                  self.randomise[part], self.task_spec)
-        return res.final_coverage.mean(axis=1)
+        return res.final_success.mean(axis=1)
 
     @functools.cached_property
     def task_spec(self):

@@ -1,7 +1,7 @@
 """Plots of training and evaluation (:func:`kiloforge.plotting.figure`: names drawn as plain text; files
 written atomically).
 
-* :func:`plot_learning_curves` — evaluation return and final coverage over transitions, mean ± 2
+* :func:`plot_learning_curves` — evaluation return and the task's primary metric over transitions, mean ± 2
   standard deviations over runs (seeds), like thesis Figs 5.1–5.8;
 * :func:`plot_reward_over_time` — mean reward at each step of an episode, one line per policy
   (thesis Figs 5.11, 5.13);
@@ -34,12 +34,12 @@ def align_runs(runs: list[list[dict]], key: str) -> tuple[np.ndarray, np.ndarray
 
 
 def plot_learning_curves(groups: dict[str, list[dict] | list[list[dict]]], path: str | os.PathLike,
-                         title: str | None = None, success: tuple[str, str] = ("eval_final_coverage", "final coverage")
-                         ) -> Path:
+                         success: tuple[str, str], title: str | None = None) -> Path:
     """Learning curves to PNG. ``groups`` maps a label to one run's metric rows or to several runs'.
 
     Several runs under one label are drawn as their mean with a ±2 std band (over runs). Panels: the
-    evaluation return and ``success`` (the CSV column and name of the task's primary metric).
+    evaluation return and ``success`` (the CSV column and name of the task's primary metric,
+    :func:`learn.evaluate.success_panel`).
     """
     assert groups, "plot_learning_curves needs at least one run"
     fig = figure(9.0, 3.6)

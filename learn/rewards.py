@@ -48,8 +48,8 @@ class LearningReward:
         scale = self.world.reward_scale
         r = np.asarray(reward, np.float64)
         if self.kind == "linear":
-            cover = np.asarray(info["coverage"], np.float64)
-            r = r + scale * (cover - cover * cover)
+            s = np.asarray(info["success"], np.float64)
+            r = r + scale * (s - s * s)
         elif self.kind == "potential":
             phi2 = potential(env)
             r = r + self.w * scale * (self.gamma * phi2 - self.phi)

@@ -3,7 +3,7 @@
     config.json          the training config (its ``algorithm`` names the class; the world is in world.json)
     world.json           the WorldConfig trained in
     metrics.csv          one row per evaluation (METRIC_COLUMNS, then extra columns)
-    learning_curve.png   evaluation return and final coverage over transitions
+    learning_curve.png   evaluation return and the task's primary metric over transitions
     checkpoint.pt        everything needed to resume exactly, with the replay in replay/ (learn.checkpoint)
     policy_best.npz      the actor with the best evaluation return (the exporter's format)
     policy_last.npz      the latest actor

@@ -23,7 +23,7 @@ ALGORITHM_NAMES = {"magddpg": "MAGDDPG", "magrdpg": "MAGRDPG", "es": "ES"}
 MAX_METRICS_BYTES = 64 * MIB  #: metrics.csv (a row is about 200 bytes; a long run has thousands)
 MAX_CSV_FIELD = 64  #: characters of one metrics.csv field (the trainer writes numbers as %.6g)
 MAX_CSV_LINE = 64 * 1024  #: characters of one metrics.csv line (checked before the csv module parses it)
-PLOTTED_COLUMNS = ("env_steps", "eval_return", "eval_final_coverage")  #: what every trainer writes and plot reads
+PLOTTED_COLUMNS = ("env_steps", "eval_return")  #: what every trainer writes, whatever its task
 
 
 def read_json(path: str | os.PathLike, what: str = "run file") -> dict:

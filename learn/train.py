@@ -402,10 +402,10 @@ class Preparation:
         write_atomic(self.run_dir / "demos.json", json.dumps(info, indent=2, sort_keys=True) + "\n")
         export("policy_bc.npz", mean)
         export("policy_best.npz", mean)
-        sizes = ", ".join(f"{M} robots {bc_m[M]['eval_final_coverage']:.3f} (demonstrator "
-                          f"{demo_m[M]['eval_final_coverage']:.3f})" for M in bc_m)
+        primary, primary_label = success_panel(cfg.task_spec())
+        sizes = ", ".join(f"{M} robots {bc_m[M][primary]:.3f} (demonstrator {demo_m[M][primary]:.3f})" for M in bc_m)
         self.log(f"behaviour cloning: loss {loss:.4f} in {bc_s:.0f} s; evaluation return {mean['eval_return']:.1f}, "
-                 f"final coverage {sizes}")
+                 f"{primary_label} {sizes}")
         return mean["eval_return"]
 
     def critic(self, rng: np.random.Generator, shares: list[int], demo_shares: list[int], stop: StopRequest) -> None:

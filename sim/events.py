@@ -38,7 +38,7 @@ class HeardEvents:
     """Messages received during one control period, flattened over envs and receivers.
 
     All arrays have shape (N,). ``sender`` is the robot index 0..M-1 of a searcher, or -1 for the
-    target beacon (its kilo_uid is ``cfg.target_uid``; searcher i has kilo_uid i + 1).
+    task's transmitting robot (role 1, the uid the world names; searcher i has kilo_uid i + 1).
     ``dist_mm`` is the measured distance (float; integer-valued in worlds with ``dist_integer``).
     """
 

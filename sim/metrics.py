@@ -42,7 +42,7 @@ def time_to_find(coverage: np.ndarray) -> np.ndarray:
 
 
 def final_window(steps: int, fraction: float = FINAL_FRACTION) -> int:
-    """Number of trailing steps averaged by :func:`final_coverage` (at least 1).
+    """Number of trailing steps averaged by :func:`final_success` (at least 1).
 
     >>> final_window(200), final_window(10), final_window(1)
     (50, 3, 1)
@@ -50,15 +50,18 @@ def final_window(steps: int, fraction: float = FINAL_FRACTION) -> int:
     return max(1, math.ceil(steps * fraction - 1e-9))
 
 
-def final_coverage(coverage: np.ndarray, fraction: float = FINAL_FRACTION) -> np.ndarray:
-    """(E, T) → (E,): mean coverage over the last ``final_window(T)`` steps.
+def final_success(success: np.ndarray, fraction: float = FINAL_FRACTION) -> np.ndarray:
+    """(E, T) → (E,): a task's mean success over the last ``final_window(T)`` steps (localisation: final coverage).
 
-    >>> final_coverage(np.array([[0, 0, 0, 0, 0, 0, 1, 0.5]])).tolist()
+    >>> final_success(np.array([[0, 0, 0, 0, 0, 0, 1, 0.5]])).tolist()
     [0.75]
     """
-    c = np.asarray(coverage, np.float64)
-    assert c.ndim == 2, f"coverage must be (episodes, steps), got {c.shape}"
+    c = np.asarray(success, np.float64)
+    assert c.ndim == 2, f"success must be (episodes, steps), got {c.shape}"
     return c[:, -final_window(c.shape[1], fraction):].mean(axis=1)
+
+
+final_coverage = final_success  #: localisation's name of :func:`final_success`
 
 
 @dataclass(frozen=True)
@@ -214,7 +217,7 @@ def success_metrics(rewards: np.ndarray, success: np.ndarray, final_key: str, me
     r = np.asarray(rewards, np.float64)
     c = np.asarray(success, np.float64)
     assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and success {c.shape} must both be (E, T)"
-    return SuccessMetrics(c, r.sum(axis=1), final_coverage(c), final_key, mean_key, ceiling)
+    return SuccessMetrics(c, r.sum(axis=1), final_success(c), final_key, mean_key, ceiling)
 
 
 def compare(table: dict, columns: tuple[tuple[str, str], ...] | None = None) -> str:

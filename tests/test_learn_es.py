@@ -49,8 +49,8 @@ def test_population_members_meet_the_same_episodes():
     theta = torch.stack([base, base, base + 0.3 * torch.randn_like(base)])
     seeds = [np.random.SeedSequence(5, spawn_key=(e,)) for e in range(2)]
     res = rollout_population(pop, theta, world, 3, seeds, 2)
-    assert res.final_coverage.shape == (3, 2)
-    np.testing.assert_array_equal(res.final_coverage[0], res.final_coverage[1])
+    assert res.final_success.shape == (3, 2)
+    np.testing.assert_array_equal(res.final_success[0], res.final_success[1])
     np.testing.assert_array_equal(res.returns[0], res.returns[1])
     # member 2, episode 1, alone
     env = SwarmEnv(world, n_envs=1, n_robots=3, seed=[seeds[1]])
@@ -65,7 +65,7 @@ def test_population_members_meet_the_same_episodes():
         cov[:, t] = info["coverage"]
         ret += r[0]
         h = hist.push(a.numpy(), obs)
-    assert final_coverage(cov)[0] == res.final_coverage[2, 1]
+    assert final_coverage(cov)[0] == res.final_success[2, 1]
     assert ret == pytest.approx(res.returns[2, 1], rel=1e-12)
 
 

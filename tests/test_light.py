@@ -223,7 +223,7 @@ def test_trainers_play_each_swarm_size_in_the_tasks_world_for_it():
     ss = np.random.SeedSequence(3)
     got = TaskFitness("phototaxis", pop, world, 2, (64,), (None,), (4,))(theta, 0, ss)
     seeds = [child(ss, 1, e) for e in range(4)]
-    want = rollout_population(pop, theta, big, 64, seeds, 2, None, PHOTO).final_coverage.mean(axis=1)
-    small = rollout_population(pop, theta, world, 64, seeds, 2, None, PHOTO).final_coverage.mean(axis=1)
+    want = rollout_population(pop, theta, big, 64, seeds, 2, None, PHOTO).final_success.mean(axis=1)
+    small = rollout_population(pop, theta, world, 64, seeds, 2, None, PHOTO).final_success.mean(axis=1)
     np.testing.assert_array_equal(got, want)
     assert not np.array_equal(got, small)

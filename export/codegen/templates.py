@@ -17,7 +17,7 @@ _LOCAL_INCLUDE = re.compile(r'^\s*#\s*include\s+"([A-Za-z0-9_./]+)"\s*$')
 
 
 class _RecordingLoader(jinja2.FileSystemLoader):
-    """A FileSystemLoader that remembers which templates were loaded (tests check coverage)."""
+    """A FileSystemLoader that remembers which templates were loaded (a test checks that each is used)."""
 
     loaded: set[str] = set()
 
@@ -34,7 +34,7 @@ def environment() -> jinja2.Environment:
 
 
 def templates_loaded() -> frozenset[str]:
-    """Names of every template loaded by a render in this process (for the coverage test)."""
+    """Names of every template loaded by a render in this process (for the test that every template is used)."""
     return frozenset(_RecordingLoader.loaded)
 
 

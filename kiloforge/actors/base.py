@@ -379,7 +379,7 @@ class CDense:
 class RenderSpec:
     """What a kind puts into ``kilobot_policy.c`` beside the shared program."""
 
-    memory: tuple[CDefine, ...]  #: defines after KF_N_TARGET_UIDS (the state's sizes)
+    memory: tuple[CDefine, ...]  #: defines after the role table (the state's sizes)
     scratch: tuple[CDefine, ...]  #: defines after the motor modes (the control step's buffers)
     tables: tuple[CTable | CDense, ...]  #: in file order; a CDense stands for its W, B, S arrays
     variables: Mapping[str, Any] = field(default_factory=dict)  #: further template variables of the partial

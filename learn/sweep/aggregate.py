@@ -2,7 +2,7 @@
 
 Per configuration (all trials that differ only in their seed), over its *finished* trials: mean,
 sample standard deviation and 95 % confidence interval (Student t, :func:`sim.metrics.summarise`)
-of the best and the last evaluation's return and final coverage, plus every seed's values.
+of the best and the last evaluation's return and the task's primary metric, plus every seed's values.
 Unfinished trials are listed with their current numbers but do not enter the statistics.
 
 Writes into the sweep directory::
@@ -31,8 +31,9 @@ from . import trial as tr
 from .grid import Grid, Trial, labels
 
 MANIFEST = "sweep.json"  #: the sweep directory's trials and the options of its latest run
+_PRIMARY = tr.SWEEP_TASK.metric(tr.PRIMARY)
 METRICS = (("best_return", "best return"), ("last_return", "last return"),
-           ("best_final_coverage", "best final cov"), ("last_final_coverage", "last final cov"))
+           (f"best_{tr.PRIMARY}", f"best {_PRIMARY.label}"), (f"last_{tr.PRIMARY}", f"last {_PRIMARY.label}"))
 
 
 def stats(values: list[float]) -> dict:
@@ -112,7 +113,7 @@ def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict
     summary = {"sweep_dir": str(sweep_dir), "trials": [_finite_dict(r) for r in records],
                "configurations": configs, "totals": _totals(records)}
     if curves:
-        plot_learning_curves(curves, sweep_dir / "learning_curves.png",
+        plot_learning_curves(curves, sweep_dir / "learning_curves.png", success=(f"eval_{tr.PRIMARY}", _PRIMARY.long),
                              title="learning curves per configuration (mean ± 2 std over seeds)")
         summary["learning_curves"] = "learning_curves.png"
     text = format_tables(configs, records, label)
@@ -157,7 +158,7 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
 
 def format_tables(configs: list[dict], records: list[dict], label: dict[str, str]) -> str:
     """The configuration table (mean ± std [95 % CI] over finished seeds) and the per-trial table."""
-    digits = lambda key: 3 if "coverage" in key else 2  # noqa: E731
+    digits = lambda key: 3 if tr.PRIMARY in key else 2  # noqa: E731
     rows = [[c["label"], f"{c['finished']}/{c['trials']}"] + [_cell(c["metrics"][k], digits(k)) for k, _ in METRICS]
             for c in configs]
     head = _table(["configuration", "seeds"] + [name for _, name in METRICS], rows)
@@ -184,6 +185,7 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
         if status[t.name] == "finished" and d is not None:
             evals.setdefault(t.config_id, []).append((t, d))
     out: dict = {"robots": {}, "episodes": ev.episodes, "steps": ev.steps, "seed": ev.seed}
+    P = tr.PRIMARY
     texts = []
     for M in ev.robots:
         key = str(M)
@@ -195,9 +197,9 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
             per_seed = {t.seed: d["robots"][key]["metrics"][t.name]["summary"] for t, d in members}
             entry = {name: {**stats([s[metric]["mean"] for s in per_seed.values()]),
                             "per_seed": {str(sd): s[metric]["mean"] for sd, s in per_seed.items()}}
-                     for metric, name in (("return", "return"), ("final_coverage", "final_coverage"))}
+                     for metric, name in (("return", "return"), (P, P))}
             summary[label[cid]] = entry
-            rows.append([label[cid], str(len(per_seed)), _cell(entry["return"], 2), _cell(entry["final_coverage"], 3)])
+            rows.append([label[cid], str(len(per_seed)), _cell(entry["return"], 2), _cell(entry[P], 3)])
             curves[label[cid]] = np.array([d["robots"][key]["mean_reward_over_time"][t.name] for t, d in members])
             returns[label[cid]] = np.concatenate([d["robots"][key]["returns"][t.name] for t, d in members])
             world = members[0][1]["world"]["name"]
@@ -205,9 +207,9 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
                 baselines.setdefault(f"{name} ({world})", (members[0][1], name))
         for bname, (d, name) in baselines.items():
             s = d["robots"][key]["metrics"][name]["summary"]
-            summary[bname] = {"return": s["return"], "final_coverage": s["final_coverage"]}
+            summary[bname] = {"return": s["return"], P: s[P]}
             rows.append([bname, "-", f"{s['return']['mean']:.2f} ± {s['return']['ci95']:.2f} (95 % CI, episodes)",
-                         f"{s['final_coverage']['mean']:.3f} ± {s['final_coverage']['ci95']:.3f}"])
+                         f"{s[P]['mean']:.3f} ± {s[P]['ci95']:.3f}"])
             curves[bname] = np.array([d["robots"][key]["mean_reward_over_time"][name]])
             returns[bname] = np.asarray(d["robots"][key]["returns"][name])
         out["robots"][key] = summary
@@ -218,5 +220,5 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
                              title=f"returns, best policies pooled over seeds, {M} robots, {ev.steps} steps")
         texts.append(f"evaluation of the best policies at {M} robots ({ev.episodes} episodes of {ev.steps} steps): "
                      f"mean ± std [95 % CI] over seeds of each trial's mean\n"
-                     + _table(["policy", "seeds", "return", "final coverage"], rows))
+                     + _table(["policy", "seeds", "return", _PRIMARY.long], rows))
     return out, "\n\n".join(texts)

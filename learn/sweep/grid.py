@@ -233,7 +233,7 @@ def build_grid(file: dict | None = None, *, trainer: str | None = None, presets:
     for key, (values, where) in cli.items():
         axes[key] = _axis_values(g.trainer, key, values, where)
     other = [t for t in axes.get("task", []) if t != DEFAULT_TASK]
-    if other:  # trial_numbers and the aggregate tables read localisation's metric columns
+    if other:  # trial_numbers and the aggregate tables read the metric columns of one task (trial.SWEEP_TASK)
         raise ConfigError(f"sweeps aggregate localisation's metrics; task {other[0]} is not supported by learn sweep "
                           "yet (train its seeds with train-es and compare them with learn plot / learn evaluate)")
     g.axes = axes

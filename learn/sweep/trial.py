@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS
+from sim.tasks import DEFAULT_TASK, get_task
 
 from ..config import ConfigError
 
@@ -31,6 +32,8 @@ TRAINERS = ("magddpg", "magrdpg", "es")  #: values of ``--trainer``
 BUDGET_SLACK_S = 1.0  #: a run stopped on time within this of its budget has used it (wall_s is rounded)
 MIN_SESSION_MINUTES = 1e-3  #: a resumed run whose budget is spent still runs to its next episode end
 EVAL_DIR = "evaluation"  #: the final evaluation against the baselines, inside the run directory
+SWEEP_TASK = get_task(DEFAULT_TASK)  #: the task sweeps run (the grid refuses others) and aggregate the metrics of
+PRIMARY = SWEEP_TASK.primary_metric  #: the metric trials and tables report besides the return
 
 
 @dataclass(frozen=True)
@@ -163,15 +166,15 @@ def metric_rows(run_dir: Path) -> list[dict]:
 
 
 def trial_numbers(rows: list[dict]) -> dict[str, float]:
-    """Best and last evaluation of a run: return and final coverage (NaN without evaluations)."""
+    """Best and last evaluation of a run: return and the task's :data:`PRIMARY` metric (NaN without evaluations)."""
     if not rows:
         nan = float("nan")
-        return {"best_return": nan, "last_return": nan, "best_final_coverage": nan, "last_final_coverage": nan,
+        return {"best_return": nan, "last_return": nan, f"best_{PRIMARY}": nan, f"last_{PRIMARY}": nan,
                 "env_steps": 0.0, "wall_s": 0.0}
     best = max(rows, key=lambda r: -math.inf if math.isnan(r["eval_return"]) else r["eval_return"])
     last = rows[-1]
     return {"best_return": best["eval_return"], "last_return": last["eval_return"],
-            "best_final_coverage": best["eval_final_coverage"], "last_final_coverage": last["eval_final_coverage"],
+            f"best_{PRIMARY}": best[f"eval_{PRIMARY}"], f"last_{PRIMARY}": last[f"eval_{PRIMARY}"],
             "env_steps": last["env_steps"], "wall_s": last["wall_s"]}
 
 
