@@ -5,17 +5,16 @@ radius, centred on the beacon (``env.target``). Robots move through their period
 not there (:mod:`sim.kinematics`; the body takes no part in the per-tick contacts); then, once per
 control period, :func:`push_body` settles the contacts:
 
-1. **Pushes.** A robot whose disc overlaps the body by ``d_i`` (it drove that far into it this period)
-   pushes along the contact normal ``n_i`` (from the robot's centre to the body's) with a force
-   ``f_i = min(d_i / d_full, 1)`` in units of one robot's full push, ``d_full = v_max · ΔT`` the depth of a
-   whole period driven straight at it. Robots pushing robots that push the body add nothing (only
+1. **Pushes.** A robot whose disc overlaps the body by at least ``PRESS_FRAC · d_full`` (``d_full = v_max · ΔT``,
+   the depth of a whole period driven straight at it) presses on it: one full push along the contact normal
+   ``n_i`` (from the robot's centre to the body's). Robots pushing robots that push the body add nothing (only
    contacts with the body count).
-2. **Friction.** With ``F = Σ f_i n_i`` and the static friction ``μ = body_friction``: if ``|F| <= μ``
-   the body stays. Otherwise it moves by ``(1 - μ / |F|) · Σ f_i d_i n_i / Σ f_i``: the pushers' mean
-   penetration scaled by the excess force's share (a linear force-speed motor model: k aligned robots
-   pushing at full speed move the body at ``(1 - μ / k)`` of their speed). One robot (``f <= 1``) never
-   moves a body with ``μ >= 1``; k robots pushing the same way move it once ``μ < k``. The body's centre
-   stays ``body_radius_mm`` inside the walls.
+2. **Friction.** With ``F = Σ n_i`` over the pressing robots and the static friction ``μ = body_friction``: if
+   ``|F| <= μ`` the body stays. Otherwise it moves by ``(1 - μ / |F|)`` times their mean penetration ``mean(d_i n_i)``
+   (``d_i`` a robot's overlap): a linear force-speed motor model, so k aligned robots pushing at full speed
+   move the body at ``(1 - μ / k)`` of their speed. k - 1 robots (``|F| <= k - 1``) never move a body with
+   ``μ >= k - 1``; k robots pushing the same way move it once ``μ < k``. The body's centre stays
+   ``body_radius_mm`` inside the walls.
 3. **Hold-off.** Every robot overlapping the body is put back on its rim along the normal (the body
    acts as a wall), robot pairs are separated (:meth:`sim.kinematics.Collider.resolve`), and the two
    repeat until nothing overlaps. Where robots end jammed between the body and a wall the body
@@ -45,7 +44,8 @@ def body_depth(pos: np.ndarray, body: np.ndarray, cfg: WorldConfig) -> tuple[np.
 
 
 def body_move(depth: np.ndarray, normal: np.ndarray, cfg: WorldConfig) -> np.ndarray:
-    """(B, 2) the body's quasi-static move from the robots' overlaps (module doc, steps 1 and 2)."""
+    """(B, 2) the body's quasi-static move from the robots' overlaps ``depth`` (B, M) and normals (module doc,
+    steps 1 and 2)."""
     f = (depth >= PRESS_FRAC * cfg.v_max_mm_s * cfg.control_period_s).astype(np.float64)  # (B, M) pressing robots
     force = np.einsum("bm,bmk->bk", f, normal)
     mag = np.hypot(force[:, 0], force[:, 1])
