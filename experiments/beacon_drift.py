@@ -4,7 +4,7 @@
         --robots 32 --episodes 30 --steps 300 --seed 20261202
 
 For each controller, the same episodes with the beacon taped down (mobility 0) and pushed like a robot
-(mobility 1): final coverage, the packing ceiling at the beacon's *final* position (sim.ceiling: fewer
+(mobility 1): final coverage, the packing ceiling at the beacon's *final* position (sim.tasks.ceiling: fewer
 robots fit in range of a beacon at a wall), final coverage as a fraction of it, how far the beacon moved
 and the share of episodes whose beacon ends within 5 mm of a wall. Controllers: policy artifacts (.npz),
 ``baseline`` (the hand-written searcher), ``oracle`` (experiments/oracle_push.py: every robot driven at

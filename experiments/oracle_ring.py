@@ -29,7 +29,7 @@ import numpy as np
 
 from experiments.oracle_push import episode_args, touching_ahead
 from kiloforge.policies import load_policy, swarm_policy
-from sim.ceiling import capacity
+from sim.tasks.ceiling import capacity
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.kinematics import wrap_angle
@@ -118,7 +118,7 @@ def band_counts(env: SwarmEnv) -> np.ndarray:
     return np.stack([np.histogram(row, bins=BANDS_MM)[0] for row in d[open_]]).mean(axis=0)
 
 
-#: beacon places by the capacity C of its range (sim.ceiling): (name, lowest C, highest C + 1)
+#: beacon places by the capacity C of its range (sim.tasks.ceiling): (name, lowest C, highest C + 1)
 PLACES = {"corner (C < 12)": (0, 12), "wall (12 <= C < 20)": (12, 20), "open (C >= 20)": (20, 10**6)}
 
 

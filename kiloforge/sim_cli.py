@@ -8,10 +8,11 @@
 ``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the
 path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
-``coverage.png`` (all episodes) and ``metrics.json``. ``--suite robustness`` instead runs the policy
+the task's success over time (``<success_plot>.png``, :attr:`sim.tasks.Task.success_plot`; all episodes) and
+``metrics.json``. ``--suite robustness`` instead runs the policy
 in every world variant of :func:`sim.variants.robustness_suite` (of the kilobot world, or the
 artifact's) at each ``--robots`` count and writes ``robustness.json`` and
-``robustness.md`` (final coverage per variant, and as a fraction of nominal). User errors print
+``robustness.md`` (the task's primary metric per variant, and as a fraction of nominal). User errors print
 one line and exit with 2.
 """
 from __future__ import annotations
@@ -35,7 +36,14 @@ from sim.tasks import TASK_HELP, Task, check_policy_task, get_task
 
 EXIT_USAGE = 2
 MAX_EPISODES = 100_000
-OUTPUT_FILES = ("trajectories.png", "episode.gif", "coverage.png", "metrics.json")
+
+
+def output_files(task: type[Task] | Task) -> tuple[str, ...]:
+    """What a run of ``task`` writes into ``--out``, the record (metrics.json) last."""
+    return ("trajectories.png", "episode.gif", f"{task.success_plot}.png", "metrics.json")
+
+
+OUTPUT_FILES = output_files(Task)  #: the files of a run of a task that keeps the default plot name
 SUITE_FILES = ("robustness.md", "robustness.json")  #: the record (kiloforge.io) last, as in OUTPUT_FILES
 SUITES = ("robustness",)
 
@@ -51,7 +59,7 @@ class _Parser(ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sim", description="Run a swarm policy in the kiloforge simulator: metrics, "
-                "trajectory plot, coverage plot and an animated GIF.")
+                "trajectory plot, success-over-time plot and an animated GIF.")
     world = p.add_argument("--world", default=None, help=f"world preset: {', '.join(sorted(PRESETS))} (default: "
                            f"{DEFAULT_WORLD}, or the artifact's world)")
     deprecated_alias(p, "--preset", world)
@@ -72,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--task", default=None, metavar="TASK", help=TASK_HELP)
     p.add_argument("--suite", choices=SUITES, default=None,
-                   help="robustness: final coverage in every world variant (sim.variants) instead of one run")
+                   help="robustness: the task's primary metric in every world variant (sim.variants) instead of one run")
     return p
 
 
@@ -88,7 +96,7 @@ def _load_policy(a: argparse.Namespace, task: Task):
     task's baselines, or a policy file trained for the task."""
     names = list(task.baselines.values())
 
-    world = task.world(preset(a.world or DEFAULT_WORLD))  # the task's beacon and observation layout
+    world = task.world(preset(a.world or DEFAULT_WORLD))  # the task's bodies and observation layout
     if a.steps is not None:
         world = dataclasses.replace(world, episode_steps=a.steps)
     if a.policy in names:
@@ -153,7 +161,8 @@ def run(a: argparse.Namespace) -> dict:
     except ValueError as e:  # e.g. too many discs for the arena
         raise UserError(str(e)) from None
     out = Path(a.out)
-    with _staged_output(out, OUTPUT_FILES) as staging:
+    files = output_files(task)
+    with _staged_output(out, files) as staging:
         res = rollout(env, policy, a.episodes, seed=a.seed, record=1, progress=a.episodes > 1 and not a.quiet)
         m = res.metrics()
         name = desc["kind"] if desc["kind"] != "artifact" else Path(a.policy).name
@@ -175,11 +184,11 @@ def run(a: argparse.Namespace) -> dict:
         render.plot_trajectories(tr.positions[0], target, world, staging / "trajectories.png", title=title)
         render.animate_episode(tr.positions[0], tr.headings[0], target, tr.in_range[0], world,
                                staging / "episode.gif", title=title, label=task.robot_label)
-        render.plot_coverage({name: res.coverage}, staging / "coverage.png",
-                             title=f"{world.name}: {robots} robots, {a.episodes} episodes", ylabel=task.success_label)
+        render.plot_success({name: res.success}, staging / f"{task.success_plot}.png",
+                            title=f"{world.name}: {robots} robots, {a.episodes} episodes", ylabel=task.success_label)
         (staging / "metrics.json").write_text(json.dumps(report, indent=1, sort_keys=True) + "\n")
     print(compare({name: m}, task.columns))
-    print(f"wrote {printable(out)}/: {' '.join(OUTPUT_FILES)}")
+    print(f"wrote {printable(out)}/: {' '.join(files)}")
     return report
 
 

@@ -6,9 +6,9 @@
 * :func:`evaluate_policies` — ``python -m learn evaluate``: policy artifacts and the random and
   hand-written baselines (the searcher and its crowd variant, the pusher) at several swarm sizes
   (thesis §5.1.2: 16 and 32 robots, 500 steps, 500 episodes), with the thesis's plots (mean reward
-  over time, return box plots), a coverage plot, a printed table, a JSON of the numbers and a GIF of
-  one episode. Final coverage is also
-  given as a fraction of each episode's packing ceiling (:mod:`sim.ceiling`; column "of ceiling").
+  over time, return box plots), a plot of the task's success over time, a printed table, a JSON of the numbers
+  and a GIF of one episode. A task with an upper bound (localisation's packing ceiling) also gives its
+  primary metric as a fraction of each episode's bound (column "of ceiling").
 """
 from __future__ import annotations
 
@@ -21,7 +21,6 @@ import numpy as np
 
 from kiloforge.io import file_stem, write_atomic
 from kiloforge.policies import swarm_policy
-from sim.ceiling import mean_capacity, open_capacity
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.metrics import EpisodeMetrics, compare
@@ -105,7 +104,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
     All policies must share one world (the first's) and have been trained for ``task`` (default
     localisation; another is a one-line InputError). Every policy sees the same episode seeds.
     Writes to ``out_dir``: ``reward_over_time_{M}.png``, ``returns_box_{M}.png``,
-    ``coverage_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``; with ``out_dir``
+    ``<task.success_plot>_{M}.png``, ``episode_{name}_{M}.gif`` (first policy), ``evaluation.json``; with ``out_dir``
     None nothing (the tables are only logged). Returns the JSON-ready results.
     """
     assert policies or baselines, "nothing to evaluate"
@@ -138,8 +137,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
                                       "layer_sizes": list(p.layer_sizes), "provenance": p.provenance}
                                   for n, p in policies.items()},
                      "robots": {}}
-    if with_ceiling and world.collisions and world.robot_radius_mm > 0:
-        results["packing"] = {"open_capacity": open_capacity(world), "mean_capacity": mean_capacity(world)}
+    if with_ceiling:
+        results.update(task.bound_report(world))
     for M in robots:
         b = max(1, min(n_envs, episodes))
         size_world = task.world_for(world, M)  # e.g. phototaxis's anchor arena for 64 robots
@@ -162,7 +161,7 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         }
         if size_world != world:
             results["robots"][str(M)]["world"] = size_world.to_dict()
-        if with_ceiling:  # per episode, from each run's own final beacon positions
+        if with_ceiling:  # per episode, from where each run's own episodes ended
             results["robots"][str(M)]["ceiling"] = {n: m.ceiling.round(6).tolist() for n, m in metrics.items()}
 
     if out_dir is not None:
@@ -174,14 +173,14 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
                out_dir: Path, task: Task) -> None:
     """One swarm size's plots in ``out_dir`` (and the GIF of contender ``gif_of``'s first episode, if any)."""
     from .plots import plot_returns_box, plot_reward_over_time
-    from sim.render import animate_episode, plot_coverage
+    from sim.render import animate_episode, plot_success
 
     plot_reward_over_time({n: r.rewards for n, r in runs.items()}, out_dir / f"reward_over_time_{M}.png",
                           title=f"mean reward over time, {M} robots ({world.name} world)")
     plot_returns_box({n: r.rewards.sum(axis=1) for n, r in runs.items()}, out_dir / f"returns_box_{M}.png",
                      title=f"returns, {M} robots, {steps} steps ({world.name} world)")
-    plot_coverage({n: r.coverage for n, r in runs.items()}, out_dir / f"coverage_{M}.png",
-                  title=f"{task.name}: {task.success_label}, {M} robots", ylabel=task.success_label)
+    plot_success({n: r.success for n, r in runs.items()}, out_dir / f"{task.success_plot}_{M}.png",
+                 title=f"{task.name}: {task.success_label}, {M} robots", ylabel=task.success_label)
     if gif_of is not None:
         tr = runs[gif_of].trajectories
         animate_episode(tr.positions[0], tr.headings[0], None if tr.target is None else tr.target[0], tr.in_range[0],
@@ -191,7 +190,7 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
 
 def metrics_row(m: EpisodeMetrics, task: "Task | str | None" = None) -> dict[str, float]:
     """The evaluation columns of the trainer's metrics CSV: return (mean, std), then ``eval_<key>`` for each
-    of the task's evaluation metrics (localisation: final_coverage, mean_coverage, time_to_find, found_rate)."""
+    of the task's evaluation metrics (:attr:`sim.tasks.Task.eval_keys`)."""
     s = m.summary()
     return {"eval_return": s["return"].mean, "eval_return_std": s["return"].std,
             **{f"eval_{k}": s[k].mean for k in get_task(task).eval_keys}}

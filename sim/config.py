@@ -276,6 +276,12 @@ class WorldConfig:
         return self._obs_dim  # type: ignore[attr-defined]
 
     @property
+    def has_roles(self) -> bool:
+        """True when a robot of the task's transmits with a role (localisation's beacon): the firmware gets the role
+        bit, the table of the kilo_uids that take the role and the role's program."""
+        return bool(self.beacon)
+
+    @property
     def tuple_dim(self) -> int:
         """Length of one history tuple (previous action, observation)."""
         return ACTION_DIM + self.obs_dim

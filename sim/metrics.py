@@ -8,7 +8,7 @@ Localisation, per episode (arrays over E episodes of T steps):
   ``T`` when no robot ever is (check ``found`` to tell the two apart);
 * final coverage: mean coverage over the last 25 % of the episode (the last ``ceil(T / 4)`` steps);
 * return: the sum of the team rewards;
-* of ceiling (when the episodes' packing ceilings are given, :mod:`sim.ceiling`): final coverage
+* of ceiling (when the episodes' packing ceilings are given, :mod:`sim.tasks.ceiling`): final coverage
   divided by the episode's ceiling, the highest final coverage the beacon's place allows.
 
 :func:`summarise` gives mean, sample std and a 95 % confidence half-width (Student t) over episodes;

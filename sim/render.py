@@ -9,7 +9,8 @@
 
 The target is ``(2,)`` (a fixed beacon), ``(T+1, 2)`` (its position at every step), or None (a task
 without a beacon).
-* :func:`plot_coverage` — fraction of robots in range over time, mean and 95 % band per policy;
+* :func:`plot_success` (alias ``plot_coverage``) — a task's success over time (localisation: the fraction of
+  robots in range), mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
 Every file is written atomically (:func:`kiloforge.io.atomic_path`); every figure is a
@@ -93,10 +94,10 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray | None, cfg: Wor
     return save_png(fig, path)
 
 
-def plot_coverage(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None,
-                  ylabel: str = "fraction of robots in range") -> Path:
-    """Coverage over time to PNG: per name, ``(E, T)`` fractions → mean line and 95 % CI band."""
-    assert curves, "plot_coverage needs at least one curve"
+def plot_success(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None,
+                 ylabel: str = "fraction of robots in range") -> Path:
+    """A task's success over time to PNG: per name, ``(E, T)`` values in [0, 1] → mean line and 95 % CI band."""
+    assert curves, "plot_success needs at least one curve"
     fig = figure(6.0, 3.6)
     ax = fig.add_subplot(1, 1, 1)
     for k, (name, c) in enumerate(curves.items()):
@@ -168,6 +169,9 @@ class _FramePainter:
         draw.text(self.label_xy, label, fill="black")
         return img
 
+
+
+plot_coverage = plot_success  #: localisation's name of :func:`plot_success`
 
 def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndarray | None, in_range: np.ndarray,
                     cfg: WorldConfig, path: str | os.PathLike, max_frames: int = 80, fps: int = 10,

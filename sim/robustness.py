@@ -1,4 +1,4 @@
-"""The robustness suite runner: a policy's final coverage in every world variant of :mod:`sim.variants`.
+"""The robustness suite runner: a policy's primary task metric in every world variant of :mod:`sim.variants`.
 
     from sim.robustness import run_suite
     table = run_suite(lambda cfg: make_policy("baseline", cfg), preset("kilobot"), robots=(4, 16))
@@ -6,8 +6,8 @@
 
 ``policy_factory(world)`` builds a :class:`sim.rollout.SwarmPolicy` for a world (the baselines, a
 policy artifact's actor, ...). Every variant runs the same episode seeds as the nominal world
-(:func:`sim.rollout.rollout`, seed ``seed``), so spawns are paired; each row gives the final
-coverage mean ± 95 % CI over episodes and its ratio to the nominal world's mean.
+(:func:`sim.rollout.rollout`, seed ``seed``), so spawns are paired; each row gives the task's primary metric
+(its mean ± 95 % CI over episodes) and its ratio to the nominal world's mean.
 """
 from __future__ import annotations
 
@@ -27,19 +27,18 @@ Suite = dict[str, tuple[WorldConfig, "Randomisation | None"]]
 
 @dataclass
 class SuiteTable:
-    """The task's primary metric (localisation: final coverage) per (variant, robots): ``cells[variant][robots]``
-    and each one's ratio to nominal."""
+    """The task's primary metric per (variant, robots): ``cells[variant][robots]`` and each one's ratio to nominal."""
 
     robots: tuple[int, ...]
     episodes: int
     steps: int
     seed: int
+    metric: str  #: the metric's key (:attr:`sim.tasks.Task.primary_metric`)
+    label: str  #: the metric's name in the table
     cells: dict[str, dict[int, Summary]] = field(default_factory=dict)
-    metric: str = "final_coverage"  #: the metric's key
-    label: str = "final coverage"  #: the metric's name in the table
 
     def fraction(self, variant: str, robots: int) -> float | None:
-        """Mean final coverage of ``variant`` as a fraction of the nominal world's (None when that is 0)."""
+        """Mean of the metric in ``variant`` as a fraction of the nominal world's (None when that is 0)."""
         nominal = self.cells["nominal"][robots].mean
         return self.cells[variant][robots].mean / nominal if nominal > 0 else None
 

@@ -99,6 +99,11 @@ class TaskEpisodes(EpisodeSteps):
     rewards: np.ndarray
     task: Any
 
+    @property
+    def success(self) -> np.ndarray:
+        """(E, T) the task's success after each step."""
+        return self.coverage
+
     def metrics(self, ceiling: bool = False):
         """The task's metrics of these episodes (:meth:`sim.tasks.Task.episode_metrics`); ``ceiling``: also
         relative to the task's upper bound (localisation: each episode's packing ceiling)."""

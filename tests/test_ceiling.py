@@ -1,4 +1,4 @@
-"""The packing ceiling (sim/ceiling.py): valid packings, the shipped table, the evaluation's column."""
+"""The packing ceiling (sim/tasks/ceiling.py): valid packings, the shipped table, the evaluation's column."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kiloforge.errors import InputError
-from sim import ceiling
+from sim.tasks import ceiling
 from sim.config import KILOBOT, THESIS
 from sim.env import SwarmEnv
 from sim.baselines import make_policy

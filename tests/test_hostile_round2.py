@@ -37,7 +37,7 @@ class T(Localisation):
 """
 _HOOK_ARGS = {"world": "self, cfg", "spawn": "self, env", "step_info": "self, env", "reward": "self, env, u, info",
               "state": "self, env", "state_dim": "self, cfg, n", "episode_metrics": "self, *a, **k",
-              "has_ceiling": "self, cfg"}
+              "has_ceiling": "self, cfg", "bound_report": "self, cfg"}
 _BAD_BODIES = ["raise ValueError('bad\\nvalue')", "raise ZeroDivisionError", "raise KeyError('k')", "assert False, 'no'",
                "return None", "return 'text'", "return np.full((7, 3), np.nan)"]
 #: (hook, body): every hook with each way of failing, plus returns of the right kind but wrong content
@@ -50,6 +50,7 @@ TASK_HOOKS = [(h, b) for h in _HOOK_ARGS for b in _BAD_BODIES] + [
 ]
 TASK_ATTRS = ["metrics = 5", "metrics = ()", "metrics = ('final_success',)", "features = 'wall'", "features = (1, 2)",
               "beacon = 1", "description = None", "baselines = {'random': 3}", "success_label = b'x'",
+              "success_plot = '../x'", "success_plot = 3",
               "@property\n    def metrics(self):\n        raise RuntimeError('m')"]
 TASK_IMPORTS = ["raise SystemExit(7)", "import sys\nsys.exit('bye')", "class E(BaseException): pass\nraise E('x')",
                 "raise GeneratorExit", "x = 1\x00", "raise ValueError('a\\rb\\x1b[2J')"]
@@ -74,6 +75,7 @@ def _exercise(task) -> None:
     env.state()
     task.episode_metrics(cfg, 3, np.zeros((1, 2)), np.zeros((1, 2)), np.zeros((1, 2)))
     task.has_ceiling(cfg)
+    task.bound_report(cfg)
 
 
 def _one_line(excinfo, *words: str) -> None:

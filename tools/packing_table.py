@@ -3,8 +3,8 @@
     python -m tools.packing_table                 # the shipped table (about 10 min on one core)
     python -m tools.packing_table --out /tmp/t.npz --radius 16.5 --comm 85 --arena 250
 
-For every (dx, dy) wall distance on the grid, :func:`sim.ceiling.pack` searches a packing of discs
-within range of the beacon; the table holds the counts and the configurations (see sim/ceiling.py).
+For every (dx, dy) wall distance on the grid, :func:`sim.tasks.ceiling.pack` searches a packing of discs
+within range of the beacon; the table holds the counts and the configurations (see sim/tasks/ceiling.py).
 Prints the envelope, the open-field capacity and the mean capacity over the env's beacon spawn.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kiloforge.io import write_atomic
-from sim import ceiling
+from sim.tasks import ceiling
 from sim.config import KILOBOT
 
 

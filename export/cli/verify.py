@@ -6,11 +6,11 @@
 
 Quantises the policy exactly as ``python -m export`` does with the same calibration options, then
 for each robot count runs the same episodes (same env seeds) twice: with the float actor and with
-the firmware emulator in the loop (:mod:`export.verify.closed_loop`). Prints mean return, final coverage
-and time to find with 95 % confidence intervals, the paired int8 - float difference, the ratio of
-the int8 to the float final coverage (with a paired-bootstrap interval) and PASS / FAIL against
-the goal (ratio >= 0.97 by default). With ``--out DIR``: ``coverage.png`` (coverage over time,
-mean and 95 % band, float vs int8, one panel per robot count), ``returns_box.png`` and
+the firmware emulator in the loop (:mod:`export.verify.closed_loop`). Prints the mean return and the task's
+metrics with 95 % confidence intervals, the paired int8 - float difference, the ratio of the int8 to the
+float primary metric (with a paired-bootstrap interval) and PASS / FAIL against the goal (ratio >= 0.97 by
+default). With ``--out DIR``: the task's success plot (``<success_plot>.png``, :attr:`sim.tasks.Task.success_plot`:
+success over time, mean and 95 % band, float vs int8, one panel per robot count), ``returns_box.png`` and
 ``closed_loop.json`` (every number, per-episode values included), written all-or-nothing.
 
 Exit status: 0 every robot count passes; 1 some robot count fails the goal; 2 bad input.
@@ -34,7 +34,6 @@ from ..verify.closed_loop import GOAL_RATIO, compare_many
 from .common import (EXIT_FAIL, EXIT_OK, Parser, add_calibration, add_quiet, add_task, check_robots, describe,
                      episodes_arg, load, policy_help, quantise, robots_arg, steps_arg)
 
-COVERAGE_PNG = "coverage.png"
 RETURNS_PNG = "returns_box.png"
 RESULT_JSON = "closed_loop.json"
 
@@ -53,16 +52,17 @@ def verify_parser() -> argparse.ArgumentParser:
                     help="control periods per episode (default: the world's episode length)")
     ap.add_argument("--seed", type=seed_arg, default=0, help="episode seed, a non-negative integer (default 0)")
     ap.add_argument("--out", type=Path, default=None,
-                    help="directory for coverage.png, returns_box.png and closed_loop.json (created if missing)")
+                    help=f"directory for the success plot ({Task.success_plot}.png), returns_box.png and "
+                         "closed_loop.json (created if missing)")
     ap.add_argument("--goal", type=float_arg(0.0, 1.5, lo_open=True), default=GOAL_RATIO,
-                    help=f"pass when int8 final coverage >= GOAL x float final coverage (default {GOAL_RATIO})")
+                    help=f"pass when the int8 primary metric >= GOAL x the float one (default {GOAL_RATIO})")
     add_calibration(ap, "--calib-seed")
     add_quiet(ap)
     return ap
 
 
 def _plots(comps: list, title: str, task: Task) -> tuple[bytes, bytes]:
-    """(coverage.png, returns_box.png) as bytes."""
+    """(the success plot, returns_box.png) as bytes."""
     import numpy as np
     from matplotlib.patches import Rectangle
 
@@ -165,7 +165,7 @@ def run_verify(argv: Sequence[str]) -> int:
         }
         title = f"policy {policy.hash[:8]} ({policy.world.name})"
         cov, box = _plots(comps, title, task)
-        files = {out / COVERAGE_PNG: cov, out / RETURNS_PNG: box,
+        files = {out / f"{task.success_plot}.png": cov, out / RETURNS_PNG: box,
                  out / RESULT_JSON: json.dumps(doc, indent=1, allow_nan=False)}  # the record last
         write_files_atomic(files, create=True)
         print(f"wrote {', '.join(printable(p) for p in files)}")

@@ -54,7 +54,7 @@ KILOLIB_MAIN_FRAMES_B = 10  #: main / kilo_start frames
 #: the libgcc helpers (32-bit multiply and shifts) linked in at build time.
 CODE_ESTIMATE_B: dict[str, int] = {
     "base": 5_500,  #: setup/loop/rate limit, rx ISR + queue, neighbour table, observe, actor input, both
-                    #: dense kernels, motor schedule, message + CRC, beacon role, libgcc helpers
+                    #: dense kernels, motor schedule, message + CRC, role switch, libgcc helpers
     "per_layer": 25,  #: one more dense layer (its call and activation step)
 }
 LAYER_DESCRIPTOR_B = 15  #: per layer: the kernel's layer struct (initialised .data: flash and SRAM)
@@ -190,15 +190,15 @@ def neighbour_entry_bytes(world: WorldConfig) -> int:
 
 
 def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numfmt.DEFAULT_INPUT_EXP,
-             n_target_uids: int = 1) -> Budget:
+             n_role_uids: int = 1) -> Budget:
     """Analytic budget of an actor of ``kind`` with architecture ``arch`` (the kind's size type).
 
-    ``e_in`` (the input exponent) shapes the trimmed sensing tables; ``n_target_uids``: kilo_uids that
-    run the beacon role (a uint16 table; none in a world without a beacon). Only what the world's beacon
-    and observation layout render is counted.
+    ``e_in`` (the input exponent) shapes the trimmed sensing tables; ``n_role_uids``: kilo_uids that
+    take the task's role (a uint16 table; none in a world without roles, :attr:`sim.config.WorldConfig.has_roles`).
+    Only what the world's roles and observation layout render is counted.
     """
-    if not world.beacon:
-        n_target_uids = 0
+    if not world.has_roles:
+        n_role_uids = 0
     spec = kind.budget_spec(world, arch, e_in)
     n_layers = len(spec.dense)
     n_w = sum(o * i for o, i in spec.dense)
@@ -217,8 +217,8 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
         BudgetItem("flash", "shifts uint8", n_rows, f"1 x {n_rows} rows"),
         *([BudgetItem("flash", "RBF table", rbf_b, f"{world.n_rbf} non-zero windows + index, e_in {e_in}")]
           if world.has_feature("rbf") else []),
-        BudgetItem("flash", "target, action, uid tables", tgt_b + numfmt.TABLE_SIZE + 2 * n_target_uids,
-             f"{tgt_b} + {numfmt.TABLE_SIZE} int8 + {n_target_uids} uint16"),
+        BudgetItem("flash", "target, action, uid tables", tgt_b + numfmt.TABLE_SIZE + 2 * n_role_uids,
+             f"{tgt_b} + {numfmt.TABLE_SIZE} int8 + {n_role_uids} uint16"),
         *spec.flash,
         *spec.memory,
         BudgetItem("sram", "neighbour table", world.neighbour_table_size * neighbour_entry_bytes(world),

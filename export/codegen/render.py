@@ -218,7 +218,7 @@ def _layout_context(w: WorldConfig) -> dict[str, Any]:
     """What the shared template renders from the world's roles and observation layout (``roles``: one robot of the
     task transmits with a role bit, the others track whether they heard it)."""
     counters = {c for f in w.features for c in FEATURE_COUNTERS.get(f, ())}
-    return {"roles": w.beacon, "obs_features": list(w.features),
+    return {"roles": w.has_roles, "obs_features": list(w.features),
             "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
             "reads_light": any(FEATURES[f].reads_light for f in w.features),
             "observe_counters": ", ".join(sorted(counters))}

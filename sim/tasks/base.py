@@ -84,6 +84,9 @@ class Task(ABC):
     description: ClassVar[str] = ""  #: one line for --help and docs
     success_label: ClassVar[str] = "success"  #: the per-step success signal as a plot axis names it
     robot_label: ClassVar[str] = "successful"  #: the robots ``robot_success`` highlights, as animations count them
+    #: the file stem of the success-over-time plots the tools write (``coverage.png``, ``coverage_<M>.png``: the
+    #: name they had before tasks existed, kept for every task)
+    success_plot: ClassVar[str] = "coverage"
     primary_metric: ClassVar[str] = "final_success"  #: the metric key that ranks policies: final success
     mean_metric: ClassVar[str] = "mean_success"  #: the key of success averaged over the episode
     #: every scalar metric :meth:`episode_metrics` reports, primary first (tables show them in this order)
@@ -168,6 +171,11 @@ class Task(ABC):
     def has_ceiling(self, cfg: WorldConfig) -> bool:
         """True when the task reports an upper bound on final success in ``cfg`` (tables: "of ceiling")."""
         return False
+
+    def bound_report(self, cfg: WorldConfig) -> dict[str, Any]:
+        """Top-level entries of ``evaluation.json`` about the upper bound in ``cfg`` (asked only when
+        :meth:`has_ceiling`; default none)."""
+        return {}
 
     def metric(self, key: str) -> Metric:
         for m in self.metrics:

@@ -16,11 +16,11 @@ import numpy as np
 from kiloforge.errors import InputError
 
 from ..config import WorldConfig
-from .base import Metric, Task
+from .base import TASK_NAME, Metric, Task
 
 #: the class attributes the tools read, and the type each must have
 _ATTRS: dict[str, tuple[type, ...]] = {"description": (str,), "success_label": (str,), "robot_label": (str,),
-                                       "primary_metric": (str,), "mean_metric": (str,), "beacon": (bool,),
+                                       "success_plot": (str,), "primary_metric": (str,), "mean_metric": (str,), "beacon": (bool,),
                                        "metrics": (tuple, list), "features": (tuple, list), "baselines": (dict,)}
 
 
@@ -40,6 +40,9 @@ def check_attributes(task: Task, where: str) -> None:
         raise InputError(f"{where}: 'features' must be feature names (text)")
     if not all(isinstance(k, str) and isinstance(v, str) for k, v in values["baselines"].items()):
         raise InputError(f"{where}: 'baselines' must map labels (text) to names (text)")
+    if not TASK_NAME.fullmatch(values["success_plot"]):
+        raise InputError(f"{where}: 'success_plot' names files: it must match {TASK_NAME.pattern}, "
+                         f"got {values['success_plot']!r}")
 
 
 def _array(value: Any, shape: tuple[int, ...], what: str) -> None:
@@ -87,6 +90,8 @@ _HOOKS: dict[str, Callable[..., None] | None] = {
     "episode_metrics": lambda task, *a: None if all(hasattr(a[-1], n) for n in ("summary", "to_dict"))
     else _fail("must return metrics with summary() and to_dict() (sim.metrics.success_metrics)"),
     "has_ceiling": lambda task, cfg, out: None if isinstance(out, (bool, np.bool_)) else _fail("must return a bool"),
+    "bound_report": lambda task, cfg, out: None if isinstance(out, Mapping) and all(isinstance(k, str) for k in out)
+    else _fail("must return a dict with text keys"),
 }
 
 

@@ -6,7 +6,7 @@ fraction of searchers whose true distance to the beacon is at most the communica
 team reward is the thesis's §4.2 ``scale * (coverage² - penalty · (1/M) Σ_i ||a_i||²)``. The
 critic's state is the beacon's position and every robot's pose, normalised. Baselines: the
 hand-written searcher, the pusher (:mod:`sim.baselines`) and the random walk; the upper bound is
-the packing ceiling (:mod:`sim.ceiling`).
+the packing ceiling (:mod:`sim.tasks.ceiling`).
 """
 from __future__ import annotations
 
@@ -80,14 +80,23 @@ class Localisation(Task):
     def episode_metrics(self, cfg: WorldConfig, n_robots: int, rewards: np.ndarray, success: np.ndarray,
                         beacon: np.ndarray | None, ceiling: bool = False) -> Any:
         """:class:`sim.metrics.EpisodeMetrics`; with ``ceiling`` also final coverage as a fraction of each
-        episode's packing ceiling (:mod:`sim.ceiling`, at the final beacon position)."""
-        from ..ceiling import episode_ceiling
+        episode's packing ceiling (:mod:`sim.tasks.ceiling`, at the final beacon position)."""
+        from .ceiling import episode_ceiling
         from ..metrics import episode_metrics
 
         return episode_metrics(rewards, success, episode_ceiling(cfg, n_robots, beacon) if ceiling else None)
 
     def has_ceiling(self, cfg: WorldConfig) -> bool:
-        """The packing ceiling (:mod:`sim.ceiling`), where its table covers the world."""
-        from ..ceiling import has_ceiling
+        """The packing ceiling (:mod:`sim.tasks.ceiling`), where its table covers the world."""
+        from .ceiling import has_ceiling
 
         return has_ceiling(cfg)
+
+    def bound_report(self, cfg: WorldConfig) -> dict[str, Any]:
+        """``packing``: how many robots fit in range of the beacon in the open and on average over its places
+        (worlds of disc robots)."""
+        from .ceiling import mean_capacity, open_capacity
+
+        if not (cfg.collisions and cfg.robot_radius_mm > 0):
+            return {}
+        return {"packing": {"open_capacity": open_capacity(cfg), "mean_capacity": mean_capacity(cfg)}}
