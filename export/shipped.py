@@ -28,6 +28,8 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
 }, "phototaxis": {
     "stop_in_light": "stop_in_light_policy.npz",  #: sim.tasks.phototaxis' StopInLight, tuned StopInLightParams
     "run_and_tumble": "run_and_tumble_policy.npz",  #: sim.tasks.phototaxis' RunAndTumble, tuned RunAndTumbleParams
+}, "transport": {
+    "shadow_pusher": "shadow_pusher_policy.npz",  #: sim.tasks.transport's ShadowPusher, tuned ShadowPusherParams
 }}
 
 

@@ -25,6 +25,7 @@ from kiloforge.actors.mlp import QuantizedMLP
 from kiloforge.actors.registry import kind_of
 from kiloforge.actors.run_and_tumble import QuantizedRunAndTumble
 from kiloforge.actors.searcher import RUN_TABLE_SIZE, QuantizedSearcher
+from kiloforge.actors.shadow_pusher import QuantizedShadowPusher
 from kiloforge.actors.stop_in_light import QuantizedStopInLight
 from kiloforge.io import write_atomic
 from kiloforge.numfmt import HIDDEN_EXP, QuantLayer
@@ -134,10 +135,23 @@ def golden_light_rules() -> tuple[QuantizedStopInLight, QuantizedRunAndTumble]:
                                   **common))  # -2 = ceil(-40 * 2**6 / 2**10)
 
 
+def golden_shadow_pusher() -> QuantizedShadowPusher:
+    """The hand-written transport rule with non-default parameters and fixed integer thresholds, in transport's kilobot
+    world (a beacon: the object's robot)."""
+    from sim.config import preset
+    from sim.tasks.transport import ShadowPusherParams
+
+    world = get_task("transport").world(preset("kilobot"))  # a heavy body needs a collision world
+    p = ShadowPusherParams(dark=600, fall=40, rise=40, back_mm=6.0, touch_mm=70.0, run_steps=32, turn_max_steps=5,
+                           back_steps=3)
+    return QuantizedShadowPusher(params=p, tumble_t=2048, dark_t=38, fall_t=-2, rise_t=2, touch_t=52, back_t=4,
+                                 e_in=E_IN, world=world, policy_hash=GOLDEN_HASH, **sensing_tables(world, E_IN))
+
+
 def golden_policies() -> dict[str, QuantizedActor]:
     """Kind name -> its golden quantised policy."""
     return {q.kind: q for q in (golden_mlp(), golden_gru(), golden_lstm(), golden_searcher(), golden_aggregator(),
-                                *golden_light_rules())}
+                                *golden_light_rules(), golden_shadow_pusher())}
 
 
 def render(qp: QuantizedActor) -> dict[str, str]:

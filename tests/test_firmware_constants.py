@@ -65,8 +65,9 @@ def test_contract_constants_are_rendered_from_python(program):
             else:
                 assert c_int(d[key]) == want, (name, key)
         for key, rgb in LEDS.items():
-            if key in BEACON_ONLY and not beacon:
-                assert key not in d, (name, key)
+            if (key in BEACON_ONLY and not beacon) or (key == "KF_LED_NBR_SENSING"
+                                                       and not qp.world.has_feature("nbr_sensing")):
+                assert key not in d, (name, key)  # that LED shows the nbr_sensing input
             else:
                 assert d[key] == "(RGB({}, {}, {}))".format(*rgb), (name, key)
     assert (TARGET_FILE in files) == beacon

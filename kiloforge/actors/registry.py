@@ -15,9 +15,11 @@ from .lstm import LSTM
 from .mlp import MLP
 from .run_and_tumble import RUN_AND_TUMBLE
 from .searcher import SEARCHER
+from .shadow_pusher import SHADOW_PUSHER
 from .stop_in_light import STOP_IN_LIGHT
 
-KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER, AGGREGATOR, STOP_IN_LIGHT, RUN_AND_TUMBLE)}
+KINDS: dict[str, ActorKind] = {k.name: k for k in (MLP, GRU, LSTM, SEARCHER, AGGREGATOR, STOP_IN_LIGHT, RUN_AND_TUMBLE,
+                                                   SHADOW_PUSHER)}
 
 
 def kind_named(name: object) -> ActorKind:

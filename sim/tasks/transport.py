@@ -37,8 +37,10 @@ import numpy as np
 
 from kiloforge.errors import InputError
 
+from ..baselines import COUNTER_MAX, check_fields
 from ..config import ACTION_DIM, WorldConfig
 from ..kinematics import wrap_angle
+from ..light import ADC_MAX
 from ..metrics import SuccessMetrics, Summary, summarise
 from .base import Metric, Task, squared_success_reward
 from .localisation import Localisation
@@ -180,10 +182,16 @@ class Transport(Task):
 # ------------------------------------------------------------------------------------------------
 # The hand-written baseline
 # ------------------------------------------------------------------------------------------------
+#: each ShadowPusherParams field's range: what the firmware's integer rule holds (readings 0..1023, uint8 periods)
+PARAM_RANGES = {"dark": (0, ADC_MAX), "fall": (0, ADC_MAX), "rise": (0, ADC_MAX), "back_mm": (0.0, 255.0),
+                "touch_mm": (0.0, 255.0), "run_steps": (1, 0xFFFF), "turn_max_steps": (1, COUNTER_MAX),
+                "back_steps": (0, COUNTER_MAX)}
+
+
 @dataclass(frozen=True)
 class ShadowPusherParams:
     """Constants of :class:`ShadowPusher`, tuned by ``python -m tools.tune_transport`` (validation seed 777: 0.165 at 16
-    robots)."""
+    robots). Each is checked against :data:`PARAM_RANGES` (InputError naming it and its range)."""
 
     dark: int = 550  #: dark (the object's shadow, or far from the lamp): a held reading below this (ADC counts)
     fall: int = 5  #: dark: turn when the reading fell by more than this (heading away from the lamp)
@@ -194,6 +202,9 @@ class ShadowPusherParams:
     turn_max_steps: int = 3  #: a turn pivots 1..this many periods
     back_steps: int = 4  #: having lost the object's signal, pivot this many periods (about half a turn; 0: never)
 
+    def __post_init__(self) -> None:
+        check_fields(self, PARAM_RANGES, "shadow_pusher")
+
 
 class ShadowPusher:
     """Occlusion-based transport with a Kilobot's senses (Chen et al. 2015's rule, the lamp as the goal). A robot in
@@ -202,7 +213,8 @@ class ShadowPusher:
     those that stray into the object's shadow run up it to the object's back. Near the object (its robot heard):
     in the dark, head for it (turn when the distance grows) and, touching it, push straight on; lit and touching,
     turn away (no pushing from the lamp's side); losing its signal, turn back. Reads ``light`` (level and change) and
-    ``target``. Vectorised over (B, M)."""
+    ``target``. Vectorised over (B, M). Its random numbers come from :meth:`draws` (the firmware's twin draws them
+    from xorshift32: kiloforge/actors/shadow_pusher.py)."""
 
     def __init__(self, cfg: WorldConfig, params: ShadowPusherParams | None = None) -> None:
         self.cfg = cfg
@@ -218,8 +230,14 @@ class ShadowPusher:
         self.was_heard = np.zeros(shape, bool)  # the object's robot was heard last period ...
         self.prev_d = np.zeros(shape)  # ... at this distance
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
+    def draws(self, shape: tuple[int, ...], turn_max: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One period's draws: uniform [0, 1) for a random turn, its pivot periods (1..turn_max), its direction
+        (True: left)."""
         assert self.rng is not None, "ShadowPusher.act before reset"
+        u = self.rng.random(shape)
+        return u, self.rng.integers(1, turn_max + 1, shape), self.rng.random(shape) < 0.5
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
         p, shape = self.p, obs.shape[:2]
         level, change = obs[..., self.i_light] * 1024.0, obs[..., self.i_light + 1] * 1024.0
         t = obs[..., self.i_target]
@@ -227,19 +245,17 @@ class ShadowPusher:
         d = t * self.cfg.comm_radius_mm
         touching = heard & (d <= p.touch_mm)
         dark = level < p.dark
-        near = dark & heard  # in the shadow near the object: head for it
+        near = dark & heard  # in the dark near the object: head for it
         away = self.was_heard & (d > self.prev_d + p.back_mm)
-        lost = self.was_heard & ~heard  # the object's signal just ended: turn back (half a turn)
+        lost = self.was_heard & ~heard  # the object's signal just ended: turn back
         self.was_heard, self.prev_d = heard, d
         push = dark & touching
         wrong = np.where(near, away, np.where(dark, change < -p.fall, (change > p.rise) | touching))
-        explore = ~near & (self.rng.random(shape) < 1.0 / p.run_steps)
-        tumble = ~push & (wrong | explore)
-        start = tumble & (self.turn_left == 0)
-        n_turn = np.where(lost, p.back_steps, self.rng.integers(1, p.turn_max_steps + 1, shape))
-        start |= lost & (p.back_steps > 0)
-        self.turn_left = np.where(push, 0, np.where(start, n_turn, self.turn_left))
-        self.turn_dir = np.where(start, self.rng.random(shape) < 0.5, self.turn_dir)
+        u, steps, left = self.draws(shape, p.turn_max_steps)
+        tumble = ~push & (wrong | (~near & (u < 1.0 / p.run_steps)))
+        start = (tumble & (self.turn_left == 0)) | (lost & (p.back_steps > 0))
+        self.turn_left = np.where(push, 0, np.where(start, np.where(lost, p.back_steps, steps), self.turn_left))
+        self.turn_dir = np.where(start, left, self.turn_dir)
         turning = self.turn_left > 0
         a = np.ones(shape + (ACTION_DIM,))
         a[..., 0] = np.where(turning & ~self.turn_dir, 0.0, 1.0)  # (0, 1): a right pivot
