@@ -27,6 +27,8 @@ def test_transport_is_registered_with_its_world():
     TASK.check_world(WORLD)
     with pytest.raises(InputError, match="heavy body"):
         TASK.check_world(dataclasses.replace(preset("kilobot"), obs_features=WORLD.obs_features))
+    with pytest.raises(InputError, match="needs a world where robot discs collide"):
+        TASK.world(preset("thesis"))
 
 
 def test_readings_behind_the_object_are_in_its_shadow():

@@ -105,6 +105,9 @@ class Transport(Task):
         cfg = super().world(cfg)
         if cfg.body_radius_mm > 0:
             return cfg
+        if not (cfg.collisions and cfg.robot_radius_mm > 0):
+            raise InputError(f"task 'transport' needs a world where robot discs collide (robots push the object), "
+                             f"e.g. --world kilobot; world '{cfg.name}' has point robots or no collisions")
         return dataclasses.replace(cfg, body_radius_mm=BODY_RADIUS_MM, body_friction=PUSHERS - 1 + FRICTION_MARGIN,
                                    lamps=f"side:0,{LAMP_PEAK}", light_wall=cfg.light_floor,
                                    episode_steps=EPISODE_STEPS, **SENSOR)
