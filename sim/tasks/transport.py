@@ -46,7 +46,7 @@ from .base import Metric, Task, squared_success_reward
 from .localisation import Localisation
 from .phototaxis import SENSOR
 
-BODY_RADIUS_MM = 50.0  #: the object's radius: a robot touching it is 66.5 mm from its robot, within radio range
+BODY_RADIUS_MM = 60.0  #: the object's radius: a robot touching it is 76.5 mm from its robot, within radio range
 PUSHERS = 3  #: robots pushing the same way that move the object (k: its friction is k - 1 + FRICTION_MARGIN pushes)
 #: k - 1 full pushes (at most k - 1 robots) never move the object; k pushing within about ±50° of each other do
 FRICTION_MARGIN = 0.2
@@ -193,17 +193,17 @@ PARAM_RANGES = {"dark": (0, ADC_MAX), "fall": (0, ADC_MAX), "rise": (0, ADC_MAX)
 
 @dataclass(frozen=True)
 class ShadowPusherParams:
-    """Constants of :class:`ShadowPusher`, tuned by ``python -m tools.tune_transport`` (validation seed 777: 0.165 at 16
+    """Constants of :class:`ShadowPusher`, tuned by ``python -m tools.tune_transport`` (validation seed 777: 0.228 at 16
     robots). Each is checked against :data:`PARAM_RANGES` (InputError naming it and its range)."""
 
     dark: int = 550  #: dark (the object's shadow, or far from the lamp): a held reading below this (ADC counts)
     fall: int = 5  #: dark: turn when the reading fell by more than this (heading away from the lamp)
     rise: int = 10  #: lit: turn when the reading rose by more than this (heading towards the lamp)
     back_mm: float = 4.0  #: dark near the object: turn when its distance grew by more than this (heading away)
-    touch_mm: float = 72.0  #: pushing: the object's robot at most this far (touching it)
-    run_steps: int = 10  #: besides, turn with probability 1 / this per period (exploration)
+    touch_mm: float = 79.0  #: pushing: the object's robot at most this far (touching it)
+    run_steps: int = 20  #: besides, turn with probability 1 / this per period (exploration)
     turn_max_steps: int = 3  #: a turn pivots 1..this many periods
-    back_steps: int = 4  #: having lost the object's signal, pivot this many periods (about half a turn; 0: never)
+    back_steps: int = 3  #: having lost the object's signal, pivot this many periods (45° each; 0: never)
 
     def __post_init__(self) -> None:
         check_fields(self, PARAM_RANGES, "shadow_pusher")
