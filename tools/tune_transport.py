@@ -19,7 +19,9 @@ from sim.tasks.transport import ShadowPusher, ShadowPusherParams, Transport
 
 VALIDATION_SEED = 777
 #: the third grid, for the 60 mm object (the first two were for a 50 mm one); its best (touch_mm 79, dark 550, back_steps
-#: 3, run_steps 20: 0.228 on 20 episodes) are the defaults. First grid
+#: 3, run_steps 20: 0.228 on 20 episodes) are the defaults. A fourth grid after it, fall 5 / 10 / 20 x rise 5 / 10 / 20 x
+#: dark 500 / 550, found nothing clearly better (fall 10: 0.256 ± 0.076; at e_in 6 the firmware cannot tell a fall of
+#: 5 counts from one of 10). First grid
 #: (10 episodes): dark 450 / 500, back_steps 3 / 4, touch_mm 72 / 80, fall 5 / 10, rise 10 / 20: best dark 500,
 #: back_steps 4, touch_mm 72, fall 5, rise 10 (0.137). Second grid (20 episodes): dark 500 / 550 / 600, back_steps 4 / 5,
 #: run_steps 10 / 20 / 40: best dark 550, back_steps 4, run_steps 10 (0.165)
