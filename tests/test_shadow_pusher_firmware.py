@@ -99,12 +99,32 @@ def test_host_build_equals_emulator_on_fuzzed_streams(tmp_path):
 
 @needs_cc
 def test_export_writes_both_programs_and_verifies(tmp_path, capsys):
-    """`python -m export --task transport --policy shadow_pusher --verify host`: exit 0, the searchers' program and
-    the object robot's kilobot_target.c written, bit-exact against the emulator."""
+    """`python -m export --task transport --policy shadow_pusher --verify avr` (host where avr-gcc or simavr is
+    missing): exit 0, bit-exact, the searchers' program and the object robot's kilobot_target.c written."""
     from export.cli.main import main
+    from export.verify import avr
 
-    rc = main(["--task", "transport", "--policy", "shadow_pusher", "--out", str(tmp_path / "t.c"), "--verify", "host",
-               "--quiet"])
-    assert rc == 0, capsys.readouterr().err
+    mode = "host" if avr.missing_tools(simulate=True) else "avr"
+    rc = main(["--task", "transport", "--policy", "shadow_pusher", "--out", str(tmp_path / "t.c"), "--verify", mode,
+               "--robots-calib", "4", "--calib-steps", "20"])
+    text = capsys.readouterr().out
+    assert rc == 0 and "bit-exact" in text, text
     assert (tmp_path / "t.c").is_file() and (tmp_path / "kilobot_target.c").is_file()
     assert "kf_forward" in (tmp_path / "t.c").read_text()
+
+
+@pytest.mark.avr
+def test_avr_build_fits_the_budget():
+    """avr-gcc builds the shipped rule within the flash and SRAM budget; the estimate is within 10 % of it."""
+    from export.codegen.budget import FLASH_LIMIT_B, SRAM_LIMIT_B, estimate
+    from export.verify import avr
+    from kiloforge.actors.light_rules import LightRuleArch
+    from tests.avr_tools import require_avr
+
+    require_avr()
+    qp = shipped()[1]
+    exact = avr.exact_budget(render_firmware(qp), qp, stack_steps=20)
+    b = estimate(SHADOW_PUSHER, WORLD, LightRuleArch())
+    assert b.with_exact(exact).ok, b.table()
+    assert exact["flash"] <= FLASH_LIMIT_B and exact["sram_user"] <= SRAM_LIMIT_B, exact
+    assert abs(b.flash_analytic - exact["flash"]) <= 0.1 * exact["flash"], (b.flash_analytic, exact)
