@@ -6,7 +6,9 @@ One control period per :meth:`SwarmEnv.step`:
    Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
    motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
    collision worlds are pushed apart, the target beacon's disc too (``cfg.beacon_mobility``: 0 =
-   fixed, 1 = pushed like a robot). Everything that follows uses the beacon's current position.
+   fixed, 1 = pushed like a robot); a beacon riding on a heavy body (``cfg.body_radius_mm > 0``) takes no
+   part in that: the body settles once per period after the moves (:mod:`sim.body`). Everything that
+   follows uses the beacon's current position.
 2. **Hear.** The radio stage of :mod:`sim.radio` (thesis or tick-level mode) gives the period's
    messages; messages carry each sender's ``sensing`` flag of its last control step.
 3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
