@@ -49,7 +49,7 @@ def test_kind_is_registered_and_shipped_for_task_transport():
     kilobot world (rewrite it with python -m tools.ship_rules when either changes)."""
     p, qp = shipped()
     assert kind_named("shadow_pusher") is SHADOW_PUSHER and p.kind == "shadow_pusher"
-    assert p.task_ref == TaskRef("transport", 1) and p.world == WORLD and p.params == ShadowPusherParams()
+    assert p.task_ref == TaskRef("transport", 2) and p.world == WORLD and p.params == ShadowPusherParams()
     assert p.hash == shadow_pusher_policy(preset("kilobot")).hash, "stale: python -m tools.ship_rules"
     c = render_firmware(qp, generator_version="t")[POLICY_FILE]
     assert "KF_TOUCH_T" in c and "KF_BACK_T" in c and "kf_dense" not in c

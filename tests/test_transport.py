@@ -13,7 +13,7 @@ from sim.light import BODY_SHADE
 from sim.radio import light_readings
 from sim.rollout import rollout
 from sim.tasks import get_task
-from sim.tasks.transport import LAMP_PEAK, PUSHERS, TransportMetrics
+from sim.tasks.transport import LAMP_PEAK, PUSHERS, START_DISTANCE_MM, TransportMetrics
 
 TASK = get_task("transport")
 WORLD = TASK.world(preset("kilobot"))
@@ -42,6 +42,18 @@ def test_readings_behind_the_object_are_in_its_shadow():
     got = light_readings(pos, w, rngs, body=body)[0]
     np.testing.assert_array_equal(got, np.rint([w.light_floor + (1 - BODY_SHADE) * lamp, w.light_floor + lamp]))
     np.testing.assert_array_equal(light_readings(pos, w, rngs)[0], np.rint([w.light_floor + lamp] * 2))
+
+
+def test_object_starts_its_start_distance_short_of_the_goal_zone():
+    """Every episode's object starts START_DISTANCE_MM short of the goal line (progress 0), inside the arena."""
+    env = SwarmEnv(WORLD, 16, 4, seed=3, task=TASK)
+    env.reset(seed=3)
+    short = TASK.goal_along(WORLD) - env.body_start[:, 0]  # the lamp is at the +x wall
+    assert np.all((START_DISTANCE_MM[0] <= short) & (short <= START_DISTANCE_MM[1]))
+    assert np.all(np.abs(env.body_start) <= WORLD.arena_half_mm - WORLD.body_radius_mm)
+    np.testing.assert_array_equal(TASK.step_info(env)["success"], 0.0)
+    with pytest.raises(InputError, match="no room for the object's start"):
+        TASK.check_world(dataclasses.replace(WORLD, arena_half_mm=150.0))
 
 
 @pytest.mark.parametrize("robots", [1, 2])

@@ -13,9 +13,12 @@ Sensing is a Kilobot's: the object's robot transmits (robots hear their distance
 feature), the ambient-light sensor (the graded ``light`` feature: the shadow and the gradient), the
 neighbours' distances (``rbf``). No bearings, no positions.
 
-*Episode*: the object starts on the dark half (centre x in [-3a/10, -a/10], y in [-2a/5, 2a/5]); the goal
-zone is the strip of object centres within :data:`GOAL_DEPTH_MM` of the lamp's wall. Robots start
-uniformly over the arena, off the object.
+*Episode*: the goal zone is the strip of object centres within :data:`GOAL_DEPTH_MM` of the lamp's wall; the
+object starts :data:`START_DISTANCE_MM` short of it along the lamp's direction (uniform in that range; across it,
+y in [-2a/5, 2a/5]): in the kilobot arena its centre starts at x in [-30, 20] mm and the zone begins at x = 50 mm.
+Robots start uniformly over the arena, off the object. :data:`EPISODE_STEPS` (500, the thesis benchmark's length,
+which ``learn evaluate`` runs) with this start distance lets the hand-written rule bring the object into the zone in
+about half the episodes at 16 robots (docs/results/transport.md).
 
 *Success* of a step: the object's progress towards the goal, ``(x - x0) / (x_goal - x0)`` along the lamp's
 direction, clipped to [0, 1]; ``final_displacement`` is its mean over the last quarter of the episode (every
@@ -51,9 +54,11 @@ PUSHERS = 3  #: robots pushing the same way that move the object (k: its frictio
 #: k - 1 full pushes (at most k - 1 robots) never move the object; k pushing within about ±50° of each other do
 FRICTION_MARGIN = 0.2
 LAMP_PEAK = 900  #: ADC counts the side lamp adds at its wall (0 at the opposite wall)
-GOAL_DEPTH_MM = 100.0  #: the goal zone: object centres within this of the lamp's wall
+GOAL_DEPTH_MM = 200.0  #: the goal zone: object centres within this of the lamp's wall
 EPISODE_STEPS = 500  #: control periods per episode (the hand-written rule needs most of them)
-START_X = (-0.3, -0.1)  #: the object's start x, as fractions of arena_half_mm
+#: the object's start: this far (mm, uniform) short of the goal zone along the lamp's direction. At 16 robots the
+#: hand-written rule moves the object about 35 mm in 500 periods on average (gathering three pushers takes most of them)
+START_DISTANCE_MM = (30.0, 80.0)
 START_Y = 0.4  #: the object's start |y| at most, as a fraction of arena_half_mm
 
 
@@ -85,7 +90,7 @@ class TransportMetrics(SuccessMetrics):
 
 class Transport(Task):
     name = "transport"
-    version = 1
+    version = 2
     description = "robots push a heavy object, which no one or two of them can move, towards a lamp (cooperation)"
     success_label = "object's progress to the goal"
     robot_label = "touching the object"
@@ -118,8 +123,11 @@ class Transport(Task):
             raise InputError(f"world '{cfg.name}' has no heavy body or no side lamp (body_radius_mm "
                              f"{cfg.body_radius_mm:g}, lamps {cfg.lamps!r}); task 'transport' needs both "
                              "(Task.world(cfg) makes them)")
-        if cfg.arena_half_mm - GOAL_DEPTH_MM <= START_X[1] * cfg.arena_half_mm:
-            raise InputError(f"world '{cfg.name}': arena_half_mm {cfg.arena_half_mm:g} leaves no way to the goal zone")
+        room = cfg.arena_half_mm - cfg.body_radius_mm  # the object's centre stays within this of the middle
+        goal = self.goal_along(cfg)
+        if not (-room <= goal - START_DISTANCE_MM[1] and goal < room):
+            raise InputError(f"world '{cfg.name}': arena_half_mm {cfg.arena_half_mm:g} has no room for the object's "
+                             f"start {START_DISTANCE_MM[1]:g} mm short of a goal zone {GOAL_DEPTH_MM:g} mm deep")
 
     # --- geometry ---------------------------------------------------------------------------------
     def _axis(self, cfg: WorldConfig) -> np.ndarray:
@@ -138,7 +146,8 @@ class Transport(Task):
 
     # --- the task interface -----------------------------------------------------------------------
     def spawn(self, env) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The object on the dark half, robots uniform over the arena (the env redraws those on the object)."""
+        """The object :data:`START_DISTANCE_MM` short of the goal zone, robots uniform over the arena (the env redraws
+        those on the object)."""
         cfg, B, M = env.cfg, env.n_envs, env.n_robots
         a, h = cfg.arena_half_mm, env.spawn_box()
         u = self._axis(cfg)
@@ -146,7 +155,7 @@ class Transport(Task):
         pos = np.empty((B, M, 2))
         heading = np.empty((B, M))
         for e, rng in enumerate(env.init_streams):  # loop over envs: each owns its generator
-            along = rng.uniform(START_X[0] * a, START_X[1] * a)
+            along = self.goal_along(cfg) - rng.uniform(*START_DISTANCE_MM)
             across = rng.uniform(-START_Y * a, START_Y * a)
             body[e] = along * u + across * np.array([-u[1], u[0]])
             pos[e] = rng.uniform(-h, h, (M, 2))
@@ -193,17 +202,18 @@ PARAM_RANGES = {"dark": (0, ADC_MAX), "fall": (0, ADC_MAX), "rise": (0, ADC_MAX)
 
 @dataclass(frozen=True)
 class ShadowPusherParams:
-    """Constants of :class:`ShadowPusher`, tuned by ``python -m tools.tune_transport`` (validation seed 777: 0.228 at 16
-    robots). Each is checked against :data:`PARAM_RANGES` (InputError naming it and its range)."""
+    """Constants of :class:`ShadowPusher`, tuned by ``python -m tools.tune_transport`` (validation seed 777, 16 robots,
+    100 episodes: final displacement 0.666, 49 % in the goal zone). Each is checked against :data:`PARAM_RANGES`
+    (InputError naming it and its range)."""
 
-    dark: int = 550  #: dark (the object's shadow, or far from the lamp): a held reading below this (ADC counts)
+    dark: int = 650  #: dark (the object's shadow, or far from the lamp): a held reading below this (ADC counts)
     fall: int = 5  #: dark: turn when the reading fell by more than this (heading away from the lamp)
     rise: int = 10  #: lit: turn when the reading rose by more than this (heading towards the lamp)
     back_mm: float = 4.0  #: dark near the object: turn when its distance grew by more than this (heading away)
     touch_mm: float = 79.0  #: pushing: the object's robot at most this far (touching it)
     run_steps: int = 20  #: besides, turn with probability 1 / this per period (exploration)
     turn_max_steps: int = 3  #: a turn pivots 1..this many periods
-    back_steps: int = 3  #: having lost the object's signal, pivot this many periods (45° each; 0: never)
+    back_steps: int = 4  #: having lost the object's signal, pivot this many periods (45° each; 0: never)
 
     def __post_init__(self) -> None:
         check_fields(self, PARAM_RANGES, "shadow_pusher")
