@@ -26,6 +26,8 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
     "default": "aggregation_policy.npz",
     "aggregator": "aggregator_policy.npz",  #: sim.tasks.aggregation's hand-written rule, tuned AggregatorParams
 }, "phototaxis": {
+    #: learned from random weights by evolution strategies (docs/results/phototaxis.md: the sizes recipe, seed 2)
+    "default": "phototaxis_policy.npz",
     "stop_in_light": "stop_in_light_policy.npz",  #: sim.tasks.phototaxis' StopInLight, tuned StopInLightParams
     "run_and_tumble": "run_and_tumble_policy.npz",  #: sim.tasks.phototaxis' RunAndTumble, tuned RunAndTumbleParams
 }, "transport": {

@@ -227,13 +227,14 @@ def test_sweep_refuses_other_tasks():
     assert build_grid(trainer="es", task=["localisation"], seeds=[1]).axes["task"] == ["localisation"]
 
 
-def test_shipped_aggregation_default_is_an_aggregation_policy():
-    """--task aggregation --policy default is the shipped learned policy: task aggregation v1, its world's layout."""
-    from export.shipped import load_task_policy, shipped_names
+@pytest.mark.parametrize("task", ["aggregation", "phototaxis"])
+def test_shipped_learned_default_is_a_policy_of_its_task(task):
+    """--task T --policy default is T's shipped learned policy: task T v1, T's world layout; refused for another task."""
+    from export.shipped import SHIPPED_POLICIES, load_task_policy, shipped_names
 
-    assert {"default", "aggregator"} <= set(shipped_names("aggregation"))
-    p = load_task_policy(None, "aggregation")
-    assert p.task_ref == TaskRef("aggregation", 1) and p.kind == "mlp"
-    get_task("aggregation").check_world(p.world)  # no beacon, wall + RBF inputs
-    with pytest.raises(InputError, match="trained for task aggregation v1, not localisation v1"):
-        load_task_policy(Path(__file__).parents[1] / "export" / "data" / "aggregation_policy.npz", "localisation")
+    assert "default" in shipped_names(task)
+    p = load_task_policy(None, task)
+    assert p.task_ref == TaskRef(task, 1) and p.kind == "mlp"
+    get_task(task).check_world(p.world)
+    with pytest.raises(InputError, match=f"trained for task {task} v1, not localisation v1"):
+        load_task_policy(Path(__file__).parents[1] / "export" / "data" / SHIPPED_POLICIES[task]["default"], "localisation")
