@@ -35,7 +35,7 @@ from kiloforge.policies import load_policy, save_policy
 from learn.config import ESConfig
 from learn.es_train import actor_algo, set_output_bias, train_es
 from learn.evaluate import evaluate_policies
-from sim.config import HELD_OUT_SEED
+from sim.config import HELD_OUT_SEED, VALIDATION_SEED
 from sim.tasks import get_task
 
 COMMON = dict(demo_policy="none", eval_every=5, eval_episodes=8, generations=200, max_minutes=12)
@@ -114,7 +114,8 @@ def evaluate(task: str, runs: list[Path], robots: list[int], episodes: int, seed
         rows[name] = {M: cell(res, M, name) for M in robots}
         if i == 0:
             baselines = {b: {M: cell(res, M, b) for M in robots} for b in get_task(task).baselines}
-    print(f"{key} on {episodes} held-out episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
+    which = "held-out" if seed == HELD_OUT_SEED else "validation" if seed == VALIDATION_SEED else "other"
+    print(f"{key} on {episodes} {which} episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
     print("| policy | " + " | ".join(f"{M} robots" for M in robots) + " |")
     print("|---|" + "---:|" * len(robots))
     for name, r in (rows | baselines).items():

@@ -12,12 +12,11 @@ import argparse
 import dataclasses
 import itertools
 
-from sim.config import BENCHMARK_STEPS, preset
+from sim.config import BENCHMARK_STEPS, VALIDATION_SEED, preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 from sim.tasks.aggregation import AggregatorParams, Aggregation, ProbabilisticAggregator
 
-VALIDATION_SEED = 777
 #: the fourth and last grid, around the third's best; its best (stop 0.2, leave 0.7, decay 1.0, run 60: 0.923)
 #: are AggregatorParams' defaults. First grid (stop 0.05..0.6, leave 0.002..0.03, decay 0.5..8,
 #: run 8 / 25): stop 0.05, leave 0.03, decay 0.5, run 25, 0.605. Second (stop 0.01..0.1, leave 0.03..0.1,

@@ -13,12 +13,11 @@ import argparse
 import dataclasses
 import itertools
 
-from sim.config import BENCHMARK_STEPS, preset
+from sim.config import BENCHMARK_STEPS, VALIDATION_SEED, preset
 from sim.env import SwarmEnv
 from sim.rollout import rollout
 from sim.tasks.phototaxis import Phototaxis, RunAndTumble, RunAndTumbleParams, StopInLight, StopInLightParams
 
-VALIDATION_SEED = 777
 #: (rule, its parameters, the grid): the second grids, around the first's best; their best are the rules' defaults
 #: (StopInLight threshold 550, run 5, turn 2: 0.920; RunAndTumble fall 12, run 40, turn 6: 0.515). First grids:
 #: StopInLight threshold 400 / 500 / 600, run 5..40, turn 2 / 4: best 600, run 5, turn 2, 0.914;
