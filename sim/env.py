@@ -45,12 +45,13 @@ from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
 from .tasks import Task, get_task
-from .features import held_light
+from .features import beacon_sends_light, held_light, held_object_light
 from .light import draw_sensors
 
 ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clipped)
 MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
-_STREAMS = ("init", "radio", "light")
+#: per-env random streams; "beacon_light" (the beacon's own light sensor) is drawn only in worlds with ``object_light``
+_STREAMS = ("init", "radio", "light", "beacon_light")
 
 
 
@@ -236,7 +237,7 @@ class SwarmEnv:
         seqs = env_seed_sequences(seed, self.n_envs)
         self.seed_sequences = seqs
         streams = [[np.random.default_rng(_child(ss, k)) for ss in seqs] for k in range(len(_STREAMS))]
-        self._rng_init, self._rng_radio, self._rng_light = streams
+        self._rng_init, self._rng_radio, self._rng_light, self._rng_beacon_light = streams
 
     @property
     def init_streams(self) -> list[np.random.Generator]:
@@ -306,6 +307,11 @@ class SwarmEnv:
         self._prev_wall = np.zeros((B, M), np.float32)
         self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
         self._sensors = draw_sensors(self.cfg, M, self._rng_light)  # per-robot light sensor gain and offset
+        self._beacon_light = self._object_held = self._beacon_sensor = None
+        if beacon_sends_light(self.cfg):  # the beacon reads the light and sends its held reading
+            self._beacon_sensor = draw_sensors(self.cfg, 1, self._rng_beacon_light)
+            self._beacon_light = np.full(B, -1, np.int64)  # none until its first control tick
+            self._object_held = np.full((B, M), -1, np.int64)  # what each robot holds of it (-1: none yet)
         self._rand_word = self.rand_hard = None
         if self.cfg.has_feature("random"):  # last from the init stream: worlds without it draw as before
             self.rand_hard = np.stack([g.integers(0, 256, M) for g in self._rng_init]).astype(np.uint8)  # setup()'s rand_hard()
@@ -415,15 +421,27 @@ class SwarmEnv:
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 
+    def _beacon_reading(self) -> np.ndarray:
+        """(B,) the beacon's ambient-light reading now: the robots' sensor model at the body's centre, on top of it,
+        so unshaded (its own gain and offset, noise and dropout from its stream)."""
+        return light_readings(self.target[:, None, :], self.cfg, self._rng_beacon_light, self.world_draw.wall_zone_mm,
+                              self._beacon_sensor, self.world_draw)[:, 0].astype(np.int64)
+
     def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm, self._sensors,
                                self.world_draw, self.target if self._heavy_body else None)
         if self._rand_word is not None:  # the firmware steps its word once per control step
             self._rand_word = xorshift32(self._rand_word)
+        if self._beacon_light is not None:  # this period's beacon messages carry its held reading
+            period.t_light = self._beacon_light.take(period.t_env)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held,
-                                    self._rand_word)
+                                    self._rand_word, self._object_held)
         if self.cfg.has_feature("light"):  # only the light feature reads the held reading
             self._light_held = held_light(light, self._light_held)
+        if self._beacon_light is not None:
+            heard = (flags > 0) & (self._beacon_light >= 0)[:, None]
+            self._object_held = held_object_light(np.where(heard, self._beacon_light[:, None], -1), self._object_held)
+            self._beacon_light = held_light(self._beacon_reading(), self._beacon_light)  # read at the control tick
         self.sensing = flags
         if self.cfg.has_feature("wall"):
             self._prev_wall = obs[..., self.cfg.obs_index("wall")].copy()

@@ -9,7 +9,8 @@ what it hears, in float; the firmware does the same in fixed point.
 Per receiver and control period (semantics shared with the firmware):
 
 1. Events are taken in arrival order: by ``tick`` (0 .. period_ticks-1), ties in array order.
-2. Target messages (``role == ROLE_TARGET``) fill one slot: the latest distance wins.
+2. Target messages (``role == ROLE_TARGET``) fill one slot: the latest distance wins; the latest light reading
+   a target message carries (``light`` >= 0) is kept too (the ``object_light`` feature holds it across periods).
 3. Searcher messages go into a neighbour table of ``cfg.neighbour_table_size`` entries. A sender
    gets an entry at its first message of the period while the table has room; when the table is
    full, messages from senders without an entry are dropped for the rest of the period. Each later
@@ -49,10 +50,12 @@ class HeardEvents:
     dist_mm: np.ndarray  # (N,) float64, measured distance
     role: np.ndarray  # (N,) uint8, ROLE_SEARCHER or ROLE_TARGET
     flag: np.ndarray  # (N,) uint8, sender's "I sense the target" flag carried in the message
+    #: (N,) int, the beacon's light reading a target message carries (-1: none); None: no message carries one
+    light: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.env.shape[0]
-        for name in ("rx", "sender", "tick", "dist_mm", "role", "flag"):
+        for name in ("rx", "sender", "tick", "dist_mm", "role", "flag") + (("light",) if self.light is not None else ()):
             arr = getattr(self, name)
             assert arr.shape == (n,), f"HeardEvents.{name} has shape {arr.shape}, expected ({n},)"
 
@@ -81,6 +84,8 @@ class PeriodSummary:
     table_sender: np.ndarray  # (K,) int
     table_dist_mm: np.ndarray  # (K,) float, latest distance
     table_flag: np.ndarray  # (K,) uint8, latest flag
+    #: (B, M) int, the light reading of the latest target message that carried one this period (-1: none)
+    target_light: np.ndarray | None = None
 
 
 def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int) -> PeriodSummary:
@@ -94,6 +99,7 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
     # target slot: latest target message per receiver
     target_heard = np.zeros(B * M, bool)
     target_dist = np.zeros(B * M)
+    target_light = np.full(B * M, -1, np.int64)
     is_t = role == ROLE_TARGET
     if is_t.any():
         g_t, d_t = group[is_t], dist[is_t]
@@ -102,6 +108,12 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
         last = _last_index_per_key(g_t)
         target_heard[g_t[last]] = True
         target_dist[g_t[last]] = d_t[last]
+        if events.light is not None:
+            lit = is_t & (events.light[order] >= 0)
+            g_l = group[lit]
+            if g_l.size:
+                last = _last_index_per_key(g_l)
+                target_light[g_l[last]] = events.light[order][lit][last]
 
     # neighbour table: first-arrival rank per receiver, latest values per (receiver, sender)
     s = ~is_t
@@ -126,23 +138,26 @@ def summarise(events: HeardEvents, cfg: WorldConfig, n_envs: int, n_robots: int)
         t_env = t_rx = t_snd = np.zeros(0, np.int64)
         t_d, t_f = np.zeros(0), np.zeros(0, np.uint8)
     return PeriodSummary(target_heard.reshape(B, M), target_dist.reshape(B, M), t_env, t_rx, t_snd,
-                         t_d, t_f)
+                         t_d, t_f, target_light.reshape(B, M))
 
 
 def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-            prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None,
+            prev_object_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and the robots' new sensing flags (B, M) uint8.
 
     ``light`` (B, M) int: ambient-light readings at the control tick (-1 = busy, keep last flag).
     ``prev_wall`` (B, M) float: last period's wall flag (0 at reset).
     ``prev_light`` (B, M) int: the held light reading before this period (-1: none; the ``light`` feature).
+    ``prev_object_light`` (B, M) int: the beacon reading held before this period (-1: none; ``object_light``).
     """
     B, M = light.shape
     assert prev_wall.shape == (B, M), f"prev_wall shape {prev_wall.shape} != light shape {(B, M)}"
     summ = summarise(events, cfg, B, M)
     obs = np.zeros((B, M, cfg.obs_dim), np.float64)
     for name in cfg.features:
-        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg, prev_light, rand_word)
+        obs[..., cfg.obs_slice(name)] = reference(name, summ, light, prev_wall, cfg, prev_light, rand_word,
+                                                     prev_object_light)
     return obs.astype(np.float32), summ.target_heard.astype(np.uint8)
 
 

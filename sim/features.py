@@ -20,6 +20,10 @@ since the last control step ``(h - h_prev) / 1024`` (0 when this step's reading 
 was held before). The firmware block quantises both at the input exponent: level ``(h · ONE) >> 10``,
 change the difference of levels.
 ``target``: ``min(d / comm_radius, 1)`` when the beacon was heard this period, else -1.
+``object_light``: the beacon's own ambient-light reading, which it puts in its messages (it reads at its control
+ticks and sends its held reading: :data:`export.contract.firmware.MSG_LIGHT_BYTE`), as ``L / 1024`` with L the
+reading of the latest beacon message that carried one, held between messages and periods; -1 before any. The
+firmware block writes ``(L · ONE) >> 10`` (the ``light`` level's scale, so a policy can compare the two).
 ``nbr_sensing``: 1 when a table entry's latest message says its sender senses the target.
 ``random``: ``b / 128`` with b the signed top byte of the robot's xorshift32 word (:mod:`kiloforge.xorshift`),
 stepped once per control step; the word starts at ``rng_seed(kilo_uid, rand_hard)`` (searcher i has kilo_uid
@@ -54,6 +58,7 @@ class Feature:
     parts: tuple[str, ...] = ()  #: several named inputs (``<name>_<part>``), else one
     reads_light: bool = False  #: reads get_ambientlight() (the program reads it once per control step)
     random: bool = False  #: reads the robot's xorshift32 word (stepped once per control step)
+    beacon_light: bool = False  #: reads the beacon's light reading in its messages (the beacon reads and sends it)
 
     def width(self, cfg: WorldConfig) -> int:
         return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
@@ -65,6 +70,8 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
             parts=("level", "change"), reads_light=True),
     Feature("target", "distance to the beacon / comm radius in [0, 1] when heard this period, else -1",
             needs_beacon=True, input_name="target_dist"),
+    Feature("object_light", "the beacon's broadcast light reading / 1024, the latest heard (held), else -1",
+            needs_beacon=True, beacon_light=True),
     Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the beacon, else 0",
             needs_beacon=True, uses_flag=True),
     Feature("random", "a uniform draw in [-1, 1) from the robot's xorshift32 stream, new each control period",
@@ -95,6 +102,11 @@ def parse_features(spec: str, beacon: bool, where: str) -> tuple[str, ...]:
     return names
 
 
+def beacon_sends_light(cfg: WorldConfig) -> bool:
+    """True when the beacon puts its light reading in its messages: the world's layout reads it (``object_light``)."""
+    return bool(cfg.beacon) and any(FEATURES[f].beacon_light for f in cfg.features)
+
+
 def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
     """ψ_k(d) / rbf_norm for every k, zero beyond the communication radius. Shape d.shape + (n_rbf,)."""
     d = np.asarray(d_mm, dtype=np.float64)[..., None]
@@ -120,16 +132,29 @@ def light_feature(light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
     return np.stack([np.maximum(h, 0.0), change], axis=-1) / 1024.0
 
 
+def held_object_light(target_light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
+    """(B, M) the beacon reading each robot holds after this period: ``target_light`` (the period's latest beacon
+    message's reading, -1 where none was heard or carried one) where >= 0, else ``prev_held`` (-1: none yet)."""
+    return np.where(target_light >= 0, target_light, prev_held)
+
+
+def object_light_feature(held: np.ndarray) -> np.ndarray:
+    """(B, M, 1) float64 ``object_light`` feature from the held beacon readings (-1: none)."""
+    return np.where(held >= 0, held / 1024.0, -1.0)[..., None]
+
+
 def random_feature(rand_word: np.ndarray) -> np.ndarray:
     """(B, M, 1) float64 ``random`` feature: the words' signed top bytes / 128."""
     return (top_byte(rand_word) / 128.0)[..., None]
 
 
 def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-              prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> np.ndarray:
+              prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None,
+              prev_object_light: np.ndarray | None = None) -> np.ndarray:
     """Feature ``name`` of every robot in float64, shape (B, M, width): the definition the firmware block
     and the fast path follow. ``prev_light`` (B, M): the held reading before this step (-1: none).
-    ``rand_word`` (B, M) uint32: the robots' xorshift32 words after this step's draw (``random``)."""
+    ``rand_word`` (B, M) uint32: the robots' xorshift32 words after this step's draw (``random``).
+    ``prev_object_light`` (B, M): the beacon reading held before this step (-1: none; ``object_light``)."""
     B, M = light.shape
     if name == "wall":
         return wall_flag(light, prev_wall, cfg)[..., None]
@@ -137,6 +162,9 @@ def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.n
         return light_feature(light, np.full((B, M), -1) if prev_light is None else prev_light)
     if name == "target":
         return np.where(summ.target_heard, np.minimum(summ.target_dist_mm / cfg.comm_radius_mm, 1.0), -1.0)[..., None]
+    if name == "object_light":
+        prev = np.full((B, M), -1) if prev_object_light is None else prev_object_light
+        return object_light_feature(held_object_light(summ.target_light, prev))
     if name == "nbr_sensing":
         sensing_nbr = np.zeros(B * M)
         np.maximum.at(sensing_nbr, summ.table_env * M + summ.table_rx, summ.table_flag.astype(np.float64))

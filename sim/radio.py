@@ -49,7 +49,7 @@ import numpy as np
 from . import compiled, grid
 from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
-from .features import light_feature, random_feature
+from .features import held_object_light, light_feature, object_light_feature, random_feature
 from .light import SensorDraw, sensor_readings
 from .variants import WorldDraw
 
@@ -83,6 +83,9 @@ class RadioPeriod:
     #: (``s_dist == s_udist[s_uidx]``), set when distances are symmetric (no noise)
     s_udist: np.ndarray | None = None
     s_uidx: np.ndarray | None = None
+    #: optional: (Nt,) int the beacon's light reading each target message carries (-1: none yet), set by the env
+    #: in worlds whose observation reads it (``object_light``)
+    t_light: np.ndarray | None = None
     _events: HeardEvents | None = field(default=None, repr=False)
 
     def events(self) -> HeardEvents:
@@ -99,9 +102,11 @@ class RadioPeriod:
                                    np.full(self.s_env.shape, ROLE_SEARCHER, np.uint8)])
             flag = np.concatenate([np.zeros(self.t_env.shape, np.uint8), self.s_flag])
             dist = np.concatenate([self.t_dist, self.s_dist])
+            light = None if self.t_light is None else np.concatenate(
+                [self.t_light, np.full(self.s_env.shape, -1, np.int64)])[o]
             self._events = HeardEvents(env[o].astype(np.int32), rx[o].astype(np.int32),
                                        snd[o].astype(np.int32), tick[o].astype(np.int16),
-                                       dist[o].astype(np.float64), role[o], flag[o])
+                                       dist[o].astype(np.float64), role[o], flag[o], light)
         return self._events
 
 
@@ -377,7 +382,8 @@ def _run_ends(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
-                 prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None,
+                 prev_object_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`sim.events.observe` straight from the period's message arrays (no sorted event list).
 
     Per (receiver, sender) run of messages: the first tick ranks the sender for the neighbour table,
@@ -421,6 +427,13 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if cfg.has_feature("target"):
         obs[..., cfg.obs_index("target")] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0),
                                                      -1.0).reshape(B, M)
+    if cfg.has_feature("object_light"):
+        t_light = np.full(B * M, -1, np.int64)  # the latest target message's reading that carries one
+        if tg.size and period.t_light is not None:
+            lit = np.flatnonzero(period.t_light >= 0)  # one reading per env and period: the beacon reads at control ticks
+            t_light[tg.take(lit)] = period.t_light.take(lit)
+        prev = np.full((B, M), -1) if prev_object_light is None else prev_object_light
+        obs[..., cfg.obs_slice("object_light")] = object_light_feature(held_object_light(t_light.reshape(B, M), prev))
     if d.size:
         rcv = np.flatnonzero(counts)  # receivers with table entries
         cnt = counts[rcv]
@@ -441,8 +454,9 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
 
 def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
                    fast: bool = True, prev_light: np.ndarray | None = None,
-                   rand_word: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   rand_word: np.ndarray | None = None,
+                   prev_object_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Observations (B, M, obs_dim) float32 and new sensing flags (B, M) uint8 for a period."""
     if fast:
-        return observe_fast(period, light, prev_wall, cfg, prev_light, rand_word)
-    return observe(period.events(), light, prev_wall, cfg, prev_light, rand_word)
+        return observe_fast(period, light, prev_wall, cfg, prev_light, rand_word, prev_object_light)
+    return observe(period.events(), light, prev_wall, cfg, prev_light, rand_word, prev_object_light)

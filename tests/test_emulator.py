@@ -22,7 +22,7 @@ def _events(rows) -> np.ndarray:
     for i, r in enumerate(rows):
         robot, tick, uid, role, flag, dist = r[:6]
         typ, ver = (r[6], r[7]) if len(r) > 6 else (fwspec.DEFAULT_MSG_TYPE, fwspec.MSG_VERSION)
-        ev[i] = (robot, tick, uid, role, flag, typ, ver, dist)
+        ev[i] = (robot, tick, uid, role, flag, typ, ver, dist, 0)
     return ev
 
 

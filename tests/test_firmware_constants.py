@@ -1,6 +1,7 @@
 """Each constant of the number format and the firmware contract is defined once, in Python, and the rendered C uses it."""
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -50,6 +51,25 @@ CONTRACT = {  # rendered name -> its one definition (in both programs)
 BEACON_ONLY = ("KF_ROLE_BIT", "KF_SENSING_BIT", "KF_LED_BEACON", "KF_LED_SENSING", "KF_LED_NBR_SENSING")
 LEDS = {"KF_LED_OFF": fw.LED_OFF, "KF_LED_BEACON": fw.LED_BEACON, "KF_LED_SENSING": fw.LED_SENSING,
         "KF_LED_NBR_SENSING": fw.LED_NBR_SENSING}
+
+
+def test_beacon_light_constants_are_rendered_from_python():
+    """Both programs of a world whose layout reads the beacon's light (object_light) define the message's light byte,
+    LIGHT_NONE and the ADC's maximum from export.contract; programs without it (every golden policy) none of them."""
+    from export.codegen.render import render_firmware
+    from sim.config import preset
+    from sim.light import ADC_MAX
+    from tests.fixtures import synthetic_qpolicy
+
+    world = dataclasses.replace(preset("kilobot"), obs_features="light,target,object_light,rbf")
+    files = render_firmware(synthetic_qpolicy(world, 2, (5,)), generator_version="t")
+    for name in (POLICY_FILE, TARGET_FILE):
+        d = defines(files[name])
+        assert c_int(d["KF_MSG_LIGHT_BYTE"]) == fw.MSG_LIGHT_BYTE and c_int(d["KF_LIGHT_NONE"]) == fw.LIGHT_NONE
+        assert c_int(d["KF_ADC_MAX"]) == ADC_MAX
+    for qp in golden_policies().values():
+        for text in render(qp).values():
+            assert "KF_MSG_LIGHT_BYTE" not in text and "kf_beacon_light" not in text
 
 
 def test_contract_constants_are_rendered_from_python(program):

@@ -53,6 +53,8 @@ def test_every_template_is_rendered():
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
     light = dataclasses.replace(preset("kilobot"), beacon=False, obs_features="light,rbf,random")  # light and random
     render_firmware(synthetic_qpolicy(light, 2, (5,)), generator_version="t")
+    obj = dataclasses.replace(preset("kilobot"), obs_features="light,target,object_light,rbf")  # the beacon's light
+    render_firmware(synthetic_qpolicy(obj, 2, (5,)), generator_version="t")
     gru = random_gru_policy(preset("kilobot"), 4)
     render_firmware(quantize_gru(gru, calibration_from_sequences(gru, np.zeros((1, 2, gru.in_dim)))),
                     generator_version="t")

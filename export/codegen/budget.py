@@ -30,7 +30,7 @@ from kiloforge import numfmt
 from kiloforge.actors.base import ActorKind, BudgetItem, FloatPolicy, QuantizedActor, Resize
 from kiloforge.actors.registry import kind_of
 from sim.config import WorldConfig
-from sim.features import FEATURES
+from sim.features import FEATURES, beacon_sends_light
 
 from ..contract import firmware as fw
 from .cformat import clamp_index_table, nonzero_windows
@@ -62,6 +62,8 @@ LAYER_DESCRIPTOR_B = 15  #: per layer: the kernel's layer struct (initialised .d
 # --- SRAM estimate --------------------------------------------------------------------------------
 RX_ENTRY_B = 8  #: uid (2) + raw distance_measurement_t (4) + role/flag (1) + tick (1)
 NEIGHBOUR_ENTRY_B = 4  #: uid (2) + distance (1) + sensing flag (1, only when a feature reads it)
+BEACON_LIGHT_RX_B = 2  #: an rx entry's beacon light reading (worlds where the beacon sends it: object_light)
+BEACON_LIGHT_STATE_B = 4  #: the held object_light level and flag, the beacon role's held reading
 MISC_STATE_B = 32  #: tick counters, previous command, wall flag, target slot, schedule, role, heads
 CONTROL_STACK_B = 80  #: estimated peak stack of the control step (frames + saved registers)
 
@@ -204,6 +206,9 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
     n_w = sum(o * i for o, i in spec.dense)
     n_rows = sum(o for o, _ in spec.dense)
     rbf_b, tgt_b = sensing_table_bytes(world, e_in)
+    light_msg = beacon_sends_light(world)
+    rx_b = RX_ENTRY_B + BEACON_LIGHT_RX_B * light_msg
+    misc_b = MISC_STATE_B + BEACON_LIGHT_STATE_B * light_msg
     code_note = f"{CODE_ESTIMATE_B['base']} + {CODE_ESTIMATE_B['per_layer']} x {n_layers} layers"
     if spec.code_b:
         code_note += f" + {spec.code_b} {spec.code_note}"
@@ -223,9 +228,9 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
         *spec.memory,
         BudgetItem("sram", "neighbour table", world.neighbour_table_size * neighbour_entry_bytes(world),
              f"{world.neighbour_table_size} x {neighbour_entry_bytes(world)} B"),
-        BudgetItem("sram", "rx queue", fw.RXQ_CAPACITY * RX_ENTRY_B, f"{fw.RXQ_CAPACITY} x {RX_ENTRY_B} B"),
+        BudgetItem("sram", "rx queue", fw.RXQ_CAPACITY * rx_b, f"{fw.RXQ_CAPACITY} x {rx_b} B"),
         BudgetItem("sram", "outgoing message", fw.MSG_BYTES, "message_t"),
-        BudgetItem("sram", "misc state", MISC_STATE_B, "estimate"),
+        BudgetItem("sram", "misc state", misc_b, "estimate"),
         *spec.scratch,
         BudgetItem("sram", "layer descriptors", LAYER_DESCRIPTOR_B * n_layers, f"{LAYER_DESCRIPTOR_B} x {n_layers}"),
         BudgetItem("sram", "control-step stack (estimate)", CONTROL_STACK_B, "estimate"),

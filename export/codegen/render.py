@@ -32,7 +32,8 @@ from kiloforge.actors.registry import kind_of
 from kiloforge.errors import QuantizeError
 from kiloforge.xorshift import SEED_ADD, SEED_MUL
 from sim.config import ACTION_DIM, WorldConfig
-from sim.features import FEATURES
+from sim.features import FEATURES, beacon_sends_light
+from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 
 from ..contract import crc
@@ -112,6 +113,7 @@ def _common_defines(msg_type: int, world: WorldConfig) -> list[dict[str, str]]:
     """The message and LED constants: the role and sensing bits and their LEDs only where the world has a beacon."""
     beacon = world.beacon
     nbr = world.has_feature("nbr_sensing")
+    light = beacon_sends_light(world)
     defines = [
         _define("KF_MSG_TYPE", _u(msg_type), "message type of ours (a user type: < 0x80, not 1)"),
         _define("KF_MSG_VERSION", _u(fw.MSG_VERSION), "data[0] of our messages; others are dropped"),
@@ -122,6 +124,9 @@ def _common_defines(msg_type: int, world: WorldConfig) -> list[dict[str, str]]:
         _define("KF_MSG_INFO_BYTE", _u(fw.MSG_INFO_BYTE), "data[] index of role | sensing << 1"),
         (beacon, _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon")),
         (beacon, _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period")),
+        (light, _define("KF_MSG_LIGHT_BYTE", _u(fw.MSG_LIGHT_BYTE), "data[] index of the beacon's light reading (2 bytes, LE)")),
+        (light, _define("KF_LIGHT_NONE", _u(fw.LIGHT_NONE, "uint16_t"), "the beacon's light reading before its first")),
+        (light, _define("KF_ADC_MAX", _u(ADC_MAX, "uint16_t"), "the largest ambient-light reading (10-bit ADC)")),
         (True, _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show")),
         (beacon, _define("KF_LED_BEACON", "(RGB({}, {}, {}))".format(*fw.LED_BEACON), "blue: target beacon")),
         (beacon, _define("KF_LED_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_SENSING),
@@ -178,7 +183,7 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
            _define("KF_RAND_SEED_ADD", c_int(SEED_ADD, "uint32_t"))] if w.has_feature("random") else []),
         _define("KF_ONE", f"((int8_t){c_int(one, 'int8_t')})", f"1.0 at the input exponent e_in = {qp.e_in}"),
         *([_define("KF_MINUS_ONE", f"((int8_t){c_int(-one, 'int8_t')})", "-1.0: target not heard")]
-          if w.has_feature("target") else []),
+          if w.has_feature("target") or w.has_feature("object_light") else []),
         _define("KF_SCHED_SHIFT", _u(SCHEDULE_SHIFT), "motor schedule (sim/motion.py): ticks = (x * K + half) >> shift"),
         _define("KF_SCHED_HALF", c_int(1 << (SCHEDULE_SHIFT - 1), "uint32_t")),
         _define("KF_K_TURN", c_int(k_turn, "uint32_t"), "turn ticks per unit of |q_left - q_right|"),
@@ -221,6 +226,7 @@ def _layout_context(w: WorldConfig) -> dict[str, Any]:
     return {"roles": w.has_roles, "obs_features": list(w.features),
             "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
             "reads_light": any(FEATURES[f].reads_light for f in w.features),
+            "msg_light": beacon_sends_light(w),
             "observe_counters": ", ".join(sorted(counters))}
 
 
@@ -292,7 +298,7 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
         generator_version = installed_version()
     env = environment()
     common = {"defines_common": _common_defines(msg_type, qp.world), "defines_runtime": _runtime_defines(),
-              "runtime_c": inline_sources(RUNTIME_SOURCES)}
+              "runtime_c": inline_sources(RUNTIME_SOURCES), "msg_light": beacon_sends_light(qp.world)}
     policy_ctx = dict(common, **_policy_context(qp, uids),
                       banner=_banner(POLICY_FILE, qp, generator_version,
                                      ["One program for every robot: robots whose kilo_uid is a target uid act",
@@ -303,7 +309,9 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
     policy_c = env.get_template(kind_of(qp).template).render(**policy_ctx)
     if not qp.world.beacon:
         return {POLICY_FILE: policy_c}
-    target_ctx = dict(common, banner=_banner(TARGET_FILE, qp, generator_version,
+    target_ctx = dict(common, defines_target=[_define("KF_PERIOD_TICKS", _u(qp.world.period_ticks),
+                                                      "the beacon reads the light every this many kilo_ticks")],
+                      banner=_banner(TARGET_FILE, qp, generator_version,
                                              ["Beacon-only program: whatever its kilo_uid, this robot is the target",
                                               "(it never moves, shines blue and sends role = 1)."],
                                              uids, msg_type))

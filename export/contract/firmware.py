@@ -6,7 +6,9 @@ The message a robot sends (``message_t``, 12 bytes, packed)::
     data[1..2]  kilo_uid, little-endian
     data[3]     role | (sensing << 1)                 role 1 = target beacon; sensing = "I heard the target
                                                       during the last control period"
-    data[4..8]  0
+    data[4..5]  the beacon's held ambient-light reading (0..1023, LIGHT_NONE before its first), little-endian,
+                only in worlds whose observation reads it (the ``object_light`` feature); else 0
+    data[6..8]  0
     type        KF_MSG_TYPE (default DEFAULT_MSG_TYPE) a user type: < 0x80 and != 1 (1 is the overhead
                                                       controller's GPS message)
     crc         CRC-16/MCRF4XX over the first 10 bytes, little-endian (export.contract.crc)
@@ -34,8 +36,10 @@ import numpy as np
 MSG_VERSION = 1  #: data[0] of every message of ours
 DEFAULT_MSG_TYPE = 0x2A  #: message type of ours unless the user picks another
 MSG_DATA_BYTES = 9  #: kilolib's message_t payload, data[0..8]
-MSG_USED_BYTES = 4  #: data[0..3] carry version, uid and info; data[4..8] are 0
+MSG_USED_BYTES = 4  #: data[0..3] carry version, uid and info; data[4..8] are 0 (but MSG_LIGHT_BYTE's two)
 MSG_INFO_BYTE = 3  #: data[3]: role | sensing << 1
+MSG_LIGHT_BYTE = 4  #: data[4..5]: the beacon's held light reading, little-endian (worlds with ``object_light``)
+LIGHT_NONE = 0xFFFF  #: data[4..5] of a beacon that has no reading yet; receivers keep only readings <= 1023
 MSG_TYPE_BYTE = MSG_DATA_BYTES  #: the type follows the payload
 MSG_CRC_BYTES = MSG_DATA_BYTES + 1  #: the CRC covers the payload and the type
 MSG_BYTES = MSG_CRC_BYTES + 2  #: sizeof(message_t): payload, type, crc16 (packed)
@@ -70,9 +74,9 @@ TICK_RECORD_BYTES = 4 + MSG_BYTES  #: per robot and tick: left, right, spinup, l
 #: ``robot`` is the receiver (0..R-1), ``tick`` the global kilo_tick during which it arrives (it is
 #: delivered to the rx callback after that tick's loop()), then what the message says and the
 #: distance estimate_distance() returns for it. ``type``/``version`` let a stream inject foreign or
-#: malformed messages. ``role`` and ``flag`` are 0/1.
+#: malformed messages. ``role`` and ``flag`` are 0/1; ``light`` is data[4..5] (0 in messages that carry none).
 EVENT_DTYPE = np.dtype([("robot", "<u4"), ("tick", "<u4"), ("uid", "<u2"), ("role", "u1"),
-                        ("flag", "u1"), ("type", "u1"), ("version", "u1"), ("dist", "u1")])
+                        ("flag", "u1"), ("type", "u1"), ("version", "u1"), ("dist", "u1"), ("light", "<u2")])
 
 #: Calibration values (kilo_straight_left, kilo_straight_right, kilo_turn_left, kilo_turn_right)
 #: used when a caller gives none: in the range of duties a calibrated Kilobot ends up with.

@@ -47,6 +47,8 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.xorshift import rng_seed, top_byte, xorshift32
 from sim.config import ROLE_TARGET, WorldConfig
 from sim.events import HeardEvents, PeriodSummary, summarise
+from sim.features import beacon_sends_light
+from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
 
 from ..contract import firmware as fw
@@ -152,6 +154,12 @@ def _int_target(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
     return np.where(summ.target_heard[0, :R], np.asarray(emu.qp.target_table, np.int64)[d], -one)[:, None]
 
 
+def _int_object_light(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+    """object_light.c.j2: the held beacon reading's level (L · KF_ONE) >> 10 (kept when a beacon message carrying
+    L <= 1023 is heard, in kf_hear), else -KF_ONE before any."""
+    return np.where(emu.obj_valid, emu.obj_level, -int(emu.qp.one_q))[:, None]
+
+
 def _int_nbr_sensing(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
     """nbr_sensing.c.j2: KF_ONE when any table entry's latest flag is set."""
     nbr = np.zeros(emu.R, np.int64)
@@ -184,11 +192,13 @@ def host_rand_hard(uids: np.ndarray) -> np.ndarray:
 
 #: each observation feature's integer twin: (emulator, the period's summary) -> (R, width) int64
 INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]] = {
-    "wall": _int_wall, "light": _int_light, "target": _int_target, "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf, "random": _int_random}
+    "wall": _int_wall, "light": _int_light, "target": _int_target, "object_light": _int_object_light,
+    "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf, "random": _int_random}
 
 
-def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarray:
-    """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros, type, CRC LE.
+def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int, light: np.ndarray | None = None) -> np.ndarray:
+    """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros (``light`` (R,): the beacon's held reading
+    at data[MSG_LIGHT_BYTE], little-endian), type, CRC LE.
 
     >>> message_bytes(np.array([0x0102]), np.array([1]), 0x2A).tolist()
     [[1, 2, 1, 1, 0, 0, 0, 0, 0, 42, 104, 187]]
@@ -199,6 +209,9 @@ def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int) -> np.ndarr
     m[:, 1] = uids & 0xFF
     m[:, 2] = uids >> 8
     m[:, fw.MSG_INFO_BYTE] = np.asarray(info, np.uint8)
+    if light is not None:
+        m[:, fw.MSG_LIGHT_BYTE] = np.asarray(light, np.int64) & 0xFF
+        m[:, fw.MSG_LIGHT_BYTE + 1] = (np.asarray(light, np.int64) >> 8) & 0xFF
     m[:, fw.MSG_TYPE_BYTE] = msg_type
     crc = crc16_rows(m[:, :fw.MSG_CRC_BYTES])  # (R,)
     m[:, fw.MSG_CRC_BYTES] = crc & 0xFF
@@ -246,11 +259,17 @@ class FirmwareEmulator:
         self.msg_searcher = np.stack([message_bytes(self.uids, np.zeros(R, np.uint8), self.msg_type),
                                       message_bytes(self.uids, np.full(R, fw.SENSING_BIT, np.uint8),
                                                     self.msg_type)], 1)  # (R, 2, 12)
-        self.msg_beacon = message_bytes(self.uids, np.full(R, fw.ROLE_BIT, np.uint8), self.msg_type)
+        self.sends_light = beacon_sends_light(self.world)
+        self.msg_beacon = self._beacon_message(np.full(R, fw.LIGHT_NONE))
         self.led_codes = {name: fw.rgb(*c) for name, c in (
             ("off", fw.LED_OFF), ("beacon", fw.LED_BEACON), ("sensing", fw.LED_SENSING),
             ("nbr", fw.LED_NBR_SENSING))}
         self.reset()
+
+    def _beacon_message(self, light: np.ndarray) -> np.ndarray:
+        """(R, 12) the beacon role's message: role bit, and its held light reading where the world's layout reads it."""
+        return message_bytes(self.uids, np.full(self.R, fw.ROLE_BIT, np.uint8), self.msg_type,
+                             light if self.sends_light else None)
 
     # --- state ------------------------------------------------------------------------------
     def reset(self) -> None:
@@ -262,6 +281,10 @@ class FirmwareEmulator:
         self.light_valid = np.zeros(R, bool)
         self.light_obs = np.zeros((R, 2), np.int64)
         self.rand_word = rng_seed(self.uids, self.rand_hard)  # random.c.j2's word as setup() seeds it
+        self.obj_level = np.zeros(R, np.int64)  # object_light.c.j2's held level and whether one is held
+        self.obj_valid = np.zeros(R, bool)
+        self.beacon_light = np.full(R, fw.LIGHT_NONE, np.int64)  # a beacon's held reading (sent in its message)
+        self.msg_beacon = self._beacon_message(self.beacon_light)
         self.q = np.zeros((R, 2), np.uint8)
         self.state = self.qp.setup_state(self.uids)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
@@ -304,7 +327,8 @@ class FirmwareEmulator:
                          tick=(heard["tick"] % self.P).astype(np.int16),  # one period's events
                          dist_mm=heard["dist"].astype(np.float64),
                          role=np.where(heard["role"] & int(self.world.beacon), ROLE_TARGET, 0).astype(np.uint8),
-                         flag=(heard["flag"] & 1).astype(np.uint8))
+                         flag=(heard["flag"] & 1).astype(np.uint8),
+                         light=np.where(heard["light"] <= ADC_MAX, heard["light"].astype(np.int64), -1))
         return summarise(ev, self.world, 1, M)
 
     # --- the control step ---------------------------------------------------------------------
@@ -332,6 +356,13 @@ class FirmwareEmulator:
             self.light_obs = np.stack([self.light_level, change], 1)
         if w.has_feature("random"):
             self.rand_word = xorshift32(self.rand_word)
+        if w.has_feature("object_light"):
+            lit = summ.target_light[0, :R]  # (R,) the period's latest beacon reading heard (-1: none)
+            self.obj_level = np.where(lit >= 0, (np.maximum(lit, 0) * int(qp.one_q)) >> 10, self.obj_level)
+            self.obj_valid |= lit >= 0
+        if self.sends_light:  # a beacon reads the light at its control tick and sends its held reading
+            self.beacon_light = np.where(light >= 0, light, self.beacon_light)
+            self.msg_beacon = self._beacon_message(self.beacon_light)
         obs = np.zeros((R, w.obs_dim), np.int64)
         for name in w.features:
             obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)
@@ -419,4 +450,6 @@ def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots
     out["type"] = fw.check_msg_type(msg_type)
     out["version"] = fw.MSG_VERSION
     out["dist"] = numfmt.distance_u8(events.dist_mm)
+    if events.light is not None:  # the beacon's reading in its messages (LIGHT_NONE before its first); 0 in others
+        out["light"] = np.where(events.role == ROLE_TARGET, np.where(events.light >= 0, events.light, fw.LIGHT_NONE), 0)
     return out[np.lexsort((out["tick"], out["robot"]))]

@@ -40,7 +40,7 @@ SANITIZE_CFLAGS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", 
 #: the harness fills each robot's state with this before setup() unless told otherwise (host/harness.c)
 DEFAULT_FILL = "0xA5"
 STREAM_MAGIC = b"KFS1"
-MSG_RECORD_BYTES = 8  #: one message in the input stream
+MSG_RECORD_BYTES = 10  #: one message in the input stream (host/harness.c)
 
 
 class HostBuildError(ExportError):
@@ -128,6 +128,8 @@ def encode_stream(inputs: FirmwareInputs, period_ticks: int, obs_dim: int) -> by
         rec[:, 1] = ev["uid"] >> 8
         for j, field in enumerate(("role", "flag", "type", "version", "dist")):
             rec[:, 2 + j] = ev[field]
+        rec[:, 8] = ev["light"] & 0xFF
+        rec[:, 9] = ev["light"] >> 8
         buf[pos[:, None] + np.arange(MSG_RECORD_BYTES)] = rec
     return buf.tobytes()
 
@@ -230,6 +232,10 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     ev["version"] = fw.MSG_VERSION
     bad = rng.random(N) < spec.bad_version_p
     ev["version"][bad] = rng.choice(np.array([0, 2, 0xFF], np.uint8), size=int(bad.sum()))
+    # drawn last (the draws before stay those of older streams): data[4..5], a beacon's reading, none (LIGHT_NONE)
+    # or out of the ADC's range (ignored), in every message
+    ev["light"] = np.where(rng.random(N) < 0.8, rng.integers(0, 1024, N),
+                           rng.choice(np.array([fw.LIGHT_NONE, 1024, 0x8000, 0xFFFE], np.uint16), size=N))
     return FirmwareInputs(uids=uids, calib=calib, light=light.astype(np.int16), events=ev, n_ticks=T)
 
 

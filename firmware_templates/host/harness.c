@@ -22,7 +22,7 @@
  *   header 16 B: "KFS1", u16 n_robots, u8 period_ticks, u8 obs_dim, u32 n_ticks, u32 0
  *   per robot: u16 uid, u8 straight_left, u8 straight_right, u8 turn_left, u8 turn_right, u16 0
  *     then per tick: [i16 light at control ticks] u8 n, n x (u16 uid, u8 role, u8 flag, u8 type,
- *     u8 version, u8 distance_mm, u8 0)
+ *     u8 version, u8 distance_mm, u8 0, u16 light: message data[4..5])
  * Output per robot and tick: 16 B (left, right, spinup, colour, message_t bytes with the crc
  * little-endian), at control ticks then 2 + obs_dim B (q_left, q_right, obs as int8).
  *
@@ -186,18 +186,20 @@ static uint32_t kf_u32(const uint8_t *p)
 
 static void kf_deliver(void)
 {
-    uint8_t ev[8];
+    uint8_t ev[10];
     uint8_t n, k, i;
     message_t m;
     distance_measurement_t d;
     kf_io_read(&n, 1u);
     for (k = 0u; k < n; ++k) {
-        kf_io_read(ev, 8u);
+        kf_io_read(ev, 10u);
         m.data[0] = ev[5];                    /* version byte */
         m.data[1] = ev[0];                    /* uid, little-endian */
         m.data[2] = ev[1];
         m.data[3] = (uint8_t)((ev[2] & 1u) | ((ev[3] & 1u) << 1)); /* role | sensing << 1 */
-        for (i = 4u; i < 9u; ++i) {
+        m.data[4] = ev[8];                    /* light (a beacon's reading), little-endian */
+        m.data[5] = ev[9];
+        for (i = 6u; i < 9u; ++i) {
             m.data[i] = 0u;
         }
         m.type = ev[4];
