@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from export.codegen.render import POLICY_FILE, render_firmware
+from export.quantize import calibrate, quantize_policy
 from export.shipped import load_task_policy
-from kiloforge.actors.registry import kind_of
 from sim.config import preset
 from sim.light import ADC_MAX, lamp_field
 from sim.tasks import get_task
@@ -74,15 +74,17 @@ def _final_in_spot(exe: Path, work: Path, cfg, episodes: int, steps: int) -> flo
     return float(np.mean(finals))
 
 
-def test_stop_in_light_firmware_gathers_in_the_spot_in_kilombo(tmp_path):
-    """The shipped stop_in_light program, unchanged, puts most of 16 robots in the lit spot in Kilombo (4 episodes x
-    200 steps), and without the lamp (the callback's floor light only) it does not: the callback drives it."""
-    policy = load_task_policy("stop_in_light", "phototaxis")
-    qp = kind_of(policy).quantize_rule(policy, None)
+@pytest.mark.parametrize("name", ["stop_in_light", "default"])
+def test_phototaxis_firmware_gathers_in_the_spot_in_kilombo(name, tmp_path):
+    """The shipped stop_in_light and learned default programs, unchanged, put most of 16 robots in the lit spot in
+    Kilombo (4 episodes x 200 steps), and with the lamp off (the callback's floor light only) at least 0.3 fewer: the
+    callback drives them (the learned one still gathers robots near the centre in the dark)."""
+    policy = load_task_policy(name, "phototaxis")
+    qp = quantize_policy(policy, calibrate(policy, episodes=1, n_robots=(4,), seed=0, steps=50, task="phototaxis"))
     prog = tmp_path / "kilobot_policy.c"
     prog.write_text(render_firmware(qp)[POLICY_FILE])
     exe = build(_prefix(), [prog], tmp_path / "kf_policy")
     cfg = dataclasses.replace(qp.world, episode_steps=200)
     lit = _final_in_spot(exe, tmp_path, cfg, 4, 200)
     dark = _final_in_spot(exe, tmp_path, dataclasses.replace(cfg, lamps="spot:0,0,100,40,0"), 4, 200)
-    assert lit > 0.5 and dark < 0.25, (lit, dark)
+    assert lit > 0.5 and lit - dark > 0.3, (lit, dark)

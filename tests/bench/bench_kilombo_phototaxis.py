@@ -1,12 +1,12 @@
 """Phototaxis firmware in Kilombo under a lamp (its lighting callback reads sim/light.py's field) vs our simulator.
 
-    python -m tests.bench.bench_kilombo_phototaxis --kilombo-dir DIR [--policy stop_in_light run_and_tumble ...]
+    python -m tests.bench.bench_kilombo_phototaxis --kilombo-dir DIR [--policy stop_in_light run_and_tumble default ...]
         [--robots 16] [--episodes 40] [--steps 300] [--seed 0] [--no-sensor-model] [--json FILE]
 
 Not a test: it prints a table (docs/results/phototaxis.md has the measured one; docs/kilombo.md how to build
 Kilombo). ``DIR`` is a Kilombo install prefix (``KILOMBO_DIR`` when the option is not given; without either, a
 one-line error, exit 2). Per policy (a file or a shipped phototaxis policy: ``stop_in_light``, ``run_and_tumble``,
-``default`` once shipped):
+``default``):
 
 1. Quantises it as ``python -m export --task phototaxis`` does, renders the firmware and builds it unchanged for
    Kilombo (``-DKILOMBO``) with ``tests/bench/kilombo/kilombo_adapter.c``, whose lighting callback gives
@@ -98,8 +98,9 @@ def run_kilombo(binary: Path, cfg: WorldConfig, eps: list, steps: int, seed: int
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kilombo-dir", default=None, help="Kilombo install prefix (default: $KILOMBO_DIR)")
-    ap.add_argument("--policy", nargs="+", default=["stop_in_light", "run_and_tumble"],
-                    help="policy files or shipped phototaxis policies (default: the two baselines)")
+    ap.add_argument("--policy", nargs="+", default=["stop_in_light", "run_and_tumble", "default"],
+                    help="policy files or shipped phototaxis policies (default: the two baselines and the learned "
+                         "default)")
     ap.add_argument("--robots", type=int, default=16, help="robots (default 16)")
     ap.add_argument("--episodes", type=int, default=40, help="episodes (default 40)")
     ap.add_argument("--steps", type=int, default=300, help="control periods per episode (default 300)")
