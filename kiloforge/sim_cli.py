@@ -5,8 +5,10 @@
     python -m sim --policy runs/train/policy.npz --robots 16 --episodes 50 --out runs/eval16
     python -m sim --suite robustness --policy baseline --robots 4 16 --episodes 50 --steps 500 --out runs/rob
 
-``--policy`` is ``random``, ``baseline`` (the hand-written searcher), ``pusher`` (its crowd variant) or the
-path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in the world it was trained in.
+``--policy`` is one of the task's baselines (localisation: ``random``, ``baseline``, the hand-written searcher,
+``pusher``, its crowd variant), a shipped policy of the task (``default``: its reference policy,
+:mod:`export.shipped`) or the path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in
+the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
 the task's success over time (``<success_plot>.png``, :attr:`sim.tasks.Task.success_plot`; all episodes) and
 ``metrics.json``. ``--suite robustness`` instead runs the policy
@@ -67,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="searching robots per env (default 4); with --suite, one or more counts")
     p.add_argument("--seed", type=seed_arg, default=0, help="root seed; same seed, same result (default 0)")
     p.add_argument("--policy", default="baseline",
-                   help="'random', 'baseline' (hand-written searcher), 'pusher' (its crowd variant) "
-                        "or a policy artifact file (.npz)")
+                   help="one of the task's baselines (localisation: 'baseline', the hand-written searcher, its crowd "
+                        "variant 'pusher', 'random'), a shipped policy of the task (e.g. 'default'), or a policy "
+                        "artifact file (.npz); default 'baseline'")
     p.add_argument("--out", required=True, help="output folder (created if needed)")
     p.add_argument("--episodes", type=int_arg(1, MAX_EPISODES), default=20, help="episodes to run (default 20)")
     p.add_argument("--steps", type=int_arg(1, MAX_EPISODE_STEPS), default=None,
@@ -105,12 +108,19 @@ def _load_policy(a: argparse.Namespace, task: Task):
         if dataclasses.is_dataclass(params):
             desc["params"] = dataclasses.asdict(params)
         return world, lambda w: task.make_baseline(a.policy, w), desc, None
+    from export.shipped import load_task_policy, shipped_names
+
     path = Path(a.policy)
-    if not os.path.lexists(path):
-        raise UserError(f"--policy must be one of {', '.join(names)} or a policy file; '{a.policy}' is neither")
+    shipped = [n for n in shipped_names(task) if n not in names]  # a shipped rule of a baseline's name is that baseline
+    if not os.path.lexists(path) and a.policy not in shipped:
+        raise UserError(f"--policy must be one of {', '.join(names + shipped)} or a policy file; "
+                        f"'{a.policy}' is neither")
     try:
-        art = load_policy(path)
-        check_policy_task(art.task_ref, task, f"policy file {printable(path.name)}")
+        if os.path.lexists(path):
+            art = load_policy(path)
+            check_policy_task(art.task_ref, task, f"policy file {printable(path.name)}")
+        else:
+            art = load_task_policy(a.policy, task)  # a shipped policy of the task, e.g. default
     except InputError as e:
         raise UserError(str(e)) from None
     try:

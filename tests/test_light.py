@@ -132,10 +132,10 @@ def test_phototaxis_world_per_size_has_the_anchor_spot_fraction():
 
 
 def test_sim_cli_runs_a_phototaxis_baseline(tmp_path, capsys):
-    """python -m sim --task phototaxis --policy <hand-written baseline> runs and reports the task's metric."""
+    """python -m sim --task phototaxis --policy <a hand-written baseline or the shipped default> runs and reports the task's metric."""
     from kiloforge.sim_cli import main
 
-    for policy in ("stop_in_light", "run_and_tumble"):
+    for policy in ("stop_in_light", "run_and_tumble", "default"):
         assert main(["--task", "phototaxis", "--policy", policy, "--robots", "6", "--episodes", "2", "--steps", "20",
                      "--out", str(tmp_path / policy), "--quiet"]) == 0
     assert "in spot" in capsys.readouterr().out
