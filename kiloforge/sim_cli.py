@@ -7,7 +7,7 @@
 
 ``--policy`` is one of the task's baselines (localisation: ``random``, ``baseline``, the hand-written searcher,
 ``pusher``, its crowd variant), a shipped policy of the task (``default``: its reference policy,
-:mod:`export.shipped`) or the path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in
+:mod:`kiloforge.shipped`) or the path of a policy artifact (``.npz`` from ``python -m learn``); an artifact runs in
 the world it was trained in.
 Writes into ``--out``: ``trajectories.png`` and ``episode.gif`` (the first episode),
 the task's success over time (``<success_plot>.png``, :attr:`sim.tasks.Task.success_plot`; all episodes) and
@@ -108,7 +108,7 @@ def _load_policy(a: argparse.Namespace, task: Task):
         if dataclasses.is_dataclass(params):
             desc["params"] = dataclasses.asdict(params)
         return world, lambda w: task.make_baseline(a.policy, w), desc, None
-    from export.shipped import load_task_policy, shipped_names
+    from kiloforge.shipped import load_task_policy, shipped_names
 
     path = Path(a.policy)
     shipped = [n for n in shipped_names(task) if n not in names]  # a shipped rule of a baseline's name is that baseline

@@ -81,7 +81,7 @@ def build_parser() -> ArgumentParser:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from export.shipped import load_task_policy
+    from kiloforge.shipped import load_task_policy
     from kiloforge.errors import printable
     from kiloforge.io import check_name_lengths, staged_files
     from kiloforge.policies import policy_labels

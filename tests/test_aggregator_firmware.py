@@ -13,7 +13,7 @@ import pytest
 from export.codegen.budget import FLASH_LIMIT_B, SRAM_LIMIT_B, estimate
 from export.codegen.render import POLICY_FILE, render_firmware
 from export.contract.firmware import EVENT_DTYPE
-from export.shipped import load_task_policy
+from kiloforge.shipped import load_task_policy
 from export.verify import avr
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host

@@ -254,7 +254,7 @@ def test_learn_evaluate_labels_same_named_policies_apart(tmp_path):
 
 def test_learn_evaluate_takes_every_shipped_policy(tmp_path):
     """`learn evaluate` runs every shipped policy file, hand-written kinds included, and records each one's kind."""
-    from export.shipped import load_task_policy, shipped_names
+    from kiloforge.shipped import load_task_policy, shipped_names
     from learn.evaluate import evaluate_policies
 
     pols = {name: load_task_policy(name) for name in shipped_names()}

@@ -11,7 +11,7 @@ import pytest
 
 from export.codegen.render import POLICY_FILE, render_firmware
 from export.quantize import calibrate, quantize_policy
-from export.shipped import load_task_policy
+from kiloforge.shipped import load_task_policy
 from sim.config import preset
 from sim.light import ADC_MAX, lamp_field
 from sim.tasks import get_task

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from export.codegen.render import POLICY_FILE, render_firmware
-from export.shipped import load_task_policy
+from kiloforge.shipped import load_task_policy
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import StreamSpec, build_host, compare, compiler, random_inputs, run_host
 from kiloforge.actors.registry import kind_named

@@ -230,7 +230,7 @@ def test_sweep_refuses_other_tasks():
 @pytest.mark.parametrize("task", ["aggregation", "phototaxis"])
 def test_shipped_learned_default_is_a_policy_of_its_task(task):
     """--task T --policy default is T's shipped learned policy: task T v1, T's world layout; refused for another task."""
-    from export.shipped import SHIPPED_POLICIES, load_task_policy, shipped_names
+    from kiloforge.shipped import SHIPPED_POLICIES, load_task_policy, shipped_names
 
     assert "default" in shipped_names(task)
     p = load_task_policy(None, task)

@@ -17,7 +17,7 @@ from sim.tasks import TASK_HELP, Task, get_task
 from ..errors import ExportError
 from ..interop.onnx_import import load_onnx_policy
 from ..quantize import calibrate, error_report, quantize_policy
-from ..shipped import SHIPPED_POLICIES, load_task_policy
+from kiloforge.shipped import SHIPPED_POLICIES, load_task_policy
 
 EXIT_OK = 0
 EXIT_FAIL = 1  #: does not fit, or a verification failed

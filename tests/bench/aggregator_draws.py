@@ -17,7 +17,7 @@ import dataclasses
 
 import numpy as np
 
-from export.shipped import load_task_policy
+from kiloforge.shipped import load_task_policy
 from export.verify.closed_loop import default_n_envs, run_firmware, run_float
 from export.verify.emulator import FirmwareEmulator, events_from_sim
 from kiloforge.actors.aggregator import FirmwareDrawAggregator, quantize_aggregator

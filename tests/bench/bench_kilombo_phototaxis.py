@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
 def _bench(args, prefix: Path) -> int:
     from export.codegen.render import POLICY_FILE, render_firmware
     from export.quantize import calibrate, quantize_policy
-    from export.shipped import load_task_policy
+    from kiloforge.shipped import load_task_policy
     from export.verify.closed_loop import run_firmware, run_float
 
     M, E, T, seed = args.robots, args.episodes, args.steps, args.seed

@@ -17,7 +17,7 @@ import dataclasses
 
 import numpy as np
 
-from export.shipped import load_task_policy
+from kiloforge.shipped import load_task_policy
 from export.verify.closed_loop import default_n_envs, run_firmware, run_float
 from kiloforge.actors.registry import kind_of
 from sim.env import SwarmEnv

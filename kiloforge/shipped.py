@@ -1,8 +1,10 @@
 """The policies kiloforge ships, per task, and loading a policy by file or shipped name for a task.
 
-``--policy NAME`` (in ``python -m export``, ``export verify`` and ``learn evaluate``) names a shipped
-policy of the ``--task`` when no file of that name exists; ``default`` is the task's reference policy.
-Every policy loaded here must have been trained for that task (one-line InputError otherwise).
+``--policy NAME`` (in ``python -m export``, ``export verify``, ``learn evaluate`` and ``python -m sim``) names a
+shipped policy of the ``--task`` when no file of that name exists; ``default`` is the task's reference policy.
+Every policy loaded here must have been trained for that task (one-line InputError otherwise). The files are
+package data of :mod:`export` (``export/data/``, where the exporter's users find them); this registry sits in the
+foundation so that the simulator's command line reads them too.
 """
 from __future__ import annotations
 
