@@ -123,6 +123,31 @@ def test_cli_aggregate(tmp_path, capsys):
         aggregate(tmp_path / "empty")
 
 
+def test_aggregate_task_file_sweep(tmp_path, capsys):
+    """A plug-in task's sweep aggregates its own metric; --aggregate imports its file only when --task names it."""
+    from pathlib import Path
+
+    spec = f"{Path(__file__).parents[1] / 'examples' / 'dispersion.py'}:Dispersion"
+    grid = build_grid(trainer="es", seeds=[1, 2], presets=["quick"], task=[spec], grid=["demo_policy=none"])
+    trials = expand(grid)
+    write_manifest(tmp_path, grid, trials)
+    for t, alone in zip(trials, (0.25, 0.75)):
+        rows = [{**_row(1000, 1.0, 0.0), "eval_final_alone": alone}]
+        (tmp_path / t.name).mkdir()
+        (tmp_path / t.name / "metrics.csv").write_text(rows_to_csv(rows))
+        (tmp_path / t.name / "checkpoint.pt").write_bytes(b"")
+        (tmp_path / t.name / "summary.json").write_text(json.dumps({"episodes": 10 ** 9}))
+    assert main_sweep(["--aggregate", str(tmp_path)]) == 2
+    assert "never imported" in capsys.readouterr().err
+    assert main_sweep(["--aggregate", str(tmp_path), "--task", "aggregation"]) == 2
+    assert "--task aggregation is not the task of the sweep's trials" in capsys.readouterr().err
+    assert main_sweep(["--aggregate", str(tmp_path), "--task", spec]) == 0
+    assert "best final alone" in capsys.readouterr().out
+    (c,) = json.loads((tmp_path / "summary.json").read_text())["configurations"]
+    assert c["metrics"]["best_final_alone"]["per_seed"] == {"1": 0.25, "2": 0.75}
+    assert c["metrics"]["best_final_alone"]["mean"] == pytest.approx(0.5)
+
+
 def test_refuses_run_dir_of_another_config(tmp_path, capsys):
     """A trial directory holding a run of a different configuration stops the sweep before Ray (exit 2)."""
     t = expand(build_grid(presets=["quick"]))[0]

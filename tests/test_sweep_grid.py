@@ -84,6 +84,23 @@ def test_bad_grids_fail_in_one_line(kw, message):
     assert message in str(e.value) and "\n" not in str(e.value)
 
 
+def test_mixed_tasks_refused(tmp_path, capsys):
+    """A grid mixing tasks is refused in one line (their metrics do not aggregate), also across runs of one --out."""
+    with pytest.raises(ConfigError, match="mixes localisation, aggregation: their metrics cannot be aggregated"):
+        expand(build_grid(trainer="es", presets=["quick"], grid=["task=localisation,aggregation", "demo_policy=none"]))
+    out = tmp_path / "s"
+    assert main_sweep(["--trainer", "es", "--preset", "quick", "--task", "aggregation", "--grid", "demo_policy=none",
+                       "--out", str(out), "--dry-run"]) == 0
+    grid = build_grid(trainer="es", presets=["quick"])
+    from learn.sweep.aggregate import write_manifest
+    out.mkdir()
+    write_manifest(out, grid, expand(grid))  # a localisation sweep in this directory before
+    assert main_sweep(["--trainer", "es", "--preset", "quick", "--task", "aggregation", "--grid", "demo_policy=none",
+                       "--out", str(out), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "mixes localisation, aggregation" in err and err.count("\n") == 1
+
+
 def test_magrdpg_grid():
     """The recurrent trainer's fields and presets form trials too (GRU size in the name)."""
     trials = expand(build_grid(trainer="magrdpg", presets=["guided"], robots=[2], grid=["hidden=16,32"]))

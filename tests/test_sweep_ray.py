@@ -102,6 +102,33 @@ def test_tensorboard_in_every_trial(ray_session, tmp_path):
         np.testing.assert_allclose([e.value for e in ev], [r["eval_return"] for r in rows], rtol=1e-4, atol=1e-6)
 
 
+def test_aggregation_sweep_reports_its_metric(ray_session, tmp_path):
+    """A tiny ES sweep of --task aggregation: trials, tables, JSON and evaluation name final_cluster, not coverage."""
+    out = tmp_path / "sweep"
+    tiny = ["episode_steps=20", "demo_policy=none", "generations=2", "pairs=2", "eval_every=1", "eval_episodes=2",
+            "eval_steps=20", "actor_hidden=8", "t_prev=2"]
+    assert main_sweep(["--trainer", "es", "--preset", "quick", "--task", "aggregation", "--robots", "3",
+                       "--seeds", "1", "2", "--grid", *tiny, "--quiet", "--out", str(out),
+                       "--eval-robots", "3", "--eval-episodes", "2", "--eval-steps", "10"]) == 0
+    trials = expand(build_grid(trainer="es", presets=["quick"], task=["aggregation"], robots=[3], seeds=[1, 2],
+                               grid=tiny))
+    s = json.loads((out / "summary.json").read_text())
+    assert s["totals"] == {"trials": 2, "finished": 2}
+    (c,) = s["configurations"]
+    assert set(c["metrics"]) == {"best_return", "last_return", "best_final_cluster", "last_final_cluster"}
+    best = {}
+    for t in trials:
+        rows = read_metrics(out / t.name)
+        best[str(t.seed)] = max(rows, key=lambda r: r["eval_return"])["eval_final_cluster"]
+    assert c["metrics"]["best_final_cluster"]["per_seed"] == pytest.approx(best)
+    assert all(0 < v <= 1 for v in best.values())  # at least one robot is in the largest cluster
+    table = (out / "table.txt").read_text()
+    assert "best final cluster" in table and "coverage" not in table
+    ev = s["evaluation"]["robots"]["3"]
+    assert set(ev) == {"es quick", "hand-written (kilobot)", "random (kilobot)"}
+    assert all(set(e) == {"return", "final_cluster"} for e in ev.values())
+
+
 def test_progress_lines(capsys):
     """Without a terminal, progress is one line per change: done / running / pending, failures, best so far."""
     from learn.sweep.execute import Progress

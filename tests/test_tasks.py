@@ -217,16 +217,6 @@ def test_sim_command_runs_a_beaconless_task(tmp_path):
     assert r.returncode == 2 and "--policy must be one of aggregator, random" in r.stderr
 
 
-def test_sweep_refuses_other_tasks():
-    """learn sweep aggregates localisation's metrics: another task is refused in one line before anything runs."""
-    from learn.config import ConfigError
-    from learn.sweep.grid import build_grid
-
-    with pytest.raises(ConfigError, match="task aggregation is not supported by learn sweep"):
-        build_grid(trainer="es", task=["aggregation"], seeds=[1])
-    assert build_grid(trainer="es", task=["localisation"], seeds=[1]).axes["task"] == ["localisation"]
-
-
 @pytest.mark.parametrize("task", ["aggregation", "phototaxis"])
 def test_shipped_learned_default_is_a_policy_of_its_task(task):
     """--task T --policy default is T's shipped learned policy: task T v1, T's world layout; refused for another task."""

@@ -3,7 +3,8 @@
 Per configuration (all trials that differ only in their seed), over its *finished* trials: mean,
 sample standard deviation and 95 % confidence interval (Student t, :func:`sim.metrics.summarise`)
 of the best and the last evaluation's return and the task's primary metric, plus every seed's values.
-Unfinished trials are listed with their current numbers but do not enter the statistics.
+Unfinished trials are listed with their current numbers but do not enter the statistics. A sweep runs one
+task (:func:`learn.sweep.trial.task_spec`); its metric keys and labels name the columns.
 
 Writes into the sweep directory::
 
@@ -25,15 +26,21 @@ import numpy as np
 
 from kiloforge.io import write_atomic
 from sim.metrics import summarise
+from sim.tasks import Task
 
 from ..config import ConfigError
 from . import trial as tr
 from .grid import Grid, Trial, labels
 
 MANIFEST = "sweep.json"  #: the sweep directory's trials and the options of its latest run
-_PRIMARY = tr.SWEEP_TASK.metric(tr.PRIMARY)
-METRICS = (("best_return", "best return"), ("last_return", "last return"),
-           (f"best_{tr.PRIMARY}", f"best {_PRIMARY.label}"), (f"last_{tr.PRIMARY}", f"last {_PRIMARY.label}"))
+
+
+def metric_columns(task: Task) -> tuple[tuple[str, str], ...]:
+    """(key, label) of the numbers aggregated per configuration: best and last return and primary metric."""
+    p = task.primary_metric
+    label = task.metric(p).label
+    return (("best_return", "best return"), ("last_return", "last return"),
+            (f"best_{p}", f"best {label}"), (f"last_{p}", f"last {label}"))
 
 
 def stats(values: list[float]) -> dict:
@@ -47,8 +54,15 @@ def stats(values: list[float]) -> dict:
     return {"n": s.n, "mean": s.mean, "std": s.std, "ci95": [s.mean - s.ci95, s.mean + s.ci95]}
 
 
+def check_one_task(sweep_dir: Path, trials: list[Trial]) -> None:
+    """Refuse trials of another task than the ones the sweep directory's manifest already holds (one line)."""
+    old = (tr.read_json(sweep_dir / MANIFEST) or {}).get("trials", {})
+    tr.task_spec([*(t.get("config", {}) for t in old.values()), *(t.config for t in trials)])
+
+
 def write_manifest(sweep_dir: Path, grid: Grid, trials: list[Trial]) -> None:
-    """Add this run's trials to the sweep directory's manifest (earlier runs' trials stay)."""
+    """Add this run's trials to the sweep directory's manifest (earlier runs' trials stay, of the same task)."""
+    check_one_task(sweep_dir, trials)
     path = sweep_dir / MANIFEST
     old = tr.read_json(path) or {}
     merged = dict(old.get("trials", {}))
@@ -65,7 +79,8 @@ def read_manifest(sweep_dir: Path) -> tuple[dict, list[Trial]]:
     return d["latest"], [Trial.from_dict(t) for t in d["trials"].values()]
 
 
-def trial_record(sweep_dir: Path, t: Trial, budget_minutes: float | None, ev: tr.EvalSpec | None) -> dict:
+def trial_record(sweep_dir: Path, t: Trial, budget_minutes: float | None, ev: tr.EvalSpec | None,
+                 primary: str) -> dict:
     """One trial's status and numbers."""
     run_dir = sweep_dir / t.name
     cfg = tr.resolve_config(t.trainer, t.preset, t.overrides)
@@ -74,11 +89,12 @@ def trial_record(sweep_dir: Path, t: Trial, budget_minutes: float | None, ev: tr
     finished = state == "finished" and tr.evaluated(run_dir, ev)
     return {"name": t.name, "config_id": t.config_id, "seed": t.seed,
             "status": "finished" if finished else ("not started" if state == "new" else "unfinished"),
-            **tr.trial_numbers(tr.metric_rows(run_dir))}
+            **tr.trial_numbers(tr.metric_rows(run_dir), primary)}
 
 
-def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict:
-    """Aggregate a sweep directory (module doc); returns what summary.json holds."""
+def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print, task: str | None = None) -> dict:
+    """Aggregate a sweep directory (module doc); returns what summary.json holds. ``task`` is the command line's
+    ``--task`` (needed for a task file, :func:`learn.sweep.trial.sweep_task`)."""
     from ..plots import plot_learning_curves
 
     sweep_dir = Path(sweep_dir)
@@ -86,8 +102,11 @@ def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict
     ev = None if latest.get("evaluation") is None else tr.EvalSpec(
         tuple(latest["evaluation"]["robots"]), latest["evaluation"]["episodes"], latest["evaluation"]["steps"],
         latest["evaluation"]["seed"])
+    spec = tr.sweep_task([t.config for t in trials], task)
+    primary = spec.metric(spec.primary_metric)
+    columns = metric_columns(spec)
     label = labels(trials)
-    records = [trial_record(sweep_dir, t, latest.get("max_minutes"), ev) for t in trials]
+    records = [trial_record(sweep_dir, t, latest.get("max_minutes"), ev, primary.key) for t in trials]
     by_config: dict[str, list[tuple[Trial, dict]]] = {}
     for t, r in zip(trials, records):
         by_config.setdefault(t.config_id, []).append((t, r))
@@ -102,7 +121,7 @@ def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict
                  "fields": {k: v for k, v in first.overrides.items() if k != "seed"},
                  "trials": len(members), "finished": len(done), "seeds": [t.seed for t, _ in done],
                  "metrics": {}}
-        for key, _ in METRICS:
+        for key, _ in columns:
             entry["metrics"][key] = {**stats([r[key] for _, r in done]),
                                      "per_seed": {str(t.seed): _finite(r[key]) for t, r in done}}
         configs.append(entry)
@@ -113,12 +132,12 @@ def aggregate(sweep_dir: str | Path, log: Callable[[str], None] = print) -> dict
     summary = {"sweep_dir": str(sweep_dir), "trials": [_finite_dict(r) for r in records],
                "configurations": configs, "totals": _totals(records)}
     if curves:
-        plot_learning_curves(curves, sweep_dir / "learning_curves.png", success=(f"eval_{tr.PRIMARY}", _PRIMARY.long),
+        plot_learning_curves(curves, sweep_dir / "learning_curves.png", success=(f"eval_{primary.key}", primary.long),
                              title="learning curves per configuration (mean ± 2 std over seeds)")
         summary["learning_curves"] = "learning_curves.png"
-    text = format_tables(configs, records, label)
+    text = format_tables(configs, records, label, columns, primary.key)
     if ev is not None:
-        summary["evaluation"], eval_text = aggregate_evaluation(sweep_dir, trials, records, label, ev)
+        summary["evaluation"], eval_text = aggregate_evaluation(sweep_dir, trials, records, label, ev, spec)
         text += "\n\n" + eval_text
     write_atomic(sweep_dir / "summary.json", json.dumps(summary, indent=1, sort_keys=True) + "\n")
     write_atomic(sweep_dir / "table.txt", text + "\n")
@@ -156,25 +175,33 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join([fmt(header), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows])
 
 
-def format_tables(configs: list[dict], records: list[dict], label: dict[str, str]) -> str:
+def format_tables(configs: list[dict], records: list[dict], label: dict[str, str],
+                  columns: tuple[tuple[str, str], ...], primary: str) -> str:
     """The configuration table (mean ± std [95 % CI] over finished seeds) and the per-trial table."""
-    digits = lambda key: 3 if tr.PRIMARY in key else 2  # noqa: E731
-    rows = [[c["label"], f"{c['finished']}/{c['trials']}"] + [_cell(c["metrics"][k], digits(k)) for k, _ in METRICS]
+    digits = lambda key: 3 if primary in key else 2  # noqa: E731
+    rows = [[c["label"], f"{c['finished']}/{c['trials']}"] + [_cell(c["metrics"][k], digits(k)) for k, _ in columns]
             for c in configs]
-    head = _table(["configuration", "seeds"] + [name for _, name in METRICS], rows)
+    head = _table(["configuration", "seeds"] + [name for _, name in columns], rows)
     per = []
     for r in sorted(records, key=lambda r: (label[r["config_id"]], r["seed"])):
         per.append([label[r["config_id"]], str(r["seed"]), r["status"]]
-                   + [("-" if not math.isfinite(r[k]) else f"{r[k]:.{digits(k)}f}") for k, _ in METRICS]
+                   + [("-" if not math.isfinite(r[k]) else f"{r[k]:.{digits(k)}f}") for k, _ in columns]
                    + [f"{r['env_steps']:.0f}", f"{r['wall_s']:.0f}", r["name"]])
-    trials = _table(["configuration", "seed", "status"] + [name for _, name in METRICS]
+    trials = _table(["configuration", "seed", "status"] + [name for _, name in columns]
                     + ["transitions", "wall s", "run directory"], per)
     return ("per configuration, over finished seeds: mean ± std [95 % CI]\n" + head
             + "\n\nper trial\n" + trials)
 
 
+def reference_baselines(task: Task) -> list[str]:
+    """The baselines the evaluation table lists beside the best policies: the task's first hand-written one and its
+    random one (every baseline stays in each trial's own ``evaluation/evaluation.json``)."""
+    names = list(task.baselines)
+    return [n for n in names if n.startswith("hand-written")][:1] + [n for n in names if n.startswith("random")]
+
+
 def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dict], label: dict[str, str],
-                         ev: tr.EvalSpec) -> tuple[dict, str]:
+                         ev: tr.EvalSpec, task: Task) -> tuple[dict, str]:
     """Each configuration's best policies at ``ev.robots`` robots (over seeds) and the baselines."""
     from ..plots import plot_returns_box, plot_reward_over_time
 
@@ -185,7 +212,7 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
         if status[t.name] == "finished" and d is not None:
             evals.setdefault(t.config_id, []).append((t, d))
     out: dict = {"robots": {}, "episodes": ev.episodes, "steps": ev.steps, "seed": ev.seed}
-    P = tr.PRIMARY
+    P = task.primary_metric
     texts = []
     for M in ev.robots:
         key = str(M)
@@ -203,7 +230,7 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
             curves[label[cid]] = np.array([d["robots"][key]["mean_reward_over_time"][t.name] for t, d in members])
             returns[label[cid]] = np.concatenate([d["robots"][key]["returns"][t.name] for t, d in members])
             world = members[0][1]["world"]["name"]
-            for name in ("hand-written", "random"):  # the same episodes for every trial of a world
+            for name in reference_baselines(task):  # the same episodes for every trial of a world
                 baselines.setdefault(f"{name} ({world})", (members[0][1], name))
         for bname, (d, name) in baselines.items():
             s = d["robots"][key]["metrics"][name]["summary"]
@@ -220,5 +247,5 @@ def aggregate_evaluation(sweep_dir: Path, trials: list[Trial], records: list[dic
                              title=f"returns, best policies pooled over seeds, {M} robots, {ev.steps} steps")
         texts.append(f"evaluation of the best policies at {M} robots ({ev.episodes} episodes of {ev.steps} steps): "
                      f"mean ± std [95 % CI] over seeds of each trial's mean\n"
-                     + _table(["policy", "seeds", "return", _PRIMARY.long], rows))
+                     + _table(["policy", "seeds", "return", task.metric(P).long], rows))
     return out, "\n\n".join(texts)

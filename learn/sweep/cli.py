@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from kiloforge.cliparse import ArgumentParser, error_line, program
+from kiloforge.errors import InputError
 from kiloforge.interrupts import exit_status
 from kiloforge.validate import int_arg
 
@@ -23,7 +24,7 @@ from sim.config import PRESETS as WORLD_PRESETS
 
 from ..config import PRESETS, ConfigError
 from . import trial as tr
-from .aggregate import aggregate, write_manifest
+from .aggregate import aggregate, check_one_task, write_manifest
 from .grid import Grid, Trial, build_grid, expand, read_grid_file
 
 PROG = "python -m learn sweep"
@@ -42,7 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--robots", nargs="+", type=int_arg(), default=None, help="robots trained together (n_robots)")
     g.add_argument("--world", nargs="+", default=None,
                    help=f"world preset(s): {', '.join(sorted(WORLD_PRESETS))} (default {DEFAULT_WORLD})")
-    g.add_argument("--task", nargs="+", default=None, help="task(s) (sim.tasks; default localisation)")
+    g.add_argument("--task", default=None,
+                   help="the sweep's task (sim.tasks): a name or path/to/file.py:ClassName (default localisation); "
+                        "with --aggregate, the task file of a sweep of a plug-in task")
     g.add_argument("--history", nargs="+", type=int_arg(), default=None, help="history lengths (t_prev; magddpg)")
     g.add_argument("--grid", nargs="+", action="extend", default=None, metavar="KEY=V1,V2",
                    help="any config field: comma-separated values, tuples as 32x32, or a JSON list")
@@ -74,7 +77,8 @@ def plan(args: argparse.Namespace) -> tuple[Grid, list[Trial], Path]:
     if args.num_cpus is not None and args.num_cpus < 1:
         raise ConfigError(f"--num-cpus must be >= 1, got {args.num_cpus}")
     grid = build_grid(read_grid_file(args.file) if args.file else None, trainer=args.trainer, presets=args.preset,
-                      seeds=args.seeds, robots=args.robots, world=args.world, task=args.task, history=args.history, grid=args.grid,
+                      seeds=args.seeds, robots=args.robots, world=args.world,
+                      task=None if args.task is None else [args.task], history=args.history, grid=args.grid,
                       max_minutes=args.max_minutes, cpus_per_trial=args.cpus_per_trial,
                       eval_robots=args.eval_robots, eval_episodes=args.eval_episodes, eval_steps=args.eval_steps)
     trials = expand(grid)
@@ -84,6 +88,7 @@ def plan(args: argparse.Namespace) -> tuple[Grid, list[Trial], Path]:
     sweep_dir = Path(args.out)
     if sweep_dir.exists() and not sweep_dir.is_dir():
         raise ConfigError(f"--out '{sweep_dir}' is not a directory")
+    check_one_task(sweep_dir, trials)
     return grid, trials, sweep_dir
 
 
@@ -104,7 +109,7 @@ def main_sweep(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:
         return _run(args)
-    except ConfigError as e:
+    except (ConfigError, InputError) as e:
         print(error_line(program(PROG), e), file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:  # trials checkpoint as they train; the summary is written atomically
@@ -117,7 +122,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.aggregate:
         if not Path(args.aggregate).is_dir():
             raise ConfigError(f"'{args.aggregate}' is not a directory")
-        aggregate(args.aggregate)
+        aggregate(args.aggregate, task=args.task)
         print(f"wrote {Path(args.aggregate) / 'summary.json'}")
         return 0
     grid, trials, sweep_dir = plan(args)
@@ -148,7 +153,7 @@ def _run(args: argparse.Namespace) -> int:
         outcome = execute.run_trials(sweep_dir, grid, trials, pending, done=counts["finished"],
                                      address=args.address, num_cpus=args.num_cpus, progress=not args.quiet)
         errors = outcome.errors
-    aggregate(sweep_dir, log=(lambda _m: None) if args.quiet else print)
+    aggregate(sweep_dir, log=(lambda _m: None) if args.quiet else print, task=tr.task_spec(t.config for t in trials))
     after = states(grid, trials, sweep_dir)
     left = [n for n, s in after.items() if s != "finished"]
     print(f"wrote {sweep_dir / 'summary.json'}, {sweep_dir / 'table.txt'}"

@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS, MAX_ROBOTS
-from sim.tasks import DEFAULT_TASK
 
 from ..config import ConfigError
 from . import trial as tr
@@ -232,10 +231,6 @@ def build_grid(file: dict | None = None, *, trainer: str | None = None, presets:
         cli[key] = (list(values), opt)
     for key, (values, where) in cli.items():
         axes[key] = _axis_values(g.trainer, key, values, where)
-    other = [t for t in axes.get("task", []) if t != DEFAULT_TASK]
-    if other:  # trial_numbers and the aggregate tables read the metric columns of one task (trial.SWEEP_TASK)
-        raise ConfigError(f"sweeps aggregate localisation's metrics; task {other[0]} is not supported by learn sweep "
-                          "yet (train its seeds with train-es and compare them with learn plot / learn evaluate)")
     g.axes = axes
 
     g.seeds = [int(s) for s in (seeds if seeds is not None else _as_list(file.get("seeds", [1])))]
@@ -290,6 +285,7 @@ def expand(g: Grid) -> list[Trial]:
             config_id = digest({**ident, "overrides": fields})
             name = f"{tr.short_name(g.trainer, cfg)}_s{seed}_{digest(ident)}"
             trials.append(Trial(name, config_id, g.trainer, preset, overrides, cfg.to_dict()))
+    tr.task_spec(t.config for t in trials)  # one task: the aggregate's columns are its metrics
     return trials
 
 

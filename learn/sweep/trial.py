@@ -21,10 +21,10 @@ import shutil
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 from sim.config import BENCHMARK_EPISODES, BENCHMARK_STEPS
-from sim.tasks import DEFAULT_TASK, get_task
+from sim.tasks import DEFAULT_TASK, Task, get_task, is_task_file, recorded_task
 
 from ..config import ConfigError
 
@@ -32,8 +32,6 @@ TRAINERS = ("magddpg", "magrdpg", "es")  #: values of ``--trainer``
 BUDGET_SLACK_S = 1.0  #: a run stopped on time within this of its budget has used it (wall_s is rounded)
 MIN_SESSION_MINUTES = 1e-3  #: a resumed run whose budget is spent still runs to its next episode end
 EVAL_DIR = "evaluation"  #: the final evaluation against the baselines, inside the run directory
-SWEEP_TASK = get_task(DEFAULT_TASK)  #: the task sweeps run (the grid refuses others) and aggregate the metrics of
-PRIMARY = SWEEP_TASK.primary_metric  #: the metric trials and tables report besides the return
 
 
 @dataclass(frozen=True)
@@ -44,6 +42,30 @@ class EvalSpec:
     episodes: int = BENCHMARK_EPISODES
     steps: int = BENCHMARK_STEPS
     seed: int = 0
+
+
+def task_spec(configs: Iterable[dict]) -> str:
+    """The one task (``task`` field) of a sweep's trial configs; a grid mixing tasks is a one-line ConfigError,
+    since the trials' metrics (each task's own) cannot be aggregated together."""
+    specs = list(dict.fromkeys(str(c.get("task", DEFAULT_TASK)) for c in configs))
+    if len(specs) > 1:
+        raise ConfigError(f"a sweep runs one task, and this one mixes {', '.join(specs)}: their metrics cannot be "
+                          "aggregated together; sweep each task into its own --out")
+    return specs[0] if specs else DEFAULT_TASK
+
+
+def sweep_task(configs: Iterable[dict], given: str | None = None) -> Task:
+    """The task of a sweep's trials (:func:`task_spec`), for its metric keys and labels. ``given`` is the task the
+    command line names; without it a task *file* the configs name is refused (a sweep directory never makes us
+    import its code) with a hint to give ``--task``."""
+    spec = task_spec(configs)
+    if given is None:
+        return recorded_task(spec, "the sweep's trials", "--task")
+    task = get_task(given)
+    same = spec == given if is_task_file(spec) else get_task(spec).name == task.name
+    if not same:
+        raise ConfigError(f"--task {given} is not the task of the sweep's trials ({spec})")
+    return task
 
 
 def _trainer(trainer: str):
@@ -165,16 +187,16 @@ def metric_rows(run_dir: Path) -> list[dict]:
     return read_metrics(run_dir)
 
 
-def trial_numbers(rows: list[dict]) -> dict[str, float]:
-    """Best and last evaluation of a run: return and the task's :data:`PRIMARY` metric (NaN without evaluations)."""
+def trial_numbers(rows: list[dict], primary: str) -> dict[str, float]:
+    """Best and last evaluation of a run: return and the task's ``primary`` metric (NaN without evaluations)."""
     if not rows:
         nan = float("nan")
-        return {"best_return": nan, "last_return": nan, f"best_{PRIMARY}": nan, f"last_{PRIMARY}": nan,
+        return {"best_return": nan, "last_return": nan, f"best_{primary}": nan, f"last_{primary}": nan,
                 "env_steps": 0.0, "wall_s": 0.0}
     best = max(rows, key=lambda r: -math.inf if math.isnan(r["eval_return"]) else r["eval_return"])
     last = rows[-1]
     return {"best_return": best["eval_return"], "last_return": last["eval_return"],
-            f"best_{PRIMARY}": best[f"eval_{PRIMARY}"], f"last_{PRIMARY}": last[f"eval_{PRIMARY}"],
+            f"best_{primary}": best[f"eval_{primary}"], f"last_{primary}": last[f"eval_{primary}"],
             "env_steps": last["env_steps"], "wall_s": last["wall_s"]}
 
 
@@ -194,6 +216,7 @@ def run_trial(trainer: str, config: dict, run_dir: str | Path, *, budget_minutes
     cls, _, train = _trainer(trainer)
     run_dir = Path(run_dir)
     cfg = cls.from_dict(config)
+    task = cfg.task_spec()
     if threads:
         cfg = dataclasses.replace(cfg, threads=threads)
     budget = cfg.max_minutes if budget_minutes is None else budget_minutes
@@ -215,19 +238,19 @@ def run_trial(trainer: str, config: dict, run_dir: str | Path, *, budget_minutes
             rows = metric_rows(run_dir)
             if len(rows) > seen[0]:
                 seen[0] = len(rows)
-                report(trial_numbers(rows))
+                report(trial_numbers(rows, task.primary_metric))
 
         res = train(cfg, run_dir, resume=state == "resume", progress=False, log=on_log)
         if res.stopped == "interrupted":
             raise TrialInterrupted(f"{run_dir.name} was interrupted; rerun the sweep to resume it")
     if not evaluated(run_dir, evaluation):
-        evaluate_best(run_dir, evaluation)
-    numbers = trial_numbers(metric_rows(run_dir))
+        evaluate_best(run_dir, evaluation, task)
+    numbers = trial_numbers(metric_rows(run_dir), task.primary_metric)
     report({**numbers, "finished": True})
     return numbers
 
 
-def evaluate_best(run_dir: Path, ev: EvalSpec) -> None:
+def evaluate_best(run_dir: Path, ev: EvalSpec, task: Task) -> None:
     """The trial's best policy and the baselines at ``ev.robots`` robots, into ``run_dir/evaluation``."""
     from kiloforge.policies import load_policy
 
@@ -236,4 +259,5 @@ def evaluate_best(run_dir: Path, ev: EvalSpec) -> None:
     out = run_dir / EVAL_DIR
     out.mkdir(exist_ok=True)
     evaluate_policies({run_dir.name: load_policy(run_dir / "policy_best.npz")}, list(ev.robots), ev.episodes,
-                      ev.steps, out, seed=ev.seed, baselines=True, gif=False, progress=False, log=lambda _m: None)
+                      ev.steps, out, seed=ev.seed, baselines=True, gif=False, progress=False, log=lambda _m: None,
+                      task=task)
