@@ -2,6 +2,7 @@
 
     python -m experiments.task_es train --task aggregation --recipe bias --seeds 1 2 3 --out runs/aggexp
     python -m experiments.task_es train --task phototaxis --recipe sizes --seeds 1 2 3 --out runs/photoexp
+    python -m experiments.task_es train --task transport --recipe bias --seeds 1 2 3 --out runs/transport
     python -m experiments.task_es evaluate --task phototaxis runs/photoexp/sizes_s1 … [--robots 16 32 64] [--episodes 20]
     python -m experiments.task_es behaviour --task aggregation runs/aggexp/default_s1 …
 
@@ -19,7 +20,7 @@ as ``init_policy`` (the same start but other random weights than ``--init-bias``
 ``evaluate`` plays every run's result (the last stage's ``policy_best.npz``, selected on the run's own evaluation
 episodes) and the task's hand-written and random baselines on held-out episodes (``sim.config.HELD_OUT_SEED``,
 never used for training or selection), 500 steps, and prints the task's primary metric per run and size.
-Results: docs/results/aggregation.md, docs/results/phototaxis.md.
+Results: docs/results/aggregation.md, docs/results/phototaxis.md, docs/results/transport.md.
 """
 from __future__ import annotations
 
@@ -56,6 +57,10 @@ RECIPES: dict[str, dict[str, list[dict]]] = {
         # anchor's larger arena, Task.world_for) from the first stage's best, with half the population
         "sizes": [dict(n_robots=(16,), init_bias=0.5, max_minutes=30),
                   dict(n_robots=(16, 32, 64), generations=100, pairs=8, max_minutes=50)],
+    },
+    "transport": {
+        # random start driving (output bias 0.5), 16 robots: three are needed to move the object
+        "bias": [dict(n_robots=(16,), init_bias=0.5, generations=400, max_minutes=50)],
     },
 }
 
