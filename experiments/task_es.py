@@ -104,31 +104,31 @@ def result_of(run: Path) -> Path:
 
 
 def evaluate(task: str, runs: list[Path], robots: list[int], episodes: int, seed: int) -> None:
-    key = get_task(task).primary_metric
-
-    def cell(res: dict, M: int, name: str) -> tuple[float, float]:
-        s = res["robots"][str(M)]["metrics"][name]["summary"][key]
-        return s["mean"], s["ci95"]
-
-    rows: dict[str, dict[int, tuple[float, float]]] = {}
-    baselines: dict[str, dict[int, tuple[float, float]]] = {}
+    """One table per metric of the task (its primary first): every run and baseline at every size."""
+    spec = get_task(task)
+    results, names = [], []
     for i, run in enumerate(runs):
-        name = str(run)
-        res = evaluate_policies({name: load_policy(result_of(run))}, robots, episodes, 500, None, seed=seed,
-                                baselines=i == 0, gif=False, progress=False, log=lambda s: None, task=task)
-        rows[name] = {M: cell(res, M, name) for M in robots}
-        if i == 0:
-            baselines = {b: {M: cell(res, M, b) for M in robots} for b in get_task(task).baselines}
+        names.append(str(run))
+        results.append(evaluate_policies({str(run): load_policy(result_of(run))}, robots, episodes, 500, None,
+                                         seed=seed, baselines=i == 0, gif=False, progress=False, log=lambda s: None,
+                                         task=task))
     which = "held-out" if seed == HELD_OUT_SEED else "validation" if seed == VALIDATION_SEED else "other"
-    print(f"{key} on {episodes} {which} episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
-    print("| policy | " + " | ".join(f"{M} robots" for M in robots) + " |")
-    print("|---|" + "---:|" * len(robots))
-    for name, r in (rows | baselines).items():
-        print(f"| {name} | " + " | ".join(f"{r[M][0]:.3f} ± {r[M][1]:.3f}" for M in robots) + " |")
-    if len(rows) > 1:
-        print("| learned: mean ± std over runs | " + " | ".join(
-            f"{np.mean([r[M][0] for r in rows.values()]):.3f} ± {np.std([r[M][0] for r in rows.values()], ddof=1):.3f}"
-            for M in robots) + " |")
+    for key in spec.eval_keys:
+        def cell(res: dict, M: int, name: str) -> tuple[float, float]:
+            s = res["robots"][str(M)]["metrics"][name]["summary"][key]
+            return s["mean"], s["ci95"]
+
+        rows = {n: {M: cell(r, M, n) for M in robots} for n, r in zip(names, results)}
+        rows |= {b: {M: cell(results[0], M, b) for M in robots} for b in spec.baselines}
+        print(f"\n{key} on {episodes} {which} episodes (seed {seed}), 500 steps, mean ± 95 % CI over episodes")
+        print("| policy | " + " | ".join(f"{M} robots" for M in robots) + " |")
+        print("|---|" + "---:|" * len(robots))
+        for name, r in rows.items():
+            print(f"| {name} | " + " | ".join(f"{r[M][0]:.3f} ± {r[M][1]:.3f}" for M in robots) + " |")
+        if len(names) > 1:
+            print("| learned: mean ± std over runs | " + " | ".join(
+                f"{np.mean([rows[n][M][0] for n in names]):.3f} ± {np.std([rows[n][M][0] for n in names], ddof=1):.3f}"
+                for M in robots) + " |")
 
 
 def behaviour(task: str, runs: list[Path], robots: int, episodes: int, seed: int) -> None:
