@@ -33,6 +33,8 @@ SHIPPED_POLICIES: dict[str, dict[str, str]] = {"localisation": {
     "stop_in_light": "stop_in_light_policy.npz",  #: sim.tasks.phototaxis' StopInLight, tuned StopInLightParams
     "run_and_tumble": "run_and_tumble_policy.npz",  #: sim.tasks.phototaxis' RunAndTumble, tuned RunAndTumbleParams
 }, "transport": {
+    #: learned from random weights by evolution strategies (docs/results/transport.md: the bias recipe, seed 2)
+    "default": "transport_policy.npz",
     "shadow_pusher": "shadow_pusher_policy.npz",  #: sim.tasks.transport's ShadowPusher, tuned ShadowPusherParams
 }}
 

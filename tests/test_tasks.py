@@ -217,14 +217,14 @@ def test_sim_command_runs_a_beaconless_task(tmp_path):
     assert r.returncode == 2 and "--policy must be one of aggregator, random" in r.stderr
 
 
-@pytest.mark.parametrize("task", ["aggregation", "phototaxis"])
+@pytest.mark.parametrize("task", ["aggregation", "phototaxis", "transport"])
 def test_shipped_learned_default_is_a_policy_of_its_task(task):
-    """--task T --policy default is T's shipped learned policy: task T v1, T's world layout; refused for another task."""
+    """--task T --policy default is T's shipped learned policy: T's task version, T's world layout; refused for another task."""
     from kiloforge.shipped import SHIPPED_POLICIES, load_task_policy, shipped_names
 
     assert "default" in shipped_names(task)
     p = load_task_policy(None, task)
-    assert p.task_ref == TaskRef(task, 1) and p.kind == "mlp"
+    assert p.task_ref == TaskRef(task, get_task(task).version) and p.kind == "mlp"
     get_task(task).check_world(p.world)
-    with pytest.raises(InputError, match=f"trained for task {task} v1, not localisation v1"):
+    with pytest.raises(InputError, match=f"trained for task {task} v{get_task(task).version}, not localisation v1"):
         load_task_policy(Path(__file__).parents[1] / "export" / "data" / SHIPPED_POLICIES[task]["default"], "localisation")
