@@ -212,7 +212,8 @@ def test_bad_kilolib_refused_before_any_work(layout, tmp_path, capsys):
 
 
 def test_next_steps_name_the_images_and_the_command():
-    """After an export with --kilolib the hint names the .hex to flash; without, the kiloforge command to rerun."""
+    """After an export with --kilolib the hint names the .hex to flash; without, the kiloforge command to rerun; the
+    beacon robot is named as the task calls it."""
     from export.cli.firmware import next_steps
     from kiloforge.cliparse import invoked_as
 
@@ -223,6 +224,8 @@ def test_next_steps_name_the_images_and_the_command():
     with invoked_as("python -m export", "kiloforge export"):
         lines = next_steps(["--out", "a b/kp.c"], Path("a b/kp.c"), Path("a b/kilobot_target.c"), (3,), None)
     assert lines[0].startswith("next: .hex images for KiloGUI: kiloforge export --out 'a b/kp.c' --kilolib DIR ")
+    lines = next_steps(["--out", "t.c"], Path("t.c"), Path("kilobot_target.c"), (0,), None, "the object's robot")
+    assert "(the robot with kilo_uid 0 is the object's robot)" in lines[1]
 
 
 def test_python_dash_m_entry_point(tmp_path):

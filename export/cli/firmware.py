@@ -118,9 +118,9 @@ def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
 
 
 def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: Sequence[int],
-               kilolib: Path | None) -> list[str]:
+               kilolib: Path | None, role: str = "the beacon") -> list[str]:
     """The lines printed after a successful export: what to run next to get the policy onto robots (no target
-    uids: a world without a beacon, one image for every robot)."""
+    uids: a world without a beacon, one image for every robot; ``role``: what the task calls its beacon robot)."""
     if not target_uids:
         if kilolib is not None:
             return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI",
@@ -131,11 +131,11 @@ def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: S
     beacon = f"kilo_uid {', '.join(map(str, target_uids))}"
     if kilolib is not None:
         return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {beacon} "
-                f"is the beacon ({target_path.with_suffix('.hex')}: a beacon-only image)",
+                f"is {role} ({target_path.with_suffix('.hex')}: its own image)",
                 "      before you flash (calibration, lighting, uids): docs/flashing.md"]
     return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
             "(DIR: your built kilolib checkout)",
-            f"      then flash them (the robot with {beacon} is the beacon): docs/flashing.md"]
+            f"      then flash them (the robot with {beacon} is {role}): docs/flashing.md"]
 
 
 def run_export(argv: Sequence[str]) -> int:
@@ -204,5 +204,5 @@ def run_export(argv: Sequence[str]) -> int:
     write_files_atomic(contents)
     print(f"wrote {', '.join(map(printable, contents))}")
     if not args.quiet:
-        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib)))
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, policy.task.beacon_role)))
     return EXIT_OK

@@ -97,6 +97,8 @@ class Task(ABC):
     #: True: a beacon robot (kilo_uid ``cfg.target_uid``) that only transmits stands in the world (a disc in
     #: collision worlds), and the firmware gets its beacon role; False: only the M robots
     beacon: ClassVar[bool] = False
+    #: what the beacon robot is, in messages to users (e.g. "the object's robot"); only with :attr:`beacon`
+    beacon_role: ClassVar[str] = "the beacon"
     #: the observation: features of :mod:`sim.features` in input order (the world's ``obs_features``)
     features: ClassVar[tuple[str, ...]] = ("wall", "rbf")
 

@@ -92,6 +92,7 @@ class Transport(Task):
     name = "transport"
     version = 2
     description = "robots push a heavy object, which no one or two of them can move, towards a lamp (cooperation)"
+    beacon_role = "the object's robot"
     success_label = "object's progress to the goal"
     robot_label = "touching the object"
     primary_metric = "final_displacement"
