@@ -128,9 +128,8 @@ def evaluate_policies(policies: dict[str, "object"], robots: list[int], episodes
         contenders += [Contender(label, (lambda b=b: task.make_baseline(b, world))) for label, b in task.baselines.items()]
 
     with_ceiling = task.has_ceiling(world)
-    if not with_ceiling:
-        log(f"note: no packing ceiling for the {world.name} world (the shipped table is for the kilobot "
-            "world's bodies, range and arena); the 'of ceiling' column is left out")
+    if not with_ceiling and task.no_ceiling_note(world):
+        log(f"note: {task.no_ceiling_note(world)}; the 'of ceiling' column is left out")
     results: dict = {"task": {**task.ref.to_dict(), "primary_metric": task.primary_metric},
                      "world": world.to_dict(), "episodes": episodes, "steps": steps, "seed": seed,
                      "policies": {n: {"hash": p.hash, "kind": p.kind, "architecture": p.describe(),

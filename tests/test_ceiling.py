@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kiloforge.errors import InputError
-from sim.tasks import ceiling
+from sim.tasks import ceiling, get_task
 from sim.config import KILOBOT, THESIS
 from sim.env import SwarmEnv
 from sim.baselines import make_policy
@@ -148,3 +148,17 @@ def test_evaluation_reports_ceiling(tmp_path):
     assert got == pytest.approx(np.mean(final_coverage(r.coverage) / want))
     assert saved["packing"]["open_capacity"] == ceiling.open_capacity(KILOBOT)
     assert res["packing"]["mean_capacity"] == pytest.approx(ceiling.mean_capacity(KILOBOT))
+
+
+def test_packing_note_only_where_the_task_has_a_ceiling_elsewhere():
+    """The 'no packing ceiling' note is localisation's (a world its table does not cover), never another task's."""
+    from learn.evaluate import evaluate_policies
+
+    uncovered = dataclasses.replace(KILOBOT, arena_half_mm=300.0)  # not the packing table's arena
+    for task, world, want in (("localisation", uncovered, True), ("aggregation", KILOBOT, False)):
+        spec = get_task(task)
+        pol = dataclasses.replace(init_policy(spec.world(world), t_prev=1, hidden=(4,)), task=spec.ref)
+        lines: list[str] = []
+        evaluate_policies({"tiny": pol}, [3], episodes=1, steps=4, out_dir=None, seed=3, gif=False, progress=False,
+                          log=lines.append, task=task, baselines=False)
+        assert any("no packing ceiling" in line for line in lines) == want, (task, lines)

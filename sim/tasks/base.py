@@ -174,6 +174,11 @@ class Task(ABC):
         """True when the task reports an upper bound on final success in ``cfg`` (tables: "of ceiling")."""
         return False
 
+    def no_ceiling_note(self, cfg: WorldConfig) -> str:
+        """Why a task that has an upper bound has none in ``cfg`` (a note before tables without "of ceiling"); ""
+        for a task that has none anywhere."""
+        return ""
+
     def bound_report(self, cfg: WorldConfig) -> dict[str, Any]:
         """Top-level entries of ``evaluation.json`` about the upper bound in ``cfg`` (asked only when
         :meth:`has_ceiling`; default none)."""

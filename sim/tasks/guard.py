@@ -92,6 +92,8 @@ _HOOKS: dict[str, Callable[..., None] | None] = {
     "has_ceiling": lambda task, cfg, out: None if isinstance(out, (bool, np.bool_)) else _fail("must return a bool"),
     "bound_report": lambda task, cfg, out: None if isinstance(out, Mapping) and all(isinstance(k, str) for k in out)
     else _fail("must return a dict with text keys"),
+    "no_ceiling_note": lambda task, cfg, out: None if isinstance(out, str) and "\n" not in out
+    else _fail("must return one line of text"),
 }
 
 

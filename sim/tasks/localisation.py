@@ -92,6 +92,10 @@ class Localisation(Task):
 
         return has_ceiling(cfg)
 
+    def no_ceiling_note(self, cfg: WorldConfig) -> str:
+        return (f"no packing ceiling for the {cfg.name} world (the shipped table is for the kilobot world's bodies, "
+                "range and arena)")
+
     def bound_report(self, cfg: WorldConfig) -> dict[str, Any]:
         """``packing``: how many robots fit in range of the beacon in the open and on average over its places
         (worlds of disc robots)."""
