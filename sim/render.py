@@ -36,6 +36,7 @@ C_IN = "#e6550d"  # robots within range of the target
 C_OUT = "#3182bd"  # other robots
 C_TARGET = "#d62728"
 C_WALL = "0.25"
+C_BODY = "#bdbdbd"  # a heavy body the target robot rides on (cfg.body_radius_mm > 0)
 
 
 def _figure(size_in: float = 5.0) -> Figure:
@@ -43,7 +44,8 @@ def _figure(size_in: float = 5.0) -> Figure:
 
 
 def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
-    """Axes with the arena border and, when given, the target diamond and its comm-radius circle."""
+    """Axes with the arena border and, when given, the target diamond, its comm-radius circle and the body it
+    rides on."""
     ax = fig.add_subplot(1, 1, 1)
     a = cfg.arena_half_mm
     pad = 0.04 * a
@@ -52,6 +54,8 @@ def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
     ax.set_aspect("equal")
     ax.add_patch(Rectangle((-a, -a), 2 * a, 2 * a, fill=False, lw=1.5, ec=C_WALL))
     if target is not None:
+        if cfg.body_radius_mm > 0:
+            ax.add_patch(Circle(tuple(target), cfg.body_radius_mm, fc=C_BODY, ec="black", lw=1.0))
         ax.add_patch(Circle(tuple(target), cfg.comm_radius_mm, fill=False, ls="--", lw=1.0, ec=C_TARGET))
         ax.plot([target[0]], [target[1]], marker="D", ms=8, color=C_TARGET, ls="none", label="target")
     ax.set_xlabel("x [mm]")
@@ -138,10 +142,11 @@ class _FramePainter:
         r_mm = cfg.robot_radius_mm if cfg.robot_radius_mm > 0 else 0.04 * cfg.arena_half_mm
         self.r_px = max(2.0, r_mm * self.px_per_mm)
         self.comm_px = cfg.comm_radius_mm * self.px_per_mm
+        self.body_px = cfg.body_radius_mm * self.px_per_mm
         # one GIF palette for all frames: the background's colours plus the robot colours
         swatch = self.background.copy()
         draw = ImageDraw.Draw(swatch)
-        for k, col in enumerate((C_IN, C_OUT, C_TARGET, "black", "white")):
+        for k, col in enumerate((C_IN, C_OUT, C_TARGET, C_BODY, "black", "white")):
             draw.rectangle((k * 8, 0, k * 8 + 7, 7), fill=col)
         self.palette = swatch.quantize(colors=48, method=Image.Quantize.MEDIANCUT)
 
@@ -156,7 +161,9 @@ class _FramePainter:
         if target is not None:
             (bx, by), = self._to_px(np.asarray(target, np.float64)[None])
             by = self.height - by
-            c, d = self.comm_px, 1.3 * self.r_px
+            c, d, b = self.comm_px, 1.3 * self.r_px, self.body_px
+            if b > 0:
+                draw.ellipse((bx - b, by - b, bx + b, by + b), fill=C_BODY, outline="black")  # the heavy body
             draw.ellipse((bx - c, by - c, bx + c, by + c), outline=C_TARGET, width=1)  # the comm radius
             draw.polygon([(bx, by - d), (bx + d, by), (bx, by + d), (bx - d, by)], fill=C_TARGET, outline="black")
         xy = self._to_px(np.asarray(pos, np.float64))  # (M, 2) pixels
