@@ -24,6 +24,7 @@ from kiloforge.errors import OutputError, printable
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import parse_decimal, quote
 from sim.config import KILOBOT, run_steps
+from sim.tasks import get_task
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
@@ -204,5 +205,5 @@ def run_export(argv: Sequence[str]) -> int:
     write_files_atomic(contents)
     print(f"wrote {', '.join(map(printable, contents))}")
     if not args.quiet:
-        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, policy.task.beacon_role)))
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, get_task(args.task).beacon_role)))
     return EXIT_OK
