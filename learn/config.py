@@ -438,7 +438,7 @@ class ESConfig(ConfigBase):
     init_policy: str = ""
     #: --demo-policy none: start from random weights whose output layer's bias is this value, so the first commands
     #: are near it (the actor's own start gives outputs near 0, clipped to [0, 1]: robots that stand still and a
-    #: long plateau); 0 = the actor's own initialisation (docs/training.md)
+    #: long plateau); 0 = the actor's own initialisation (docs/tasks.md)
     init_bias: float = 0.0
     demo_robot_episodes: int = 384  #: demonstrations per swarm size, in robot-episodes (episodes = this / robots)
     #: the demonstrator stops once its target is heard within this fraction of the range (0 = the searcher's tuned
