@@ -32,6 +32,7 @@ from kiloforge.errors import InputError, KiloforgeError, printable
 from kiloforge.interrupts import exit_status, terminate_raises
 from kiloforge.io import staged_files
 from kiloforge.policies import load_policy, swarm_policy
+from kiloforge.shipped import load_task_policy, shipped_names
 from kiloforge.validate import int_arg, seed_arg
 from sim.config import DEFAULT_WORLD, MAX_EPISODE_STEPS, MAX_ROBOTS, PRESETS, preset, run_steps
 from sim.tasks import TASK_HELP, Task, check_policy_task, get_task
@@ -108,8 +109,6 @@ def _load_policy(a: argparse.Namespace, task: Task):
         if dataclasses.is_dataclass(params):
             desc["params"] = dataclasses.asdict(params)
         return world, lambda w: task.make_baseline(a.policy, w), desc, None
-    from kiloforge.shipped import load_task_policy, shipped_names
-
     path = Path(a.policy)
     shipped = [n for n in shipped_names(task) if n not in names]  # a shipped rule of a baseline's name is that baseline
     if not os.path.lexists(path) and a.policy not in shipped:

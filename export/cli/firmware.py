@@ -153,6 +153,7 @@ def run_export(argv: Sequence[str]) -> int:
     if args.kilolib is not None:
         avr.find_kilolib(args.kilolib)  # a bad --kilolib (or no AVR toolchain) too
 
+    args.task = get_task(args.task)  # resolved once: a task file is imported once, every later step gets this Task
     policy = load(args.policy, args.onnx, args.world_json, args.task)
     beacon = policy.world.beacon  # without one: no beacon role, no kilobot_target.c
     if not beacon and args.target_uids is not None:
@@ -205,5 +206,5 @@ def run_export(argv: Sequence[str]) -> int:
     write_files_atomic(contents)
     print(f"wrote {', '.join(map(printable, contents))}")
     if not args.quiet:
-        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, get_task(args.task).beacon_role)))
+        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, args.task.beacon_role)))
     return EXIT_OK
