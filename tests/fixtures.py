@@ -18,7 +18,10 @@ from kiloforge.actors.base import sensing_tables
 from kiloforge.actors.mlp import MLPPolicy, QuantizedMLP
 from kiloforge.numfmt import QuantLayer
 from sim.config import ACTION_DIM, WorldConfig
+from sim.tasks import DEFAULT_TASK, get_task
 
+#: the emitter's own program as the default task (localisation) writes it (the beacon's kilobot_target.c)
+TARGET_FILE = get_task(DEFAULT_TASK).emitter_program
 TABLE_EXPONENTS = (5, 6)  #: (e_z, e_a) of synthetic table activations
 FLASH_HEADROOM_B = 1_500  #: flash the shipped default policy leaves free for error in the code estimate
 

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, TARGET_FILE, render_firmware
+from tests.fixtures import TARGET_FILE
+from export.codegen.render import DENSE_SOURCES, POLICY_FILE, RUNTIME_SOURCES, render_firmware
 from export.codegen.templates import inline_sources
 from kiloforge import numfmt
 from kiloforge.actors.aggregator import QuantizedAggregator
@@ -31,7 +32,7 @@ from kiloforge.io import write_atomic
 from kiloforge.numfmt import HIDDEN_EXP, QuantLayer
 from sim.baselines import SearcherParams
 from sim.config import preset
-from sim.tasks import get_task
+from sim.tasks import DEFAULT_TASK, get_task
 from sim.tasks.aggregation import NBR_MAX, AggregatorParams
 from sim.tasks.phototaxis import RunAndTumbleParams, StopInLightParams
 
@@ -154,10 +155,15 @@ def golden_policies() -> dict[str, QuantizedActor]:
                                 *golden_light_rules(), golden_shadow_pusher())}
 
 
+#: the task whose emitter firmware a golden policy's programs get (the default task's for the rest)
+GOLDEN_TASKS = {"shadow_pusher": "transport"}
+
+
 def render(qp: QuantizedActor) -> dict[str, str]:
-    """The programs of a golden policy (both, or the one of a world without a beacon), rendered as the golden files were."""
-    return render_firmware(qp, target_uids=GOLDEN_TARGET_UIDS if qp.world.beacon else None, msg_type=0x2A,
-                           generator_version=GOLDEN_VERSION)
+    """The programs of a golden policy (both, or the one of a world without an emitter), rendered as the golden files
+    were."""
+    return render_firmware(qp, emitter_uids=GOLDEN_TARGET_UIDS if qp.world.has_roles else None, msg_type=0x2A,
+                           generator_version=GOLDEN_VERSION, task=get_task(GOLDEN_TASKS.get(qp.kind, DEFAULT_TASK)))
 
 
 def generated_part(text: str, inlined: tuple[tuple[str, ...], ...]) -> str:

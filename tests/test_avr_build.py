@@ -11,8 +11,8 @@ import pytest
 from tests.avr_tools import require_avr
 from export.verify import avr
 from export.codegen.budget import FLASH_LIMIT_B, KILOLIB_FLASH_B
-from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
-from tests.fixtures import synthetic_qpolicy
+from export.codegen.render import POLICY_FILE, render_firmware
+from tests.fixtures import TARGET_FILE, synthetic_qpolicy
 from sim.config import preset
 
 pytestmark = pytest.mark.avr

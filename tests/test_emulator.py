@@ -148,10 +148,10 @@ def test_beacon_outputs_are_constant(qp):
     ev = _events([(0, 2, 3, 0, 1, 40), (1, 9, 1, 1, 0, 40)])
     inputs = FirmwareInputs(uids=uids, calib=np.full((R, 4), 80), light=np.full((R, n_control_steps(T, 8)), 900),
                             events=ev, n_ticks=T)
-    out = FirmwareEmulator(qp, uids, np.full((R, 4), 80), target_uids=(WORLD.target_uid, 77)).run(inputs)
+    out = FirmwareEmulator(qp, uids, np.full((R, 4), 80), emitter_uids=(WORLD.target_uid, 77)).run(inputs)
     for r in (0, 1):
         assert not out.duties[r].any() and not out.spinup[r].any() and not out.steps[r].any()
-        assert (out.led[r] == fwspec.rgb(*fwspec.LED_BEACON)).all()
+        assert (out.led[r] == fwspec.rgb(*fwspec.LED_EMITTER)).all()
         msg = out.messages[r, 0]
         assert (out.messages[r] == msg).all() and msg[3] == fwspec.ROLE_BIT
         assert int(msg[10]) | int(msg[11]) << 8 == crc16_mcrf4xx(msg[:10].tobytes())

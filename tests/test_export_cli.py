@@ -183,7 +183,7 @@ def test_default_export_writes_c_target_and_manifest(tmp_path, capsys):
     from kiloforge import numfmt
     assert m["number_format"] == numfmt.FORMAT_NAME and m["rounding"] == numfmt.ROUNDING
     assert len(m["policy_hash"]) == 64 and m["policy_hash"][:16] in stdout
-    assert m["budget"]["fits"] is True and m["options"]["target_uids"] == [0, 5]
+    assert m["budget"]["fits"] is True and m["options"]["emitter_uids"] == [0, 5]
     import hashlib
     assert m["files"]["kilobot_policy.c"]["sha256"] == hashlib.sha256(out.read_bytes()).hexdigest()
     assert "end to end" in stdout and "FITS" in stdout
@@ -243,8 +243,8 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     import types
     seen = {}
 
-    def render_firmware(qp, target_uids=(0,), generator_version=None):
-        seen["qp"], seen["uids"], seen["ver"] = qp, target_uids, generator_version
+    def render_firmware(qp, emitter_uids=(0,), generator_version=None, task=None):
+        seen["qp"], seen["uids"], seen["ver"] = qp, emitter_uids, generator_version
         return {"kilobot_policy.c": f"/* policy {qp.policy_hash} */\n", "kilobot_target.c": "/* target */\n"}
     monkeypatch.setattr("export.cli.firmware.render_firmware", render_firmware)
     out = tmp_path / "robot.c"
@@ -258,7 +258,7 @@ def test_export_pipeline_with_stub_renderer(tmp_path, capsys, monkeypatch):
     assert m["layer_sizes"] == qp.layer_sizes and m["generator_version"] == seen["ver"]
     assert (tmp_path / "kilobot_target.c").read_text() == "/* target */\n"
 
-    def verify_host(qp, files):
+    def verify_host(qp, files, task=None):
         return types.SimpleNamespace(ok=False, __str__=lambda self: "mismatch")
     monkeypatch.setattr("export.cli.firmware.verify_host", verify_host)
     out2 = tmp_path / "sub"
@@ -276,7 +276,7 @@ def test_onnx_input_with_stub_renderer(tmp_path, capsys, monkeypatch):
     export_onnx(p, tmp_path / "actor.onnx")
     seen = {}
 
-    def render_firmware(qp, target_uids=(0,), generator_version=None):
+    def render_firmware(qp, emitter_uids=(0,), generator_version=None, task=None):
         seen["qp"] = qp
         return {"kilobot_policy.c": "a", "kilobot_target.c": "b"}
     monkeypatch.setattr("export.cli.firmware.render_firmware", render_firmware)

@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from export.codegen.render import POLICY_FILE, TARGET_FILE
+from export.codegen.render import POLICY_FILE
 from export.codegen.templates import TEMPLATE_DIR
 from export.contract import crc
 from export.contract import firmware as fw
 from kiloforge import numfmt
 from tests.regen_golden import golden_files, golden_policies, render
+from tests.fixtures import TARGET_FILE
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = sorted(golden_policies())
@@ -49,7 +50,7 @@ CONTRACT = {  # rendered name -> its one definition (in both programs)
 }
 #: what a program of a world without a beacon leaves out
 BEACON_ONLY = ("KF_ROLE_BIT", "KF_SENSING_BIT", "KF_LED_BEACON", "KF_LED_SENSING", "KF_LED_NBR_SENSING")
-LEDS = {"KF_LED_OFF": fw.LED_OFF, "KF_LED_BEACON": fw.LED_BEACON, "KF_LED_SENSING": fw.LED_SENSING,
+LEDS = {"KF_LED_OFF": fw.LED_OFF, "KF_LED_BEACON": fw.LED_EMITTER, "KF_LED_SENSING": fw.LED_SENSING,
         "KF_LED_NBR_SENSING": fw.LED_NBR_SENSING}
 
 
@@ -165,7 +166,7 @@ def test_flashing_checklist_reads_the_leds_the_firmware_sets():
     colour = {(0, 0, 1): "blue", (0, 1, 0): "green", (1, 1, 0): "yellow", (0, 0, 0): "off"}
     rows = dict(re.findall(r"^\s*\| (blue \(dim\)|green|yellow|off) \| (.+) \|$",
                            (ROOT / "docs" / "flashing.md").read_text(), re.M))
-    expected = {fw.LED_BEACON: "beacon", fw.LED_SENSING: "heard the beacon", fw.LED_NBR_SENSING: "neighbour",
+    expected = {fw.LED_EMITTER: "beacon", fw.LED_SENSING: "heard the beacon", fw.LED_NBR_SENSING: "neighbour",
                 fw.LED_OFF: "neither"}
     assert len(rows) == len(expected) == 4
     for rgb_value, meaning in expected.items():

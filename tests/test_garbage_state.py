@@ -12,12 +12,12 @@ import functools
 import numpy as np
 import pytest
 
-from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.codegen.render import POLICY_FILE, render_firmware
 from export.contract import firmware as fwspec
 from export.quantize import calibrate, quantize_policy
 from export.verify.emulator import FirmwareEmulator
 from export.verify.hostbuild import HostBuildError, StreamSpec, build_host, compare, compiler, random_inputs, run_host
-from tests.fixtures import synthetic_qpolicy
+from tests.fixtures import TARGET_FILE, synthetic_qpolicy
 from kiloforge.actors.gru import random_gru_policy
 from kiloforge.actors.lstm import random_lstm_policy
 from kiloforge.actors.aggregator import AggregatorPolicy, quantize_aggregator
@@ -50,7 +50,7 @@ def policy(kind: str):
 
 def program(kind: str) -> str:
     """The rendered C of one kind: the MLP, GRU, LSTM, searcher or aggregator program, or the beacon-only program."""
-    files = render_firmware(policy(kind), target_uids=TARGETS, generator_version="test")
+    files = render_firmware(policy(kind), emitter_uids=TARGETS, generator_version="test")
     return files[TARGET_FILE if kind == "beacon" else POLICY_FILE]
 
 
@@ -65,7 +65,7 @@ def stream(kind: str, seed: int = 0):
 def emulate(kind: str, inputs):
     """The emulator's bytes for a stream (the beacon program: every robot is a target)."""
     targets = tuple(int(u) for u in inputs.uids) if kind == "beacon" else TARGETS
-    return FirmwareEmulator(policy(kind), inputs.uids, inputs.calib, target_uids=targets).run(inputs)
+    return FirmwareEmulator(policy(kind), inputs.uids, inputs.calib, emitter_uids=targets).run(inputs)
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_sanitized_program_on_garbage_state_equals_emulator(kind, fill, builds):
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=f"{kind} {fill}: {compare(want, got)}")
     np.testing.assert_array_equal(got.steps, want.steps, err_msg=f"{kind} {fill}: {compare(want, got)}")
     if kind == "beacon":
-        assert (want.led == fwspec.rgb(*fwspec.LED_BEACON)).all()
+        assert (want.led == fwspec.rgb(*fwspec.LED_EMITTER)).all()
     else:
         beacon = np.isin(inputs.uids, TARGETS)
         assert beacon.any() and not beacon.all(), "the stream should hold searchers and beacons"

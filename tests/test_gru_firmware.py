@@ -102,7 +102,7 @@ def test_random_streams_bit_exact(builds):
         got = run_host(exe, inputs, world.period_ticks, world.obs_dim, fill=f"random:{i}")
         np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=f"{name}: {compare(want, got)}")
         np.testing.assert_array_equal(got.steps, want.steps, err_msg=f"{name}: {compare(want, got)}")
-        searchers = ~emu.is_beacon
+        searchers = ~emu.is_emitter
         assert np.unique(want.commands[searchers]).size > 64, f"{name}: commands barely vary"
         hit = _paths_hit(qp, want.obs[searchers], want.commands[searchers])
         assert hit["state spans int8"], f"{name}: the hidden state hardly moves"
@@ -153,7 +153,7 @@ def test_firmware_in_the_loop_replays_on_host(builds):
 def test_verify_host_and_beacon_program():
     """verify_host (the CLI's --verify host) passes for a GRU program and its beacon-only program."""
     qp = qgru(preset("kilobot"), 6, seed=2)
-    result = verify_host(qp, render_firmware(qp, target_uids=(0, 9), msg_type=0x11, generator_version="t"),
+    result = verify_host(qp, render_firmware(qp, emitter_uids=(0, 9), msg_type=0x11, generator_version="t"),
                          spec=StreamSpec(n_robots=16, n_steps=12))
     assert result.ok and result.control_steps > 0, str(result)
 

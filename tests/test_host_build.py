@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from export.codegen.render import POLICY_FILE, emitter_firmware, render_firmware
 from export.contract import firmware as fwspec
 from export.verify.emulator import FirmwareEmulator, FirmwareInputs
 from export.verify.hostbuild import (HOST_CFLAGS, HostBuildError, StreamSpec, build_host, compare, compiler,
                                      random_inputs, rendered_params, run_host, runtime_flags, verify_host)
-from tests.fixtures import synthetic_qpolicy
+from tests.fixtures import TARGET_FILE, synthetic_qpolicy
 from kiloforge import numfmt
 from tests.recorded_loop import record_loop
 from sim.config import preset
@@ -56,7 +56,7 @@ CASES = [
 def _coverage(emu: FirmwareEmulator, inputs: FirmwareInputs) -> dict[str, int]:
     """How often the stream hit each rule (so the comparison cannot pass on easy streams only)."""
     ev, P, cap = inputs.events, emu.P, emu.rxq_capacity
-    ours = (ev["type"] == emu.msg_type) & (ev["version"] == fwspec.MSG_VERSION) & ~emu.is_beacon[ev["robot"]]
+    ours = (ev["type"] == emu.msg_type) & (ev["version"] == fwspec.MSG_VERSION) & ~emu.is_emitter[ev["robot"]]
     _, per_tick = np.unique(ev[ours]["robot"].astype(np.int64) << 32 | ev[ours]["tick"], return_counts=True)
     acc = emu.accepted(ev)
     nbr = acc[acc["role"] == 0]
@@ -70,7 +70,7 @@ def _coverage(emu: FirmwareEmulator, inputs: FirmwareInputs) -> dict[str, int]:
         "foreign": int((ev["type"] != emu.msg_type).sum()),
         "bad_version": int((ev["version"] != fwspec.MSG_VERSION).sum()),
         "light_busy": int((inputs.light < 0).sum()),
-        "beacons": int(emu.is_beacon.sum()),
+        "beacons": int(emu.is_emitter.sum()),
         "near": int((acc["dist"] < 33).sum()),
         "beyond_radius": int((acc["dist"] > emu.world.comm_radius_mm).sum()),
         "target_msgs": int((acc["role"] == 1).sum()),
@@ -101,12 +101,12 @@ def test_random_streams_bit_exact(builds):
     total_steps = 0
     for i, case in enumerate(CASES):
         qp = synthetic_qpolicy(case.world, case.t_prev, case.hidden, case.acts, seed=100 + i)
-        files = render_firmware(qp, target_uids=case.targets, msg_type=case.msg_type, generator_version="test")
+        files = render_firmware(qp, emitter_uids=case.targets, msg_type=case.msg_type, generator_version="test")
         exe = build_host(files[POLICY_FILE], builds, name=f"case{i}")
         rng = np.random.default_rng(np.random.SeedSequence(200 + i))
         inputs = random_inputs(rng, case.world.period_ticks, case.targets, case.spec, case.msg_type,
                                case.world.comm_radius_mm, case.world.light_threshold)
-        emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=case.targets, msg_type=case.msg_type)
+        emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=case.targets, msg_type=case.msg_type)
         want = emu.run(inputs)
         got = run_host(exe, inputs, case.world.period_ticks, case.world.obs_dim, fill=f"random:{i}")
         np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=f"{case.name}: {compare(want, got)}")
@@ -116,9 +116,9 @@ def test_random_streams_bit_exact(builds):
             if rule == "table_full" and case.world.neighbour_table_size >= case.spec.n_senders:
                 continue
             assert n > 0, f"{case.name}: the stream never exercised '{rule}' ({cov})"
-        searchers = ~emu.is_beacon
+        searchers = ~emu.is_emitter
         leds = set(np.unique(want.led).tolist())
-        assert leds == {fwspec.rgb(*c) for c in (fwspec.LED_OFF, fwspec.LED_BEACON, fwspec.LED_SENSING,
+        assert leds == {fwspec.rgb(*c) for c in (fwspec.LED_OFF, fwspec.LED_EMITTER, fwspec.LED_SENSING,
                                                  fwspec.LED_NBR_SENSING)}, f"{case.name}: LEDs {leds}"
         assert want.spinup.any(), f"{case.name}: no motor ever started"
         assert np.unique(want.commands[searchers]).size > 32, f"{case.name}: commands barely vary"
@@ -134,31 +134,31 @@ def test_target_program_equals_beacon_emulation(builds):
     exe = build_host(files[TARGET_FILE], builds, name="target")
     rng = np.random.default_rng(np.random.SeedSequence(300))
     inputs = random_inputs(rng, case.world.period_ticks, (0,), StreamSpec(n_robots=16, n_steps=20))
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids))
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=tuple(int(u) for u in inputs.uids))
     want = emu.run(inputs)
     got = run_host(exe, inputs, case.world.period_ticks, case.world.obs_dim)
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
     np.testing.assert_array_equal(got.steps, want.steps)
-    assert (want.led == fwspec.rgb(*fwspec.LED_BEACON)).all()
+    assert (want.led == fwspec.rgb(*fwspec.LED_EMITTER)).all()
 
 
 def test_a_different_firmware_is_detected(builds):
     """The comparison is sensitive: an emulator with a smaller rx queue or neighbour table disagrees."""
     case = CASES[0]
     qp = synthetic_qpolicy(case.world, 2, (8,), ("relu",), seed=7)
-    files = render_firmware(qp, target_uids=case.targets, msg_type=case.msg_type, generator_version="test")
+    files = render_firmware(qp, emitter_uids=case.targets, msg_type=case.msg_type, generator_version="test")
     exe = build_host(files[POLICY_FILE], builds, name="sensitive")
     rng = np.random.default_rng(np.random.SeedSequence(400))
     inputs = random_inputs(rng, case.world.period_ticks, case.targets,
                            StreamSpec(n_robots=32, n_steps=40, rate=0.9, burst_p=0.05))
     got = run_host(exe, inputs, case.world.period_ticks, case.world.obs_dim)
-    same = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=case.targets, msg_type=case.msg_type)
+    same = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=case.targets, msg_type=case.msg_type)
     assert compare(same.run(inputs), got) == ""
-    small_queue = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=case.targets,
+    small_queue = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=case.targets,
                                    msg_type=case.msg_type, rxq_capacity=fwspec.RXQ_CAPACITY - 1)
     assert compare(small_queue.run(inputs), got) != ""
     qp_small = dataclasses.replace(qp, world=dataclasses.replace(case.world, neighbour_table_size=15))
-    small_table = FirmwareEmulator(qp_small, inputs.uids, inputs.calib, target_uids=case.targets,
+    small_table = FirmwareEmulator(qp_small, inputs.uids, inputs.calib, emitter_uids=case.targets,
                                    msg_type=case.msg_type)
     assert compare(small_table.run(inputs), got) != ""
 
@@ -180,8 +180,8 @@ def test_firmware_in_the_loop_stream_replays_on_host(builds):
 def test_verify_host_reports_ok():
     """verify_host (the CLI's --verify host) checks both programs with the rendered uids and type."""
     qp = synthetic_qpolicy(preset("kilobot"), 2, (6,), seed=1)
-    files = render_firmware(qp, target_uids=(9, 0), msg_type=0x11, generator_version="t")
-    assert rendered_params(files[POLICY_FILE]) == ((9, 0), 0x11)
+    files = render_firmware(qp, emitter_uids=(9, 0), msg_type=0x11, generator_version="t")
+    assert rendered_params(files[POLICY_FILE], emitter_firmware(qp.world).uids_table) == ((9, 0), 0x11)
     result = verify_host(qp, files, spec=StreamSpec(n_robots=16, n_steps=10))
     assert result.ok and result.control_steps > 0, str(result)
     assert "bit-exact" in str(result)

@@ -215,7 +215,7 @@ def test_emulator_carries_the_state():
     w = preset("kilobot", period_ticks=5)
     _, qp = small_qlstm(hidden=8, world=w)
     rng = np.random.default_rng(np.random.SeedSequence(4))
-    inputs = random_inputs(rng, w.period_ticks, (0,), StreamSpec(n_robots=12, n_steps=30, beacon_p=0.0))
+    inputs = random_inputs(rng, w.period_ticks, (0,), StreamSpec(n_robots=12, n_steps=30, emitter_p=0.0))
     out = FirmwareEmulator(qp, inputs.uids, inputs.calib).run(inputs)
     obs = out.obs.astype(np.int64)
     s, q_prev = qp.initial_state(12), np.zeros((12, 2), np.int64)

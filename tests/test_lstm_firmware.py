@@ -72,7 +72,7 @@ def _bit_exact(builds, specs, fill: str = "random:1") -> int:
         got = run_host(exe, inputs, world.period_ticks, world.obs_dim, fill=fill)
         np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=f"{name}: {compare(want, got)}")
         np.testing.assert_array_equal(got.steps, want.steps, err_msg=f"{name}: {compare(want, got)}")
-        searchers = ~emu.is_beacon
+        searchers = ~emu.is_emitter
         hit = _paths_hit(qp, want.obs[searchers], want.commands[searchers])
         hit_any = {k: hit_any.get(k, False) or v for k, v in hit.items()}
         total += int(searchers.sum()) * want.steps.shape[1]
@@ -124,7 +124,7 @@ def test_a_different_cell_is_detected(builds):
 def test_verify_host_and_beacon_program():
     """verify_host (the CLI's --verify host) passes for an LSTM program and its beacon-only program."""
     qp = qlstm(preset("kilobot"), 6, seed=2)
-    result = verify_host(qp, render_firmware(qp, target_uids=(0, 9), msg_type=0x11, generator_version="t"),
+    result = verify_host(qp, render_firmware(qp, emitter_uids=(0, 9), msg_type=0x11, generator_version="t"),
                          spec=StreamSpec(n_robots=16, n_steps=12))
     assert result.ok and result.control_steps > 0, str(result)
 

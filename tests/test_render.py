@@ -142,9 +142,9 @@ def test_trimmed_tables_are_exact():
 @pytest.mark.parametrize("kwargs, match", [
     ({"msg_type": 1}, "GPS"),
     ({"msg_type": 0x80}, "user type"),
-    ({"target_uids": ()}, "target uids"),
-    ({"target_uids": (70000,)}, "65535"),
-    ({"target_uids": ("a",)}, "integers"),
+    ({"emitter_uids": ()}, "emitter uids"),
+    ({"emitter_uids": (70000,)}, "65535"),
+    ({"emitter_uids": ("a",)}, "integers"),
 ])
 def test_bad_arguments_give_one_line_errors(kwargs, match):
     """Bad message types and target uids raise ExportError with a one-line message."""
@@ -162,7 +162,7 @@ def test_bad_policy_hash_is_rejected():
 
 def test_target_uids_reach_the_table():
     """The configured target uids are the entries of KF_TARGET_UIDS (duplicates dropped)."""
-    text = render_firmware(golden_mlp(), target_uids=(5, 300, 5), generator_version="t")[POLICY_FILE]
+    text = render_firmware(golden_mlp(), emitter_uids=(5, 300, 5), generator_version="t")[POLICY_FILE]
     m = re.search(r"KF_TARGET_UIDS\[(\d+)\] PROGMEM = \{\s*([^}]*)\}", text)
     assert m and m.group(1) == "2"
     assert [v.strip() for v in m.group(2).split(",")] == ["5u", "300u"]

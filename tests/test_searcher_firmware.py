@@ -47,7 +47,7 @@ def name(request):
 @pytest.fixture(scope="module")
 def exe(name, tmp_path_factory):
     """The host build of that shipped searcher's program."""
-    files = render_firmware(shipped(name)[1], target_uids=TARGETS, generator_version="test")
+    files = render_firmware(shipped(name)[1], emitter_uids=TARGETS, generator_version="test")
     return build_host(files[POLICY_FILE], tmp_path_factory.mktemp(f"{name}_host"), name=name)
 
 
@@ -130,9 +130,9 @@ def test_integer_searcher_is_the_float_rules_on_dequantised_observations(name):
     """The emulator's commands equal sim.baselines' float rules fed its int8 observations / 2**e_in and the same draws."""
     p, qp = shipped(name)
     inputs = _stream(1)
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=TARGETS)
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=TARGETS)
     out = emu.run(inputs)
-    s = ~emu.is_beacon
+    s = ~emu.is_emitter
     obs, cmd = out.obs[s].astype(np.float64) / (1 << qp.e_in), out.commands[s]
     ref = FirmwareDrawSearcher(p.world, p.params, inputs.uids[s])
     ref.reset(1, int(s.sum()))
@@ -153,14 +153,14 @@ def test_host_build_equals_emulator_on_random_streams(name, exe):
     total = 0
     for seed in (2, 3):
         inputs = _stream(seed)
-        emu = FirmwareEmulator(shipped(name)[1], inputs.uids, inputs.calib, target_uids=TARGETS)
+        emu = FirmwareEmulator(shipped(name)[1], inputs.uids, inputs.calib, emitter_uids=TARGETS)
         want = emu.run(inputs)
         got = run_host(exe, inputs, WORLD.period_ticks, WORLD.obs_dim, fill=f"random:{seed}")
         np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
         np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
-        cmd = want.commands[~emu.is_beacon]
+        cmd = want.commands[~emu.is_emitter]
         assert (cmd == 0).all(-1).any() and (cmd == 255).all(-1).any() and (cmd[..., 0] != cmd[..., 1]).any()
-        total += int((~emu.is_beacon).sum()) * want.steps.shape[1]
+        total += int((~emu.is_emitter).sum()) * want.steps.shape[1]
     assert total >= 5_000, f"only {total} control steps compared"
 
 
@@ -172,7 +172,7 @@ def test_host_build_seeds_from_kilo_uid(name, exe):
     light = np.full((4, S), 900, np.int16)  # bright: never the wall flag
     inputs = FirmwareInputs(uids=uids, calib=np.zeros((4, 4), np.uint8), light=light,
                             events=np.zeros(0, EVENT_DTYPE), n_ticks=(S + 1) * P)
-    want = FirmwareEmulator(shipped(name)[1], uids, inputs.calib, target_uids=TARGETS).run(inputs)
+    want = FirmwareEmulator(shipped(name)[1], uids, inputs.calib, emitter_uids=TARGETS).run(inputs)
     got = run_host(exe, inputs, P, WORLD.obs_dim, fill="0xA5")
     np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
@@ -186,7 +186,7 @@ def test_host_build_seeds_from_kilo_uid(name, exe):
             super().reset()
             self.state = self.qp.setup_state(np.zeros_like(self.uids))
 
-    assert compare(UidBlind(shipped(name)[1], uids, inputs.calib, target_uids=TARGETS).run(inputs), got) != ""
+    assert compare(UidBlind(shipped(name)[1], uids, inputs.calib, emitter_uids=TARGETS).run(inputs), got) != ""
 
 
 @needs_cc

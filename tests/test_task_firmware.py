@@ -36,8 +36,8 @@ def test_beaconless_program_has_no_beacon_parts():
     c = files[POLICY_FILE]
     assert [p for p in BEACON_PARTS if p in c] == []
     assert "#define KF_OBS_WALL 0u" in c and "#define KF_OBS_RBF 1u" in c and "#define KF_OBS_DIM 12u" in c
-    with pytest.raises(ExportError, match="has no beacon: target uids do not apply"):
-        render_firmware(qp, target_uids=(0,), generator_version="t")
+    with pytest.raises(ExportError, match="has no emitter: emitter uids do not apply"):
+        render_firmware(qp, emitter_uids=(0,), generator_version="t")
 
 
 def test_aggregation_budget_is_smaller():
@@ -54,12 +54,12 @@ def test_layout_firmware_equals_emulator_on_fuzzed_streams(world, tmp_path):
     """Each layout's host build equals the emulator byte for byte (queue and table overflow, role-bit senders)."""
     qp = synthetic_qpolicy(world, 4, (8,), seed=7)
     targets = (0, 77) if world.beacon else ()
-    files = render_firmware(qp, target_uids=targets or None, generator_version="t")
+    files = render_firmware(qp, emitter_uids=targets or None, generator_version="t")
     exe = build_host(files[POLICY_FILE], tmp_path, name="layout")
     rng = np.random.default_rng(np.random.SeedSequence(42))
     inputs = random_inputs(rng, world.period_ticks, targets, StreamSpec(n_robots=64, n_steps=60, rate=0.9),
                            fwspec.DEFAULT_MSG_TYPE, world.comm_radius_mm, world.light_threshold)
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets or None)
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=targets or None)
     want = emu.run(inputs)
     got = run_host(exe, inputs, world.period_ticks, world.obs_dim, fill="random:3")
     np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
@@ -69,7 +69,7 @@ def test_layout_firmware_equals_emulator_on_fuzzed_streams(world, tmp_path):
     rbf = want.obs[..., world.obs_slice("rbf")]
     assert (rbf > 0).mean() > 0.05 and rbf.max() >= 32  # bins summed over several neighbours
     if not world.beacon:  # role bits are a neighbour's; the LED and message never change
-        assert not emu.is_beacon.any() and (want.led == fwspec.rgb(*fwspec.LED_OFF)).all()
+        assert not emu.is_emitter.any() and (want.led == fwspec.rgb(*fwspec.LED_OFF)).all()
         assert (want.messages[..., fwspec.MSG_INFO_BYTE] == 0).all()
 
 
@@ -103,3 +103,38 @@ def test_every_feature_has_a_firmware_block_and_an_emulator_twin():
 
     blocks = Path(__file__).resolve().parent.parent / "firmware_templates" / "features"
     assert {p.name.removesuffix(".c.j2") for p in blocks.glob("*.c.j2")} == set(FEATURES) == set(INT_FEATURES)
+
+
+def test_emitter_firmware_comes_from_the_task():
+    """A task with an emitter names its firmware partials and program file; a missing or bad one is one line."""
+    from export.codegen.render import EmitterFirmware
+    from sim.tasks.localisation import Localisation
+
+    qp = synthetic_qpolicy(preset("kilobot"), 2, (4,), seed=1)
+    for name in ("localisation", "transport"):
+        task = get_task(name)
+        emitter = EmitterFirmware(task)
+        files = render_firmware(qp, generator_version="t", task=task)
+        assert list(files) == [POLICY_FILE, task.emitter_program] and emitter.program == "kilobot_target.c"
+        assert f"{emitter.uids_table}[2]" not in files[POLICY_FILE] and f"{emitter.uids_table}[1]" in files[POLICY_FILE]
+        assert f"#define {emitter.led} " in files[POLICY_FILE] and f"act as {task.beacon_role}" in files[POLICY_FILE]
+    bad = {"no partials": {"firmware": ""}, "unknown folder": {"firmware": "nosuchtask"},
+           "path in folder": {"firmware": "../features"}, "policy file": {"emitter_program": POLICY_FILE},
+           "path in program": {"emitter_program": "../x.c"}}
+    for why, attrs in bad.items():
+        task = type("Odd", (Localisation,), dict(attrs, name="odd"))()
+        with pytest.raises(ExportError) as err:
+            render_firmware(qp, generator_version="t", task=task)
+        assert "\n" not in str(err.value) and "task 'odd' has an emitter" in str(err.value), why
+
+
+def test_generic_templates_name_no_task():
+    """Outside firmware_templates/tasks/ no template names a task's robot (the beacon) or its uids."""
+    import re
+
+    from export.codegen.templates import TEMPLATE_DIR
+
+    generic = [p for p in TEMPLATE_DIR.rglob("*") if p.is_file() and p.suffix in (".j2", ".c", ".h")
+               and "tasks" not in p.relative_to(TEMPLATE_DIR).parts]
+    assert len(generic) > 20
+    assert [p.name for p in generic if re.search(r"beacon|target_uid", p.read_text(), re.I)] == []

@@ -24,11 +24,11 @@ from kiloforge.errors import OutputError, printable
 from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import parse_decimal, quote
 from sim.config import KILOBOT, run_steps
-from sim.tasks import get_task
+from sim.tasks import Task, get_task
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
-from ..codegen.render import POLICY_FILE, TARGET_FILE, render_firmware
+from ..codegen.render import POLICY_FILE, EmitterFirmware, render_firmware
 from ..errors import BudgetError, ExportError, VerifyError
 from ..verify import avr
 from ..verify.hostbuild import verify_host
@@ -44,7 +44,7 @@ def _uids(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated decimal integers (ASCII digits), "
                                          f"got {quote(text)}") from None
     if not uids or any(not 0 <= u <= 0xFFFF for u in uids):
-        raise argparse.ArgumentTypeError(f"target uids must be uint16 values (0..65535), got {quote(text)}")
+        raise argparse.ArgumentTypeError(f"emitter uids must be uint16 values (0..65535), got {quote(text)}")
     return uids
 
 
@@ -54,15 +54,16 @@ def export_parser() -> argparse.ArgumentParser:
                             "(sub-command 'budget': will an architecture fit?; 'verify': "
                             "float actor vs int8 firmware in the simulator, closed loop).")
     ap.add_argument("--out", type=Path, default=Path(POLICY_FILE),
-                    help=f"C file to write (default {POLICY_FILE}); {TARGET_FILE} and <out>.manifest.json go beside it")
+                    help=f"C file to write (default {POLICY_FILE}); <out>.manifest.json and, for a task with an emitter, "
+                         f"the emitter's own program (e.g. kilobot_target.c) go beside it")
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--policy", type=Path, help=policy_help())
     src.add_argument("--onnx", type=Path, help="an ONNX MLP actor instead of a .npz policy")
     add_task(ap)
     ap.add_argument("--world-json", type=Path, help="with --onnx: JSON file with 'world' and 't_prev'")
     add_calibration(ap)
-    ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS",
-                    help="comma-separated kilo_uids that run as the target beacon (default: the world's target_uid)")
+    ap.add_argument("--target-uids", type=_uids, default=None, metavar="UIDS", dest="emitter_uids",
+                    help="comma-separated kilo_uids that run the task's emitter role (default: the world's emitter uid)")
     ap.add_argument("--kilolib", type=Path, default=None, metavar="DIR",
                     help="a built kilolib checkout: also write .elf/.hex images for KiloGUI beside the C files")
     ap.add_argument("--no-avr", action="store_true",
@@ -99,9 +100,9 @@ def _kilolib_flash(budget: bud.Budget, sizes: dict[str, avr.Sizes]) -> bud.Budge
     return budget
 
 
-def _verify_host(qp: QuantizedActor, files: dict[str, str]) -> str:
+def _verify_host(qp: QuantizedActor, files: dict[str, str], task: Task) -> str:
     """Build the rendered C on the host and compare with the emulator (rung 2)."""
-    result = verify_host(qp, files)
+    result = verify_host(qp, files, task=task)
     if not result.ok:
         raise VerifyError(f"host verification failed: {result}")
     return f"host verification: {result}"
@@ -118,25 +119,25 @@ def _verify_avr(qp: QuantizedActor, files: dict[str, str]) -> str:
     return str(check)
 
 
-def next_steps(argv: Sequence[str], out: Path, target_path: Path, target_uids: Sequence[int],
-               kilolib: Path | None, role: str = "the beacon") -> list[str]:
-    """The lines printed after a successful export: what to run next to get the policy onto robots (no target
-    uids: a world without a beacon, one image for every robot; ``role``: what the task calls its beacon robot)."""
-    if not target_uids:
+def next_steps(argv: Sequence[str], out: Path, emitter_path: Path, emitter_uids: Sequence[int],
+               kilolib: Path | None, role: str = "") -> list[str]:
+    """The lines printed after a successful export: what to run next to get the policy onto robots (no emitter
+    uids: a world without an emitter, one image for every robot; ``role``: what the task calls its emitter robot)."""
+    if not emitter_uids:
         if kilolib is not None:
             return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI",
                     "      before you flash (calibration, lighting, uids): docs/flashing.md"]
         return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
                 "(DIR: your built kilolib checkout)",
                 "      then flash every robot with it: docs/flashing.md"]
-    beacon = f"kilo_uid {', '.join(map(str, target_uids))}"
+    uids = f"kilo_uid {', '.join(map(str, emitter_uids))}"
     if kilolib is not None:
-        return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {beacon} "
-                f"is {role} ({target_path.with_suffix('.hex')}: its own image)",
+        return [f"next: flash {out.with_suffix('.hex')} onto every robot with KiloGUI; the robot with {uids} "
+                f"is {role} ({emitter_path.with_suffix('.hex')}: its own image)",
                 "      before you flash (calibration, lighting, uids): docs/flashing.md"]
     return [f"next: .hex images for KiloGUI: {program('python -m export')} {shlex.join(argv)} --kilolib DIR "
             "(DIR: your built kilolib checkout)",
-            f"      then flash them (the robot with {beacon} is {role}): docs/flashing.md"]
+            f"      then flash them (the robot with {uids} is {role}): docs/flashing.md"]
 
 
 def run_export(argv: Sequence[str]) -> int:
@@ -144,20 +145,22 @@ def run_export(argv: Sequence[str]) -> int:
     out: Path = args.out
     if out.name in ("", ".", "..") or out.suffix != ".c":
         raise OutputError(f"--out must name a .c file, got '{out}'")
-    target_path = out.with_name(TARGET_FILE)
-    if target_path == out:
-        raise OutputError(f"--out must not be named {TARGET_FILE} (that name is the beacon program's)")
+    args.task = get_task(args.task)  # resolved once: a task file is imported once, every later step gets this Task
+    emitter = EmitterFirmware(args.task) if args.task.beacon else None  # its program's file name, or none
+    emitter_path = out.with_name(emitter.program) if emitter else None
+    if emitter_path == out:
+        raise OutputError(f"--out must not be named {emitter.program} (that name is the emitter program's)")
     manifest_path = out.with_name(out.name + ".manifest.json")
-    image_paths = [p.with_suffix(x) for p in (out, target_path) for x in (".hex", ".elf")] if args.kilolib else []
-    check_writable([out, target_path, manifest_path, *image_paths])  # fail before the slow part
+    programs = [out] + ([emitter_path] if emitter_path else [])
+    image_paths = [p.with_suffix(x) for p in programs for x in (".hex", ".elf")] if args.kilolib else []
+    check_writable([*programs, manifest_path, *image_paths])  # fail before the slow part
     if args.kilolib is not None:
         avr.find_kilolib(args.kilolib)  # a bad --kilolib (or no AVR toolchain) too
 
-    args.task = get_task(args.task)  # resolved once: a task file is imported once, every later step gets this Task
     policy = load(args.policy, args.onnx, args.world_json, args.task)
-    beacon = policy.world.beacon  # without one: no beacon role, no kilobot_target.c
-    if not beacon and args.target_uids is not None:
-        raise ExportError(f"--target-uids: the policy's world '{policy.world.name}' has no beacon "
+    has_emitter = policy.world.has_roles  # without one: no emitter role, no emitter program
+    if not has_emitter and args.emitter_uids is not None:
+        raise ExportError(f"--target-uids: the policy's world '{policy.world.name}' has no emitter "
                           f"(task {policy.task.name})")
     if policy.world.name != KILOBOT.name:
         print(f"warning: this policy was trained in the '{policy.world.name}' world, not the Kilobot's "
@@ -180,31 +183,33 @@ def run_export(argv: Sequence[str]) -> int:
         print(budget.table())
         raise BudgetError(f"quantised policy does not fit ({budget.summary()})")
 
-    target_uids = () if not beacon else args.target_uids if args.target_uids is not None else (policy.world.target_uid,)
-    files = render_firmware(qp, target_uids=target_uids or None, generator_version=generator_version())
+    emitter_uids = (() if not has_emitter else args.emitter_uids if args.emitter_uids is not None
+                    else (policy.world.target_uid,))
+    files = render_firmware(qp, emitter_uids=emitter_uids or None, generator_version=generator_version(), task=args.task)
     budget = _exact_budget(budget, qp, files, skip=args.no_avr)
     built: dict[Path, bytes] = {}
     if args.kilolib is not None:
         images, sizes = avr.robot_images(files, args.kilolib)  # {"kilobot_policy.hex": bytes, ...}
         budget = _kilolib_flash(budget, sizes)
-        stems = {Path(POLICY_FILE).stem: out, Path(TARGET_FILE).stem: target_path}
+        stems = {Path(POLICY_FILE).stem: out, **({emitter.stem: emitter_path} if emitter and emitter_path else {})}
         built = {stems[Path(name).stem].with_suffix(Path(name).suffix): data for name, data in images.items()}
     print(budget.table())
     if args.verify == "host":
-        print(_verify_host(qp, files))
+        print(_verify_host(qp, files, args.task))
     elif args.verify == "avr":
         print(_verify_avr(qp, files))
-    options = {"target_uids": list(target_uids), "robots_calib": list(args.robots_calib),
+    options = {"emitter_uids": list(emitter_uids), "robots_calib": list(args.robots_calib),
                "calib_episodes": args.calib_episodes, "calib_steps": calib.info.get("steps"),
                "seed": args.seed, "percentile": args.percentile, "verify": args.verify,
                "source": str(args.onnx or args.policy or "default reference policy")}
-    contents: dict[Path, Any] = {out: files[POLICY_FILE], **({target_path: files[TARGET_FILE]} if beacon else {}),
-                                 **built}
+    emitter_c = {emitter_path: files[emitter.program]} if emitter and emitter_path and has_emitter else {}
+    contents: dict[Path, Any] = {out: files[POLICY_FILE], **emitter_c, **built}
     manifest = build_manifest(policy, qp, budget, report, calib, {p.name: data for p, data in contents.items()},
                               options)
     contents[manifest_path] = manifest_json(manifest)  # last: the set's record (kiloforge.io)
     write_files_atomic(contents)
     print(f"wrote {', '.join(map(printable, contents))}")
     if not args.quiet:
-        print("\n".join(next_steps(argv, out, target_path, target_uids, args.kilolib, args.task.beacon_role)))
+        print("\n".join(next_steps(argv, out, emitter_path or out, emitter_uids, args.kilolib,
+                                    emitter.role_name if emitter else "")))
     return EXIT_OK

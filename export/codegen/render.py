@@ -1,5 +1,5 @@
-"""Render a quantised actor into Kilobot C: ``kilobot_policy.c`` and, in worlds with a beacon, the beacon-only
-``kilobot_target.c``.
+"""Render a quantised actor into Kilobot C: ``kilobot_policy.c`` and, in worlds with an emitter (a robot of the task's
+that only transmits, with a role), the emitter's own program (the task names its file: ``Task.emitter_program``).
 
 :func:`render_firmware` is a pure function (no I/O besides reading the templates). The shared
 program (``firmware_templates/kilobot_policy.c.j2``: radio, observation, motor schedule, message,
@@ -15,13 +15,19 @@ is its bit-exact NumPy model, and :mod:`export.contract.firmware` holds the cons
 Tables are stored trimmed where that is exact: the target table up to the first distance from which
 it is constant (the C clamps the index), each RBF row only over its non-zero window.
 
+The emitter's role is the task's: its firmware partials (``firmware_templates/tasks/<Task.firmware>/``) give the
+role's C names and code in the policy program (``emitter.c.j2``, imported by the shared template) and the emitter's
+own program (``program.c.j2``); this module only fills in the uids, LED and message constants under those names.
+
 The observation is the world's (``WorldConfig.obs_features``, chosen by the task): ``kf_observe`` is
 rendered from each feature's block (``firmware_templates/features/<name>.c.j2``, :mod:`sim.features`),
-and only what the layout and the beacon need is rendered: a world without a beacon gets no beacon
-role, no target slot, table or uids, no message flags and no ``kilobot_target.c``.
+and only what the layout and the emitter need is rendered: a world without an emitter gets no emitter
+role, no target slot, table or uids, no message flags and no emitter program.
 """
 from __future__ import annotations
 
+import re
+from pathlib import PurePath
 from typing import Any, Iterable
 
 import numpy as np
@@ -35,6 +41,8 @@ from sim.config import ACTION_DIM, WorldConfig
 from sim.features import FEATURES, beacon_sends_light
 from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
+from sim.tasks import DEFAULT_TASK, Task, get_task
+from sim.tasks.base import TASK_NAME
 
 from ..contract import crc
 from ..contract import firmware as fw
@@ -42,15 +50,14 @@ from ..errors import ExportError
 from . import kernel
 from .cformat import c_array, c_comment, c_hex_digest, c_ident, c_int, clamp_index_table, nonzero_windows
 from .manifest import generator_version as installed_version
-from .templates import environment, inline_sources
+from .templates import TEMPLATE_DIR, environment, inline_sources
 
 POLICY_FILE = "kilobot_policy.c"
-TARGET_FILE = "kilobot_target.c"
-TARGET_TEMPLATE = "kilobot_target.c.j2"
+TASK_PARTIALS = "tasks"  #: the folder of firmware_templates/ holding each task's firmware partials
 #: hand-written C inlined into the programs, in this order (their local #includes are pasted in place)
 RUNTIME_SOURCES = ("kf_runtime.h",)
 DENSE_SOURCES = ("kf_dense.h", "kf_dense.c")
-MAX_TARGET_UIDS = 32
+MAX_EMITTER_UIDS = 32
 #: the loop counters (uint8_t) each feature's firmware block uses in kf_observe
 FEATURE_COUNTERS: dict[str, tuple[str, ...]] = {"nbr_sensing": ("i",), "rbf": ("i", "k")}
 
@@ -67,21 +74,52 @@ def _kind_define(d: CDefine) -> dict[str, str]:
     return _define(d.name, c_int(int(d.value), d.ctype), d.comment)
 
 
-def _check_uids(target_uids: Iterable[int]) -> tuple[int, ...]:
+def _check_uids(emitter_uids: Iterable[int]) -> tuple[int, ...]:
     try:
-        uids = tuple(int(u) for u in target_uids)
+        uids = tuple(int(u) for u in emitter_uids)
     except (TypeError, ValueError):
-        raise ExportError(f"target uids must be integers, got {target_uids!r}") from None
-    if not 1 <= len(uids) <= MAX_TARGET_UIDS:
-        raise ExportError(f"give 1..{MAX_TARGET_UIDS} target uids, got {len(uids)}")
+        raise ExportError(f"emitter uids must be integers, got {emitter_uids!r}") from None
+    if not 1 <= len(uids) <= MAX_EMITTER_UIDS:
+        raise ExportError(f"give 1..{MAX_EMITTER_UIDS} emitter uids, got {len(uids)}")
     bad = [u for u in uids if not 0 <= u <= 0xFFFF]
     if bad:
-        raise ExportError(f"target uids must be kilo_uid values 0..65535, got {bad}")
+        raise ExportError(f"emitter uids must be kilo_uid values 0..65535, got {bad}")
     return tuple(dict.fromkeys(uids))
 
 
+class EmitterFirmware:
+    """A task's emitter firmware: its partials' folder, the C names of its role (``emitter.c.j2``'s variables) and
+    the file its own program is written to. Raises :class:`ExportError` when the task gives none or a bad one."""
+
+    def __init__(self, task: Task) -> None:
+        folder, program = task.firmware, task.emitter_program
+        where = f"task '{task.name}' has an emitter"
+        if not (isinstance(folder, str) and TASK_NAME.fullmatch(folder)
+                and (TEMPLATE_DIR / TASK_PARTIALS / folder / "emitter.c.j2").is_file()):
+            raise ExportError(f"{where} but no firmware partials: Task.firmware must name a folder of "
+                              f"firmware_templates/{TASK_PARTIALS}/ with emitter.c.j2 and program.c.j2, got {folder!r}")
+        if not (isinstance(program, str) and re.fullmatch(r"[A-Za-z0-9_]{1,64}\.c", program) and program != POLICY_FILE):
+            raise ExportError(f"{where}: Task.emitter_program must be a C file name (letters, digits, _) other than "
+                              f"{POLICY_FILE}, got {program!r}")
+        self.partial = f"{TASK_PARTIALS}/{folder}/emitter.c.j2"
+        self.program_template = f"{TASK_PARTIALS}/{folder}/program.c.j2"
+        self.program = program
+        self.role_name = task.beacon_role
+        module = environment().get_template(self.partial).module
+        self.uids_table, self.n_uids, self.led = (str(getattr(module, n)) for n in ("uids_table", "n_uids", "led"))
+
+    @property
+    def stem(self) -> str:
+        return PurePath(self.program).stem
+
+
+def emitter_firmware(world: WorldConfig, task: Task | None = None) -> EmitterFirmware | None:
+    """The emitter firmware of ``task`` (default: the default task) in ``world``; None in a world without an emitter."""
+    return EmitterFirmware(task or get_task(DEFAULT_TASK)) if world.has_roles else None
+
+
 def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lines: list[str],
-            uids: tuple[int, ...], msg_type: int) -> list[str]:
+            uids: tuple[int, ...], msg_type: int, role_name: str) -> list[str]:
     w = qp.world
     lines = [
         f"{file_name}: Kilobot firmware generated by kiloforge {c_comment(generator_version, 40)}.",
@@ -95,8 +133,8 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
         f"world           {c_comment(w.name, 40)}: control period {w.period_ticks} kilo_ticks, comm radius "
         f"{w.comm_radius_mm:g} mm, {w.n_rbf} RBF bins, neighbour table {w.neighbour_table_size}",
         f"actor           {qp.describe()}",
-        *([f"target uids     {', '.join(str(u) for u in uids)} (these robots act as the beacon)"] if w.beacon else
-          [f"observation     {c_comment(w.obs_features, 60)} (no beacon)"]),
+        *([f"emitter uids    {', '.join(str(u) for u in uids)} (these robots act as {c_comment(role_name, 40)})"]
+          if uids else [f"observation     {c_comment(w.obs_features, 60)} (no emitter)"]),
         f"message         type {msg_type:#04x}, version {fw.MSG_VERSION}",
         "",
         "Robot: avr-gcc -mmcu=atmega328p -O3 -funsigned-char -funsigned-bitfields -fpack-struct",
@@ -109,9 +147,9 @@ def _banner(file_name: str, qp: QuantizedActor, generator_version: str, role_lin
     return lines
 
 
-def _common_defines(msg_type: int, world: WorldConfig) -> list[dict[str, str]]:
-    """The message and LED constants: the role and sensing bits and their LEDs only where the world has a beacon."""
-    beacon = world.beacon
+def _common_defines(msg_type: int, world: WorldConfig, emitter: EmitterFirmware | None) -> list[dict[str, str]]:
+    """The message and LED constants: the role and sensing bits and their LEDs only where the world has an emitter."""
+    roles = emitter is not None
     nbr = world.has_feature("nbr_sensing")
     light = beacon_sends_light(world)
     defines = [
@@ -122,16 +160,17 @@ def _common_defines(msg_type: int, world: WorldConfig) -> list[dict[str, str]]:
         _define("KF_MSG_DATA_BYTES", _u(fw.MSG_DATA_BYTES), "message_t payload bytes (the CRC covers them and the type)"),
         _define("KF_MSG_USED_BYTES", _u(fw.MSG_USED_BYTES), "data[0..3] carry version, uid and info; the rest is 0"),
         _define("KF_MSG_INFO_BYTE", _u(fw.MSG_INFO_BYTE), "data[] index of role | sensing << 1"),
-        (beacon, _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the target beacon")),
-        (beacon, _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period")),
-        (light, _define("KF_MSG_LIGHT_BYTE", _u(fw.MSG_LIGHT_BYTE), "data[] index of the beacon's light reading (2 bytes, LE)")),
-        (light, _define("KF_LIGHT_NONE", _u(fw.LIGHT_NONE, "uint16_t"), "the beacon's light reading before its first")),
+        (roles, _define("KF_ROLE_BIT", _u(fw.ROLE_BIT), "data[3] bit: the sender is the emitter")),
+        (roles, _define("KF_SENSING_BIT", _u(fw.SENSING_BIT), "data[3] bit: the sender heard the target last period")),
+        (light, _define("KF_MSG_LIGHT_BYTE", _u(fw.MSG_LIGHT_BYTE), "data[] index of the emitter's light reading (2 bytes, LE)")),
+        (light, _define("KF_LIGHT_NONE", _u(fw.LIGHT_NONE, "uint16_t"), "the emitter's light reading before its first")),
         (light, _define("KF_ADC_MAX", _u(ADC_MAX, "uint16_t"), "the largest ambient-light reading (10-bit ADC)")),
         (True, _define("KF_LED_OFF", "(RGB({}, {}, {}))".format(*fw.LED_OFF), "searcher, nothing to show")),
-        (beacon, _define("KF_LED_BEACON", "(RGB({}, {}, {}))".format(*fw.LED_BEACON), "blue: target beacon")),
-        (beacon, _define("KF_LED_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_SENSING),
+        *([(True, _define(emitter.led, "(RGB({}, {}, {}))".format(*fw.LED_EMITTER), "blue: the emitter"))]
+          if emitter else []),
+        (roles, _define("KF_LED_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_SENSING),
                          "green: heard the target during the last period")),
-        (beacon and nbr, _define("KF_LED_NBR_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_NBR_SENSING),
+        (roles and nbr, _define("KF_LED_NBR_SENSING", "(RGB({}, {}, {}))".format(*fw.LED_NBR_SENSING),
                                  "yellow: a neighbour heard last period senses the target")),
     ]
     return [d if isinstance(d, dict) else d[1] for d in defines if isinstance(d, dict) or d[0]]
@@ -149,7 +188,8 @@ def _runtime_defines() -> list[dict[str, str]]:
     return [_define(name, value, comments[name]) for name, value in runtime_defines().items()]
 
 
-def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> tuple[list[dict[str, str]], list[str]]:
+def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec,
+                emitter: EmitterFirmware | None) -> tuple[list[dict[str, str]], list[str]]:
     """(defines, tables) every policy program has: timing, queues, observation layout, sensing and
     motor constants, the sensing tables; the kind's ``memory`` defines go after the uid count, its
     ``scratch`` defines after the motor modes."""
@@ -166,8 +206,8 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
                 "messages buffered between the rx ISR and loop(); one arriving when full is dropped"),
         _define("KF_NBR_CAPACITY", _u(w.neighbour_table_size),
                 "neighbour-table entries per period; further new senders are dropped"),
-        *([_define("KF_N_TARGET_UIDS", _u(len(uids)), "robots with these kilo_uids act as the beacon")]
-          if w.beacon else []),
+        *([_define(emitter.n_uids, _u(len(uids)), f"robots with these kilo_uids act as {emitter.role_name}")]
+          if emitter else []),
         *map(_kind_define, spec.memory),
         _define("KF_ACTION_DIM", _u(ACTION_DIM), "tuple = [ACT[q_left], ACT[q_right], observation]"),
         _define("KF_OBS_DIM", _u(w.obs_dim), "observation entries"),
@@ -197,8 +237,8 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
 
     # --- sensing tables (trimmed where exact), those the layout reads ---
     tables = []
-    if w.beacon:
-        tables.append(c_array("KF_TARGET_UIDS", "uint16_t", uids, comment="kilo_uids of the target beacon role"))
+    if emitter:
+        tables.append(c_array(emitter.uids_table, "uint16_t", uids, comment=f"kilo_uids of {emitter.role_name}'s role"))
     tables.append(c_array("KF_ACT", "int8_t", qp.action_table,
                           comment=f"ACT[q]: motor command q / 255 at exponent e_in = {qp.e_in} (history entries)"))
     if w.has_feature("target"):
@@ -219,11 +259,12 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec) -> 
     return defines, tables
 
 
-def _layout_context(w: WorldConfig) -> dict[str, Any]:
+def _layout_context(w: WorldConfig, emitter: EmitterFirmware | None) -> dict[str, Any]:
     """What the shared template renders from the world's roles and observation layout (``roles``: one robot of the
-    task transmits with a role bit, the others track whether they heard it)."""
+    task transmits with a role bit, the others track whether they heard it; ``emitter_partial``: the task's role)."""
     counters = {c for f in w.features for c in FEATURE_COUNTERS.get(f, ())}
-    return {"roles": w.has_roles, "obs_features": list(w.features),
+    return {"roles": emitter is not None, "emitter_partial": emitter.partial if emitter else "",
+            "obs_features": list(w.features),
             "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
             "reads_light": any(FEATURES[f].reads_light for f in w.features),
             "msg_light": beacon_sends_light(w),
@@ -247,13 +288,13 @@ def _dense_arrays(d: CDense) -> tuple[list[str], dict[str, str]]:
     return arrays, entry
 
 
-def _policy_context(qp: QuantizedActor, uids: tuple[int, ...]) -> dict[str, Any]:
+def _policy_context(qp: QuantizedActor, uids: tuple[int, ...], emitter: EmitterFirmware | None) -> dict[str, Any]:
     kind = kind_of(qp)
     try:
         spec = kind.render_spec(qp)
     except QuantizeError as e:
         raise ExportError(str(e)) from None
-    defines, tables = _io_context(qp, uids, spec)
+    defines, tables = _io_context(qp, uids, spec, emitter)
     layers = []
     for t in spec.tables:
         if isinstance(t, CDense):
@@ -263,7 +304,7 @@ def _policy_context(qp: QuantizedActor, uids: tuple[int, ...]) -> dict[str, Any]
         else:
             tables.append(c_array(t.name, t.ctype, t.values, per_line=t.per_line, comment=t.comment))
     return {"defines": defines, "tables": tables, "layers": layers, "actor_c": inline_sources(kind.c_sources),
-            **_layout_context(qp.world), **spec.variables}
+            **_layout_context(qp.world, emitter), **spec.variables}
 
 
 def _dense_c(qp: QuantizedActor) -> str:
@@ -275,20 +316,24 @@ def _dense_c(qp: QuantizedActor) -> str:
             if kernel.all_fast(qp.layers) else "") + inline_sources(DENSE_SOURCES)
 
 
-def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None = None,
-                    msg_type: int = fw.DEFAULT_MSG_TYPE, generator_version: str | None = None) -> dict[str, str]:
-    """The generated programs: ``{"kilobot_policy.c": ..., "kilobot_target.c": ...}`` (the second only when the
-    world has a beacon).
+def render_firmware(qpolicy: QuantizedActor, emitter_uids: Iterable[int] | None = None,
+                    msg_type: int = fw.DEFAULT_MSG_TYPE, generator_version: str | None = None,
+                    task: Task | None = None) -> dict[str, str]:
+    """The generated programs: ``{"kilobot_policy.c": ..., <the task's emitter program>: ...}`` (the second only when
+    the world has an emitter).
 
-    ``target_uids`` (default ``(world.target_uid,)``): robots with these kilo_uids run the beacon
-    role of the policy program (refused for a world without a beacon). ``msg_type``: the message type of ours (< 0x80, not 1).
-    ``generator_version`` goes into the banner (default: the installed kiloforge version).
+    ``emitter_uids`` (default the world's emitter uid): robots with these kilo_uids run the emitter role of the
+    policy program (refused for a world without an emitter). ``msg_type``: the message type of ours (< 0x80, not 1).
+    ``generator_version`` goes into the banner (default: the installed kiloforge version). ``task``: whose emitter
+    firmware to render (default the default task; only read in a world with an emitter).
     Raises :class:`ExportError` with a one-line message for bad arguments.
     """
     qp = qpolicy
-    if not qp.world.beacon and target_uids is not None:
-        raise ExportError(f"the policy's world '{qp.world.name}' has no beacon: target uids do not apply")
-    uids = _check_uids((qp.world.target_uid,) if target_uids is None else target_uids) if qp.world.beacon else ()
+    w = qp.world
+    if not w.has_roles and emitter_uids is not None:
+        raise ExportError(f"the policy's world '{w.name}' has no emitter: emitter uids do not apply")
+    emitter = emitter_firmware(w, task)
+    uids = _check_uids((w.target_uid,) if emitter_uids is None else emitter_uids) if emitter else ()
     try:
         msg_type = fw.check_msg_type(msg_type)
         c_hex_digest(qp.policy_hash)
@@ -297,22 +342,23 @@ def render_firmware(qpolicy: QuantizedActor, target_uids: Iterable[int] | None =
     if generator_version is None:
         generator_version = installed_version()
     env = environment()
-    common = {"defines_common": _common_defines(msg_type, qp.world), "defines_runtime": _runtime_defines(),
-              "runtime_c": inline_sources(RUNTIME_SOURCES), "msg_light": beacon_sends_light(qp.world)}
-    policy_ctx = dict(common, **_policy_context(qp, uids),
+    common = {"defines_common": _common_defines(msg_type, w, emitter), "defines_runtime": _runtime_defines(),
+              "runtime_c": inline_sources(RUNTIME_SOURCES), "msg_light": beacon_sends_light(w)}
+    role = emitter.role_name if emitter else ""
+    policy_ctx = dict(common, **_policy_context(qp, uids, emitter),
                       banner=_banner(POLICY_FILE, qp, generator_version,
-                                     ["One program for every robot: robots whose kilo_uid is a target uid act",
-                                      "as the beacon, all others as searchers running the policy."] if qp.world.beacon
-                                     else ["One program for every robot: each runs the policy (the world has no beacon)."],
-                                     uids, msg_type),
+                                     ["One program for every robot: robots whose kilo_uid is an emitter uid act",
+                                      f"as {c_comment(role, 40)}, all others run the policy."] if emitter
+                                     else ["One program for every robot: each runs the policy (the world has no emitter)."],
+                                     uids, msg_type, role),
                       dense_c=_dense_c(qp))
     policy_c = env.get_template(kind_of(qp).template).render(**policy_ctx)
-    if not qp.world.beacon:
+    if emitter is None:
         return {POLICY_FILE: policy_c}
-    target_ctx = dict(common, defines_target=[_define("KF_PERIOD_TICKS", _u(qp.world.period_ticks),
-                                                      "the beacon reads the light every this many kilo_ticks")],
-                      banner=_banner(TARGET_FILE, qp, generator_version,
-                                             ["Beacon-only program: whatever its kilo_uid, this robot is the target",
-                                              "(it never moves, shines blue and sends role = 1)."],
-                                             uids, msg_type))
-    return {POLICY_FILE: policy_c, TARGET_FILE: env.get_template(TARGET_TEMPLATE).render(**target_ctx)}
+    target_ctx = dict(common, defines_target=[_define("KF_PERIOD_TICKS", _u(w.period_ticks),
+                                                      "the emitter reads the light every this many kilo_ticks")],
+                      banner=_banner(emitter.program, qp, generator_version,
+                                     [f"Emitter-only program: whatever its kilo_uid, this robot is {c_comment(role, 40)}",
+                                      "(it never moves and sends role = 1)."],
+                                     uids, msg_type, role))
+    return {POLICY_FILE: policy_c, emitter.program: env.get_template(emitter.program_template).render(**target_ctx)}

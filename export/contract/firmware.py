@@ -4,9 +4,9 @@ The message a robot sends (``message_t``, 12 bytes, packed)::
 
     data[0]     KF_MSG_VERSION (MSG_VERSION)          payload layout version; other values are dropped
     data[1..2]  kilo_uid, little-endian
-    data[3]     role | (sensing << 1)                 role 1 = target beacon; sensing = "I heard the target
+    data[3]     role | (sensing << 1)                 role 1 = the emitter; sensing = "I heard the target
                                                       during the last control period"
-    data[4..5]  the beacon's held ambient-light reading (0..1023, LIGHT_NONE before its first), little-endian,
+    data[4..5]  the emitter's held ambient-light reading (0..1023, LIGHT_NONE before its first), little-endian,
                 only in worlds whose observation reads it (the ``object_light`` feature); else 0
     data[6..8]  0
     type        KF_MSG_TYPE (default DEFAULT_MSG_TYPE) a user type: < 0x80 and != 1 (1 is the overhead
@@ -14,7 +14,7 @@ The message a robot sends (``message_t``, 12 bytes, packed)::
     crc         CRC-16/MCRF4XX over the first 10 bytes, little-endian (export.contract.crc)
 
 The LED (``set_color`` byte, kilolib's 2 bits per channel: red bits 0-1, green 2-3, blue 4-5):
-beacon blue; a searcher that heard the target this period green; else one whose neighbour table
+the emitter blue; a searcher that heard the target this period green; else one whose neighbour table
 holds a searcher that senses the target yellow; else off.
 
 Per-tick outputs of the firmware (what the host harness writes and the emulator produces), one
@@ -26,7 +26,7 @@ record of :data:`TICK_RECORD_BYTES` bytes per robot and kilo_tick::
     [4..15]         the 12 bytes of the message kilo_message_tx() returns after this tick's loop()
 
 Per control step (at ticks k * period_ticks, k >= 1: the first period only listens; searchers
-only, zeros for beacons): ``[q_left, q_right, obs[0..obs_dim-1]]``, the uint8 motor commands and
+only, zeros for emitters): ``[q_left, q_right, obs[0..obs_dim-1]]``, the uint8 motor commands and
 the int8 observation (as bytes).
 """
 from __future__ import annotations
@@ -38,8 +38,8 @@ DEFAULT_MSG_TYPE = 0x2A  #: message type of ours unless the user picks another
 MSG_DATA_BYTES = 9  #: kilolib's message_t payload, data[0..8]
 MSG_USED_BYTES = 4  #: data[0..3] carry version, uid and info; data[4..8] are 0 (but MSG_LIGHT_BYTE's two)
 MSG_INFO_BYTE = 3  #: data[3]: role | sensing << 1
-MSG_LIGHT_BYTE = 4  #: data[4..5]: the beacon's held light reading, little-endian (worlds with ``object_light``)
-LIGHT_NONE = 0xFFFF  #: data[4..5] of a beacon that has no reading yet; receivers keep only readings <= 1023
+MSG_LIGHT_BYTE = 4  #: data[4..5]: the emitter's held light reading, little-endian (worlds with ``object_light``)
+LIGHT_NONE = 0xFFFF  #: data[4..5] of an emitter that has no reading yet; receivers keep only readings <= 1023
 MSG_TYPE_BYTE = MSG_DATA_BYTES  #: the type follows the payload
 MSG_CRC_BYTES = MSG_DATA_BYTES + 1  #: the CRC covers the payload and the type
 MSG_BYTES = MSG_CRC_BYTES + 2  #: sizeof(message_t): payload, type, crc16 (packed)
@@ -50,7 +50,7 @@ RXQ_CAPACITY = 8  #: messages buffered between the rx ISR and loop(); a message 
 #: it) never passes through it.
 STATE_READY = 0x4B46
 
-ROLE_BIT = 0x01  #: data[3] bit 0: sender is the target beacon
+ROLE_BIT = 0x01  #: data[3] bit 0: sender is the emitter (the task's transmitting robot)
 SENSING_BIT = 0x02  #: data[3] bit 1: sender heard the target during its last control period
 
 
@@ -64,7 +64,7 @@ def rgb(r: int, g: int, b: int) -> int:
 
 
 LED_OFF = (0, 0, 0)
-LED_BEACON = (0, 0, 1)  #: blue: this robot is a target beacon
+LED_EMITTER = (0, 0, 1)  #: blue: this robot is the emitter
 LED_SENSING = (0, 1, 0)  #: green: heard the target during the last control period
 LED_NBR_SENSING = (1, 1, 0)  #: yellow: a neighbour heard this period senses the target
 

@@ -456,7 +456,7 @@ def exact_budget(rendered_files: dict[str, str], qpolicy: QuantizedActor | None 
 
     Returns the dict :meth:`export.codegen.budget.Budget.with_exact` takes: ``flash`` and ``sram_user`` of
     ``kilobot_policy.c`` (the program that must fit), ``sram_static`` and ``stack`` (its parts),
-    ``stack_source`` and ``<other program>_flash`` (the beacon program). ``sram_user`` is user
+    ``stack_source`` and ``<other program>_flash`` (the emitter's program). ``sram_user`` is user
     .data + .bss + the peak stack of ``loop()`` at control steps, measured in simavr when
     ``qpolicy`` is given and simavr is installed (``stack_steps`` control steps of a random event
     stream, which is also checked against the emulator); otherwise the analytic stack estimate of
@@ -470,7 +470,7 @@ def exact_budget(rendered_files: dict[str, str], qpolicy: QuantizedActor | None 
     result: dict = {"flash": main.flash}
     stack, how = CONTROL_STACK_B, "estimate"
     if qpolicy is not None and missing_tools(simulate=True) is None:
-        n_robots = 4  # a random stream: some robots may be beacons, whose loop() does nothing
+        n_robots = 4  # a random stream: some robots may be emitters, whose loop() runs no policy
         check = verify_simavr(qpolicy, rendered_files, n_robots=n_robots, n_steps=max(2, stack_steps // n_robots),
                               seed=seed)
         if not check.ok:
@@ -577,7 +577,7 @@ def run_firmware(elf: Path, inputs: FirmwareInputs, period_ticks: int, obs_dim: 
     return outs, res
 
 
-def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, target_uids: tuple[int, ...] | None = None,
+def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, emitter_uids: tuple[int, ...] | None = None,
                   msg_type: int | None = None, seed: int = 0, n_robots: int = 64, n_steps: int = 40,
                   portable: bool = False, inputs: FirmwareInputs | None = None) -> SimavrCheck:
     """Rung 3: the AVR build of ``files["kilobot_policy.c"]`` in simavr vs the emulator, byte for byte.
@@ -591,22 +591,23 @@ def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, target_uids
     """
     qp = qpolicy
     msg_type = fw.DEFAULT_MSG_TYPE if msg_type is None else msg_type
-    if not qp.world.beacon:  # no beacon role: no robot is one (the stream's role bits are neighbours')
-        targets: tuple[int, ...] = ()
+    roles = qp.world.has_roles
+    if not roles:  # no emitter role: no robot is one (the stream's role bits are neighbours')
+        emitters: tuple[int, ...] = ()
     else:
-        targets = (qp.world.target_uid,) if target_uids is None else tuple(target_uids)
+        emitters = (qp.world.target_uid,) if emitter_uids is None else tuple(emitter_uids)
     P, obs_dim = qp.world.period_ticks, qp.world.obs_dim
     if inputs is None:
         rng = np.random.default_rng(np.random.SeedSequence(seed))
-        inputs = random_inputs(rng, P, targets, StreamSpec(n_robots=n_robots, n_steps=n_steps), msg_type,
+        inputs = random_inputs(rng, P, emitters, StreamSpec(n_robots=n_robots, n_steps=n_steps), msg_type,
                                qp.world.comm_radius_mm, qp.world.light_threshold)
     with tempfile.TemporaryDirectory(prefix="kf_simavr_") as td:
         b = build_simavr_firmware(files[POLICY_FILE], Path(td), portable=portable)
         outs, res = run_firmware(b.elf, inputs, P, obs_dim)
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets if qp.world.beacon else None,
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=emitters if roles else None,
                            msg_type=msg_type).run(inputs)
     detail = compare(emu, outs)
-    steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(P)
+    steps = int((~np.isin(inputs.uids, emitters)).sum()) * inputs.n_steps(P)
     step_cycles, net_cycles, stack = _step_profile(res)
     macs = int(sum(l.w.size for l in qp.layers))
     return SimavrCheck(ok=not detail, control_steps=steps, ticks=inputs.n_robots * inputs.n_ticks, detail=detail,
@@ -627,7 +628,7 @@ def _step_profile(res: SimResult) -> tuple[np.ndarray, np.ndarray, int]:
             net += cyc - layer_start
             layer_start = None
         elif mid == MARK_STEP_END and start is not None:
-            if net:  # a searcher's control step (a beacon's loop() returns at once)
+            if net:  # a searcher's control step (an emitter's loop() returns at once)
                 steps.append(cyc - start)
                 nets.append(net)
             start = None

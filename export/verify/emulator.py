@@ -1,6 +1,6 @@
 """A bit-exact NumPy model of the generated Kilobot program, vectorised over R robots.
 
-:class:`FirmwareEmulator` reproduces ``kilobot_policy.c`` (and, for beacon uids, ``kilobot_target.c``)
+:class:`FirmwareEmulator` reproduces ``kilobot_policy.c`` (and, for emitter uids, the emitter's own program)
 integer for integer: the rx filter and bounded rx queue, the receive rules, the int8 observation,
 the actor input tuple ``[ACT[q_prev], obs]``, the actor kind's int8 control step with its state
 (:meth:`kiloforge.actors.base.QuantizedActor.step_int`: an MLP's history ring, a recurrent cell's
@@ -31,9 +31,11 @@ The receive rules are not re-implemented: :func:`sim.events.summarise` applies t
 messages the queue accepted, so the host test proves the C follows the simulator's definition.
 
 The observation is the world's layout (``WorldConfig.obs_features``): each feature's firmware block
-(``firmware_templates/features/<name>.c.j2``) has its twin in :data:`INT_FEATURES`. In a world without
-a beacon no robot is a beacon, the role bit is ignored (every message is a neighbour's), the message
-never carries a flag and the LED stays off.
+(``firmware_templates/features/<name>.c.j2``) has its twin in :data:`INT_FEATURES`. The emitter (the task's
+transmitting robot, whose role's C is the task's partial, ``firmware_templates/tasks/``) is emulated by what it
+does: it never moves, sends its role bit (and, with ``object_light``, its held light reading) and shows
+:data:`~export.contract.firmware.LED_EMITTER`. In a world without an emitter no robot is one, the role bit is
+ignored (every message is a neighbour's), the message never carries a flag and the LED stays off.
 """
 from __future__ import annotations
 
@@ -103,7 +105,7 @@ class FirmwareOutputs:
     """What the firmware did, byte for byte (the layouts of :mod:`export.contract.firmware`)."""
 
     ticks: np.ndarray  #: (R, n_ticks, 16) uint8: left, right, spinup, LED, message_t bytes
-    steps: np.ndarray  #: (R, n_steps, 2 + obs_dim) uint8: q_left, q_right, obs (int8 bytes); beacons 0
+    steps: np.ndarray  #: (R, n_steps, 2 + obs_dim) uint8: q_left, q_right, obs (int8 bytes); emitters 0
 
     @property
     def duties(self) -> np.ndarray:
@@ -155,7 +157,7 @@ def _int_target(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
 
 
 def _int_object_light(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
-    """object_light.c.j2: the held beacon reading's level (L · KF_ONE) >> 10 (kept when a beacon message carrying
+    """object_light.c.j2: the held emitter reading's level (L · KF_ONE) >> 10 (kept when an emitter message carrying
     L <= 1023 is heard, in kf_hear), else -KF_ONE before any."""
     return np.where(emu.obj_valid, emu.obj_level, -int(emu.qp.one_q))[:, None]
 
@@ -197,7 +199,7 @@ INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray
 
 
 def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int, light: np.ndarray | None = None) -> np.ndarray:
-    """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros (``light`` (R,): the beacon's held reading
+    """(R, 12) uint8 message_t of each robot: version, uid LE, info, zeros (``light`` (R,): the emitter's held reading
     at data[MSG_LIGHT_BYTE], little-endian), type, CRC LE.
 
     >>> message_bytes(np.array([0x0102]), np.array([1]), 0x2A).tolist()
@@ -229,7 +231,7 @@ class FirmwareEmulator:
     """
 
     def __init__(self, qp: QuantizedActor, uids: Iterable[int], calib: np.ndarray | None = None, *,
-                 target_uids: Iterable[int] | None = None, msg_type: int = fw.DEFAULT_MSG_TYPE,
+                 emitter_uids: Iterable[int] | None = None, msg_type: int = fw.DEFAULT_MSG_TYPE,
                  rxq_capacity: int = fw.RXQ_CAPACITY, rand_hard: np.ndarray | None = None) -> None:
         self.qp = qp
         self.world: WorldConfig = qp.world
@@ -243,9 +245,10 @@ class FirmwareEmulator:
         # each robot's rand_hard() byte in setup() (the random feature's seed); default: the host build's
         self.rand_hard = host_rand_hard(self.uids) if rand_hard is None else np.asarray(rand_hard, np.uint8)
         assert self.calib.shape == (R, 4), f"calib must be (R, 4), got {self.calib.shape}"
-        targets = (self.world.target_uid,) if target_uids is None else tuple(int(u) for u in target_uids)
-        assert self.world.beacon or target_uids is None, "target uids in a world without a beacon"
-        self.is_beacon = np.isin(self.uids.astype(np.int64), np.asarray(targets, np.int64)) & self.world.beacon  # (R,)
+        roles = self.world.has_roles
+        emitters = (self.world.target_uid,) if emitter_uids is None else tuple(int(u) for u in emitter_uids)
+        assert roles or emitter_uids is None, "emitter uids in a world without an emitter"
+        self.is_emitter = np.isin(self.uids.astype(np.int64), np.asarray(emitters, np.int64)) & roles  # (R,)
         self.msg_type = fw.check_msg_type(msg_type)
         assert rxq_capacity >= 1, "the rx queue holds at least one message"
         self.rxq_capacity = int(rxq_capacity)
@@ -255,19 +258,19 @@ class FirmwareEmulator:
         self.mode_duty[:, MODE_LEFT, 0] = self.calib[:, 2]
         self.mode_duty[:, MODE_RIGHT, 1] = self.calib[:, 3]
         self.mode_duty[:, MODE_STOP] = 0
-        # the messages a searcher can send (sensing 0 / 1) and the beacon's
+        # the messages a searcher can send (sensing 0 / 1) and the emitter's
         self.msg_searcher = np.stack([message_bytes(self.uids, np.zeros(R, np.uint8), self.msg_type),
                                       message_bytes(self.uids, np.full(R, fw.SENSING_BIT, np.uint8),
                                                     self.msg_type)], 1)  # (R, 2, 12)
         self.sends_light = beacon_sends_light(self.world)
-        self.msg_beacon = self._beacon_message(np.full(R, fw.LIGHT_NONE))
+        self.msg_emitter = self._emitter_message(np.full(R, fw.LIGHT_NONE))
         self.led_codes = {name: fw.rgb(*c) for name, c in (
-            ("off", fw.LED_OFF), ("beacon", fw.LED_BEACON), ("sensing", fw.LED_SENSING),
+            ("off", fw.LED_OFF), ("emitter", fw.LED_EMITTER), ("sensing", fw.LED_SENSING),
             ("nbr", fw.LED_NBR_SENSING))}
         self.reset()
 
-    def _beacon_message(self, light: np.ndarray) -> np.ndarray:
-        """(R, 12) the beacon role's message: role bit, and its held light reading where the world's layout reads it."""
+    def _emitter_message(self, light: np.ndarray) -> np.ndarray:
+        """(R, 12) the emitter role's message: role bit, and its held light reading where the world's layout reads it."""
         return message_bytes(self.uids, np.full(self.R, fw.ROLE_BIT, np.uint8), self.msg_type,
                              light if self.sends_light else None)
 
@@ -283,16 +286,16 @@ class FirmwareEmulator:
         self.rand_word = rng_seed(self.uids, self.rand_hard)  # random.c.j2's word as setup() seeds it
         self.obj_level = np.zeros(R, np.int64)  # object_light.c.j2's held level and whether one is held
         self.obj_valid = np.zeros(R, bool)
-        self.beacon_light = np.full(R, fw.LIGHT_NONE, np.int64)  # a beacon's held reading (sent in its message)
-        self.msg_beacon = self._beacon_message(self.beacon_light)
+        self.emitter_light = np.full(R, fw.LIGHT_NONE, np.int64)  # an emitter's held reading (sent in its message)
+        self.msg_emitter = self._emitter_message(self.emitter_light)
         self.q = np.zeros((R, 2), np.uint8)
         self.state = self.qp.setup_state(self.uids)  # the actor's state as setup() leaves it
         self.duty = np.zeros((R, 2), np.uint8)  # set_motors(0, 0) in setup
         self.turn = np.zeros(R, np.uint8)
         self.turn_mode = np.full(R, MODE_STOP, np.uint8)
         self.straight = np.zeros(R, np.uint8)
-        self.led = np.where(self.is_beacon, self.led_codes["beacon"], self.led_codes["off"]).astype(np.uint8)
-        self.msg = np.where(self.is_beacon[:, None], self.msg_beacon, self.msg_searcher[:, 0])  # (R, 12)
+        self.led = np.where(self.is_emitter, self.led_codes["emitter"], self.led_codes["off"]).astype(np.uint8)
+        self.msg = np.where(self.is_emitter[:, None], self.msg_emitter, self.msg_searcher[:, 0])  # (R, 12)
         self._heard: list[np.ndarray] = []  # accepted events of the current period, arrival order
 
     # --- receiving ----------------------------------------------------------------------------
@@ -303,7 +306,7 @@ class FirmwareEmulator:
         if ev.size == 0:
             return ev
         ev = ev[np.lexsort((ev["tick"], ev["robot"]))]  # by (robot, tick), ties in given order
-        ours = (ev["type"] == self.msg_type) & (ev["version"] == fw.MSG_VERSION) & ~self.is_beacon[ev["robot"]]
+        ours = (ev["type"] == self.msg_type) & (ev["version"] == fw.MSG_VERSION) & ~self.is_emitter[ev["robot"]]
         ev = ev[ours]
         key = ev["robot"].astype(np.int64) << 32 | ev["tick"].astype(np.int64)  # (N,) non-decreasing
         start = np.r_[0, np.flatnonzero(np.diff(key)) + 1] if key.size else np.zeros(0, np.int64)
@@ -326,7 +329,7 @@ class FirmwareEmulator:
         ev = HeardEvents(env=z, rx=heard["robot"].astype(np.int32), sender=sender.astype(np.int32).reshape(-1),
                          tick=(heard["tick"] % self.P).astype(np.int16),  # one period's events
                          dist_mm=heard["dist"].astype(np.float64),
-                         role=np.where(heard["role"] & int(self.world.beacon), ROLE_TARGET, 0).astype(np.uint8),
+                         role=np.where(heard["role"] & int(self.world.has_roles), ROLE_TARGET, 0).astype(np.uint8),
                          flag=(heard["flag"] & 1).astype(np.uint8),
                          light=np.where(heard["light"] <= ADC_MAX, heard["light"].astype(np.int64), -1))
         return summarise(ev, self.world, 1, M)
@@ -335,7 +338,7 @@ class FirmwareEmulator:
     def control_step(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Run the control step of every robot at its control tick; returns (q (R, 2) uint8, obs (R, D) int8).
 
-        ``light`` (R,) int: get_ambientlight() now. Beacons return zeros (they run no policy).
+        ``light`` (R,) int: get_ambientlight() now. Emitters return zeros (they run no policy).
         """
         qp, R = self.qp, self.R
         light = np.asarray(light, np.int64)
@@ -357,12 +360,12 @@ class FirmwareEmulator:
         if w.has_feature("random"):
             self.rand_word = xorshift32(self.rand_word)
         if w.has_feature("object_light"):
-            lit = summ.target_light[0, :R]  # (R,) the period's latest beacon reading heard (-1: none)
+            lit = summ.target_light[0, :R]  # (R,) the period's latest emitter reading heard (-1: none)
             self.obj_level = np.where(lit >= 0, (np.maximum(lit, 0) * int(qp.one_q)) >> 10, self.obj_level)
             self.obj_valid |= lit >= 0
-        if self.sends_light:  # a beacon reads the light at its control tick and sends its held reading
-            self.beacon_light = np.where(light >= 0, light, self.beacon_light)
-            self.msg_beacon = self._beacon_message(self.beacon_light)
+        if self.sends_light:  # an emitter reads the light at its control tick and sends its held reading
+            self.emitter_light = np.where(light >= 0, light, self.emitter_light)
+            self.msg_emitter = self._emitter_message(self.emitter_light)
         obs = np.zeros((R, w.obs_dim), np.int64)
         for name in w.features:
             obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)
@@ -371,7 +374,7 @@ class FirmwareEmulator:
         q, self.state = qp.step_int(np.concatenate([act, obs], 1), self.state)  # (R, 2) uint8
         self.steps_done += 1
 
-        searcher = ~self.is_beacon
+        searcher = ~self.is_emitter
         self.q = np.where(searcher[:, None], q, 0).astype(np.uint8)
         turn, mode, straight = schedule(self.q[:, 0], self.q[:, 1], self.P)
         self.turn = np.where(searcher, turn, 0).astype(np.uint8)
@@ -381,8 +384,8 @@ class FirmwareEmulator:
         nbr = obs[:, w.obs_index("nbr_sensing")] != 0 if w.has_feature("nbr_sensing") else np.zeros(R, bool)
         led = np.where(sensing, self.led_codes["sensing"],
                        np.where(nbr, self.led_codes["nbr"], self.led_codes["off"]))
-        self.led = np.where(self.is_beacon, self.led_codes["beacon"], led).astype(np.uint8)
-        self.msg = np.where(self.is_beacon[:, None], self.msg_beacon,
+        self.led = np.where(self.is_emitter, self.led_codes["emitter"], led).astype(np.uint8)
+        self.msg = np.where(self.is_emitter[:, None], self.msg_emitter,
                             self.msg_searcher[np.arange(R), sensing.astype(np.int64)])
         obs8 = np.where(searcher[:, None], obs, 0).astype(np.int8)
         return self.q.copy(), obs8
@@ -436,7 +439,7 @@ def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots
     """Simulator events of control period ``period`` -> the firmware's event stream (EVENT_DTYPE).
 
     Receiver ``robot = env * n_robots + rx``; searcher i sends kilo_uid i + 1, the target
-    ``cfg.target_uid``; distances become the uint8 mm estimate_distance() reports
+    the emitter's uid (the world's); distances become the uint8 mm estimate_distance() reports
     (numfmt.distance_u8); ticks become global (``period * period_ticks + tick``). Returned in
     arrival order per receiver (the order :func:`sim.events.summarise` uses).
     """
@@ -450,6 +453,6 @@ def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots
     out["type"] = fw.check_msg_type(msg_type)
     out["version"] = fw.MSG_VERSION
     out["dist"] = numfmt.distance_u8(events.dist_mm)
-    if events.light is not None:  # the beacon's reading in its messages (LIGHT_NONE before its first); 0 in others
+    if events.light is not None:  # the emitter's reading in its messages (LIGHT_NONE before its first); 0 in others
         out["light"] = np.where(events.role == ROLE_TARGET, np.where(events.light >= 0, events.light, fw.LIGHT_NONE), 0)
     return out[np.lexsort((out["tick"], out["robot"]))]

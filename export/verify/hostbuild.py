@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from kiloforge.actors.base import QuantizedActor
+from sim.tasks import Task
 
-from ..codegen.render import POLICY_FILE, TARGET_FILE, runtime_defines
+from ..codegen.render import POLICY_FILE, emitter_firmware, runtime_defines
 from ..codegen.templates import TEMPLATE_DIR
 from ..contract import firmware as fw
 from ..contract.firmware import EVENT_DTYPE, TICK_RECORD_BYTES
@@ -181,17 +182,17 @@ class StreamSpec:
     target_p: float = 0.08  #: fraction of messages with the target role
     foreign_p: float = 0.05  #: fraction with a foreign type
     bad_version_p: float = 0.03  #: fraction with another version byte
-    beacon_p: float = 0.1  #: fraction of robots whose uid is a target uid
+    emitter_p: float = 0.1  #: fraction of robots whose uid is an emitter uid
     light_busy_p: float = 0.1  #: fraction of -1 light readings
 
 
-def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tuple[int, ...],
+def random_inputs(rng: np.random.Generator, period_ticks: int, emitter_uids: tuple[int, ...],
                   spec: StreamSpec = StreamSpec(), msg_type: int = fw.DEFAULT_MSG_TYPE,
                   comm_radius_mm: float = 85.0, light_threshold: int = 500) -> FirmwareInputs:
     """A random stream that exercises every rule of the firmware (see :class:`StreamSpec`).
 
     Includes bursts beyond the rx queue, duplicate senders, more senders than a neighbour table,
-    distances 0..255 (dense near the comm radius), foreign types, other version bytes, beacon uids
+    distances 0..255 (dense near the comm radius), foreign types, other version bytes, emitter uids
     among the robots and as senders, light readings -1 / around the threshold, and zero calibration
     values.
     """
@@ -199,9 +200,9 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     T = (spec.n_steps + 1) * P - int(rng.integers(0, P))  # the listening period, steps, often a partial last one
     n_steps = n_control_steps(T, P)
     uids = rng.choice(np.arange(1, 0x10000), size=R, replace=False).astype(np.uint16)
-    beacon = (rng.random(R) < spec.beacon_p) & bool(target_uids)  # no beacon uids: none is a beacon
-    if target_uids:
-        uids[beacon] = rng.choice(np.asarray(target_uids, np.uint16), size=int(beacon.sum()))
+    emitter = (rng.random(R) < spec.emitter_p) & bool(emitter_uids)  # no emitter uids: none is an emitter
+    if emitter_uids:
+        uids[emitter] = rng.choice(np.asarray(emitter_uids, np.uint16), size=int(emitter.sum()))
     calib = rng.integers(0, 256, size=(R, 4)).astype(np.uint8)
     calib[rng.random((R, 4)) < 0.1] = 0
     light = rng.integers(0, 1024, size=(R, n_steps))
@@ -221,7 +222,7 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     ev["uid"] = pool[robot, rng.integers(0, spec.n_senders, size=N)]
     is_t = rng.random(N) < spec.target_p
     ev["role"] = is_t
-    ev["uid"][is_t] = rng.choice(np.asarray(tuple(target_uids) + (1234,), np.uint16), size=int(is_t.sum()))
+    ev["uid"][is_t] = rng.choice(np.asarray(tuple(emitter_uids) + (1234,), np.uint16), size=int(is_t.sum()))
     ev["flag"] = rng.random(N) < 0.3
     d = np.where(rng.random(N) < 0.6, rng.normal(comm_radius_mm * 0.7, comm_radius_mm * 0.4, N),
                  rng.integers(0, 256, N))
@@ -232,7 +233,7 @@ def random_inputs(rng: np.random.Generator, period_ticks: int, target_uids: tupl
     ev["version"] = fw.MSG_VERSION
     bad = rng.random(N) < spec.bad_version_p
     ev["version"][bad] = rng.choice(np.array([0, 2, 0xFF], np.uint8), size=int(bad.sum()))
-    # drawn last (the draws before stay those of older streams): data[4..5], a beacon's reading, none (LIGHT_NONE)
+    # drawn last (the draws before stay those of older streams): data[4..5], an emitter's reading, none (LIGHT_NONE)
     # or out of the ADC's range (ignored), in every message
     ev["light"] = np.where(rng.random(N) < 0.8, rng.integers(0, 1024, N),
                            rng.choice(np.array([fw.LIGHT_NONE, 1024, 0x8000, 0xFFFE], np.uint16), size=N))
@@ -268,44 +269,45 @@ def compare(emu: FirmwareOutputs, host: FirmwareOutputs) -> str:
     return ""
 
 
-def rendered_params(c_text: str) -> tuple[tuple[int, ...], int]:
-    """(target uids, message type) of a rendered kilobot_policy.c, read back from its constants (no uids: the
-    program of a world without a beacon, which has no KF_TARGET_UIDS)."""
+def rendered_params(c_text: str, uids_table: str | None) -> tuple[tuple[int, ...], int]:
+    """(emitter uids, message type) of a rendered kilobot_policy.c, read back from its constants: ``uids_table`` the
+    C name of the task's emitter uid table (None: the program of a world without an emitter, no uids)."""
     m_type = re.search(r"^#define KF_MSG_TYPE (\d+)u\b", c_text, re.M)
-    m_uids = re.search(r"KF_TARGET_UIDS\[\d+\] PROGMEM = \{([^}]*)\}", c_text)
-    if not (m_type and (m_uids or "KF_TARGET_UIDS" not in c_text)):
-        raise HostBuildError("not a kiloforge policy program (KF_MSG_TYPE / KF_TARGET_UIDS not found)")
+    m_uids = re.search(re.escape(uids_table) + r"\[\d+\] PROGMEM = \{([^}]*)\}", c_text) if uids_table else None
+    if not (m_type and (m_uids or not uids_table)):
+        raise HostBuildError(f"not a kiloforge policy program (KF_MSG_TYPE / {uids_table} not found)")
     uids = tuple(int(v.strip().rstrip("u")) for v in m_uids.group(1).split(",") if v.strip()) if m_uids else ()
     return uids, int(m_type.group(1))
 
 
 def verify_host(qp: QuantizedActor, files: dict[str, str], *, seed: int = 0,
-                spec: StreamSpec = StreamSpec(n_robots=64, n_steps=40)) -> HostCheck:
+                spec: StreamSpec = StreamSpec(n_robots=64, n_steps=40), task: Task | None = None) -> HostCheck:
     """Build the rendered programs on the host, replay random streams, compare with the emulator.
 
-    The target uids and message type are read back from ``kilobot_policy.c``; the beacon program (in
-    worlds with a beacon) is replayed with every robot a beacon. Without a beacon the stream still
-    carries messages with the role bit, which the program must take as a neighbour's.
+    The emitter uids and message type are read back from ``kilobot_policy.c``; the emitter's own program (in
+    worlds with an emitter; ``task``: whose, default the default task) is replayed with every robot an emitter.
+    Without an emitter the stream still carries messages with the role bit, which the program must take as a
+    neighbour's.
     """
-    targets, msg_type = rendered_params(files[POLICY_FILE])
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
     w = qp.world
-    inputs = random_inputs(rng, w.period_ticks, targets, spec, msg_type, w.comm_radius_mm, w.light_threshold)
-    beacon = TARGET_FILE in files
+    emitter = emitter_firmware(w, task)
+    emitters, msg_type = rendered_params(files[POLICY_FILE], emitter.uids_table if emitter else None)
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    inputs = random_inputs(rng, w.period_ticks, emitters, spec, msg_type, w.comm_radius_mm, w.light_threshold)
     with tempfile.TemporaryDirectory(prefix="kiloforge-host-") as tmp:
         host = run_host(build_host(files[POLICY_FILE], tmp), inputs, w.period_ticks, w.obs_dim)
-        host_t = run_host(build_host(files[TARGET_FILE], tmp, name="kilobot_target"), inputs,
-                          w.period_ticks, w.obs_dim) if beacon else None
-    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=targets if beacon else None,
+        host_t = run_host(build_host(files[emitter.program], tmp, name=emitter.stem), inputs,
+                          w.period_ticks, w.obs_dim) if emitter else None
+    emu = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=emitters if emitter else None,
                            msg_type=msg_type).run(inputs)
     detail = compare(emu, host)
     detail_t = ""
     if host_t is not None:
-        emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, target_uids=tuple(int(u) for u in inputs.uids),
+        emu_t = FirmwareEmulator(qp, inputs.uids, inputs.calib, emitter_uids=tuple(int(u) for u in inputs.uids),
                                  msg_type=msg_type).run(inputs)
         detail_t = compare(emu_t, host_t)
     detail = "; ".join(d for d in (detail and f"policy program: {detail}",
-                                   detail_t and f"target program: {detail_t}") if d)
-    steps = int((~np.isin(inputs.uids, targets)).sum()) * inputs.n_steps(w.period_ticks)
-    return HostCheck(ok=not detail, control_steps=steps, ticks=(1 + beacon) * inputs.n_robots * inputs.n_ticks,
-                     detail=detail)
+                                   detail_t and f"emitter program: {detail_t}") if d)
+    steps = int((~np.isin(inputs.uids, emitters)).sum()) * inputs.n_steps(w.period_ticks)
+    return HostCheck(ok=not detail, control_steps=steps,
+                     ticks=(1 + (emitter is not None)) * inputs.n_robots * inputs.n_ticks, detail=detail)

@@ -197,7 +197,7 @@ static void kf_deliver(void)
         m.data[1] = ev[0];                    /* uid, little-endian */
         m.data[2] = ev[1];
         m.data[3] = (uint8_t)((ev[2] & 1u) | ((ev[3] & 1u) << 1)); /* role | sensing << 1 */
-        m.data[4] = ev[8];                    /* light (a beacon's reading), little-endian */
+        m.data[4] = ev[8];                    /* light (an emitter's reading), little-endian */
         m.data[5] = ev[9];
         for (i = 6u; i < 9u; ++i) {
             m.data[i] = 0u;

@@ -99,6 +99,12 @@ class Task(ABC):
     beacon: ClassVar[bool] = False
     #: what the beacon robot is, in messages to users (e.g. "the object's robot"); only with :attr:`beacon`
     beacon_role: ClassVar[str] = "the beacon"
+    #: the task's firmware partials, a folder of firmware_templates/tasks/ (only with :attr:`beacon`): ``emitter.c.j2``,
+    #: the C names and code of the beacon robot's role in the shared policy program, and ``program.c.j2``, that robot's
+    #: own program (docs/tasks.md)
+    firmware: ClassVar[str] = ""
+    #: the file name the beacon robot's own program is written to (only with :attr:`beacon`; docs/flashing.md)
+    emitter_program: ClassVar[str] = ""
     #: the observation: features of :mod:`sim.features` in input order (the world's ``obs_features``)
     features: ClassVar[tuple[str, ...]] = ("wall", "rbf")
 

@@ -21,6 +21,7 @@ from .base import TASK_NAME, Metric, Task
 #: the class attributes the tools read, and the type each must have
 _ATTRS: dict[str, tuple[type, ...]] = {"description": (str,), "success_label": (str,), "robot_label": (str,),
                                        "success_plot": (str,), "primary_metric": (str,), "mean_metric": (str,), "beacon": (bool,), "beacon_role": (str,),
+                                       "firmware": (str,), "emitter_program": (str,),
                                        "metrics": (tuple, list), "features": (tuple, list), "baselines": (dict,)}
 
 

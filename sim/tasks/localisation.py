@@ -39,6 +39,8 @@ class Localisation(Task):
     baselines = {"hand-written": "baseline", "hand-written pusher": "pusher", "random": "random"}
     beacon = True
     features = ("wall", "target", "nbr_sensing", "rbf")
+    firmware = "localisation"  #: firmware_templates/tasks/localisation/
+    emitter_program = "kilobot_target.c"
 
     def spawn(self, env) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         B, M = env.n_envs, env.n_robots

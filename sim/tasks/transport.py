@@ -104,6 +104,8 @@ class Transport(Task):
     baselines = {"hand-written shadow pusher": "shadow_pusher", "random": "random"}
     beacon = True
     features = ("light", "target", "rbf")
+    firmware = "transport"  #: firmware_templates/tasks/transport/ (localisation's beacon role, for the object's robot)
+    emitter_program = Localisation.emitter_program
 
     def world(self, cfg: WorldConfig) -> WorldConfig:
         """The task's layout; a world without a heavy body gets the object, the side lamp (walls unlit), the

@@ -434,7 +434,7 @@ def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, An
     with tempfile.TemporaryDirectory(prefix="kilombo_build_") as tmp:
         build_dir = Path(tmp)
         prog = build_dir / "kilobot_policy.c"
-        prog.write_text(render_firmware(qp, target_uids=(BEACON_UID,))["kilobot_policy.c"])
+        prog.write_text(render_firmware(qp, emitter_uids=(BEACON_UID,))["kilobot_policy.c"])
         policy_bin = build(prefix, [prog], build_dir / "kf_policy")
         random_bin = build(prefix, [RANDOM_WALK_C], build_dir / "kf_random")
         nominal = "Kilombo: exported policy"

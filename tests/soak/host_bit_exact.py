@@ -40,7 +40,7 @@ def main(policy: str) -> None:
             got = run_host(exe, inputs, world.period_ticks, world.obs_dim, fill="0x5A")
             np.testing.assert_array_equal(got.ticks, want.ticks, err_msg=compare(want, got))
             np.testing.assert_array_equal(got.steps, want.steps, err_msg=compare(want, got))
-            total += int((~emu.is_beacon).sum()) * want.steps.shape[1]
+            total += int((~emu.is_emitter).sum()) * want.steps.shape[1]
     print(f"host build == emulator (assert_array_equal on integers) over {total} searcher control steps")
 
 
