@@ -180,7 +180,7 @@ def test_cli_verify_smoke(tmp_path, capsys):
     assert ("PASS" in text) == (rc == 0)
     doc = json.loads((out / "closed_loop.json").read_text())
     assert [c["n_robots"] for c in doc["comparisons"]] == [4, 6]
-    assert doc["comparisons"][0]["episodes"] == 3 and len(doc["comparisons"][0]["coverage_curve"]["int8"]["mean"]) == 12
+    assert doc["comparisons"][0]["episodes"] == 3 and len(doc["comparisons"][0]["success_curve"]["int8"]["mean"]) == 12
     for name in ("coverage.png", "returns_box.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

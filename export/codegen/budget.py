@@ -62,8 +62,8 @@ LAYER_DESCRIPTOR_B = 15  #: per layer: the kernel's layer struct (initialised .d
 # --- SRAM estimate --------------------------------------------------------------------------------
 RX_ENTRY_B = 8  #: uid (2) + raw distance_measurement_t (4) + role/flag (1) + tick (1)
 NEIGHBOUR_ENTRY_B = 4  #: uid (2) + distance (1) + sensing flag (1, only when a feature reads it)
-BEACON_LIGHT_RX_B = 2  #: an rx entry's beacon light reading (worlds where the beacon sends it: object_light)
-BEACON_LIGHT_STATE_B = 4  #: the held object_light level and flag, the beacon role's held reading
+EMITTER_LIGHT_RX_B = 2  #: an rx entry's emitter light reading (worlds where the emitter sends it: object_light)
+EMITTER_LIGHT_STATE_B = 4  #: the held object_light level and flag, the emitter role's held reading
 MISC_STATE_B = 32  #: tick counters, previous command, wall flag, target slot, schedule, role, heads
 CONTROL_STACK_B = 80  #: estimated peak stack of the control step (frames + saved registers)
 
@@ -207,8 +207,8 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
     n_rows = sum(o for o, _ in spec.dense)
     rbf_b, tgt_b = sensing_table_bytes(world, e_in)
     light_msg = beacon_sends_light(world)
-    rx_b = RX_ENTRY_B + BEACON_LIGHT_RX_B * light_msg
-    misc_b = MISC_STATE_B + BEACON_LIGHT_STATE_B * light_msg
+    rx_b = RX_ENTRY_B + EMITTER_LIGHT_RX_B * light_msg
+    misc_b = MISC_STATE_B + EMITTER_LIGHT_STATE_B * light_msg
     code_note = f"{CODE_ESTIMATE_B['base']} + {CODE_ESTIMATE_B['per_layer']} x {n_layers} layers"
     if spec.code_b:
         code_note += f" + {spec.code_b} {spec.code_note}"

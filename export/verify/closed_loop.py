@@ -6,8 +6,8 @@ Rung 4 of the verification ladder (docs/verification.md). Two runs over exactly 
   bit-exact model of the generated C) fed with the radio events and light readings the simulator
   produced; the command goes back into the simulator with :meth:`sim.env.SwarmEnv.step_u8`
   (``kilobot`` preset: the real motor schedule tick by tick; ``thesis`` preset: ``u = q / 255``).
-  One emulator holds all ``R = B * M`` robots of a batch of B envs; the target beacon is simulated
-  (it is not a robot of the env), so the emulator runs only the searchers.
+  One emulator holds all ``R = B * M`` robots of a batch of B envs; the task's emitter, if it has one, is
+  simulated (it is not a robot of the env), so the emulator runs only the searchers.
 * **float**: the float policy through its kind's swarm policy (an MLP: :class:`sim.rollout.HistoryActor`)
   and ``SwarmEnv.step``.
 
@@ -48,9 +48,9 @@ from sim.tasks import Task, get_task
 
 from .emulator import FirmwareEmulator, events_from_sim
 
-GOAL_RATIO = 0.97  #: int8 final coverage must reach this fraction of the float actor's
+GOAL_RATIO = 0.97  #: the int8 primary metric (final success) must reach this fraction of the float actor's
 ROBOT_BUDGET = 2048  #: default cap on B * M robots at once (throughput peaks near 1-2k robots, bench_closed_loop)
-BOOTSTRAP = 2000  #: resamples of the paired bootstrap CI of the coverage ratio
+BOOTSTRAP = 2000  #: resamples of the paired bootstrap CI of the primary metric's ratio
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,16 +321,16 @@ class Comparison:
 
     @property
     def passed(self) -> bool:
-        """int8 mean of the task's primary metric (localisation: final coverage) >= goal * the float's (point
+        """int8 mean of the task's primary metric >= goal * the float's (point
         estimates; 0 >= 0 passes)."""
         f = self.stats[self.primary]
         return bool(f["int8"].mean >= self.goal * f["float"].mean - 1e-12)
 
     def curves(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Per run: mean coverage per step (T,) and its 95 % CI half-width (T,)."""
+        """Per run: the mean success per step (T,) and its 95 % CI half-width (T,)."""
         out = {}
         for run in (self.float_run, self.int8_run):
-            c = run.coverage  # (E, T)
+            c = run.success  # (E, T)
             half = np.array([summarise(c[:, t]).ci95 for t in range(c.shape[1])])  # Student t per step
             out[run.label] = (c.mean(axis=0), half)
         return out
@@ -367,7 +367,7 @@ class Comparison:
             "goal_ratio": self.goal, "passed": self.passed,
             "episodes_per_s": {"float": f.episodes_per_s, "int8": q.episodes_per_s},
             "wall_s": {"float": f.wall_s, "int8": q.wall_s},
-            "coverage_curve": {k: {"mean": m.tolist(), "ci95": h.tolist()} for k, (m, h) in curves.items()},
+            "success_curve": {k: {"mean": m.tolist(), "ci95": h.tolist()} for k, (m, h) in curves.items()},
             "per_episode": {side: {k: run.metrics().per_episode(k).tolist() for k, _ in loop_metrics(self.task)}
                             for side, run in (("float", f), ("int8", q))},
         }

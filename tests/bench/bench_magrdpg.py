@@ -176,7 +176,7 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
             c = closed_loop.compare(fp, q, m, episodes, seed=FRESH_SEED)
             print(f"-- {name}\n{c.table()}")
             res["closed_loop"][f"{name} {m}"] = {k: v for k, v in c.to_dict().items()
-                                                  if k not in ("per_episode", "coverage_curve")}
+                                                  if k not in ("per_episode", "success_curve")}
     (out / "bench_magrdpg.json").write_text(json.dumps(res, indent=1, default=float))
     return res
 
