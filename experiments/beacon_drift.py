@@ -53,7 +53,7 @@ def main() -> int:
     for M in args.robots:
         for name in names:
             for mob in (0.0, 1.0):
-                world = dataclasses.replace(base, beacon_mobility=mob)
+                world = dataclasses.replace(base, emitter_mobility=mob)
                 env = SwarmEnv(world, min(args.episodes, 50), M, seed=args.seed)
                 if name in policies:
                     ctl = swarm_policy(policies[name], world)

@@ -33,12 +33,12 @@ Two presets:
     forwards and towards the turn (direction heading ± 35.5°). ``pivot_offset_mm = 0`` pivots
     about the centre.
 
-    The target beacon is taped down (``beacon_mobility = 0``): the benchmarks (issue 13's coverage
-    goals, the packing ceiling) assume a stationary beacon, and the flashing instructions tell
-    users to tape it to the table. Untaped, searchers push it (an independent Kilobot simulator
-    running our firmware saw it pushed 146 mm on average per 300 s run); that world is the
-    ``beacon pushed`` robustness variant (``beacon_mobility = 1``) and part of the "table" domain
-    randomisation (:mod:`sim.variants`).
+    A task's emitter (a robot that only transmits and has a role, :attr:`WorldConfig.emitter`) is
+    taped down (``emitter_mobility = 0``): the tasks' benchmarks (and localisation's packing ceiling)
+    assume a stationary one, and the flashing instructions tell users to tape it to the table.
+    Untaped, the robots push it (an independent Kilobot simulator running our firmware saw it pushed
+    146 mm on average per 300 s run); that world is a robustness variant (``emitter_mobility = 1``,
+    :mod:`sim.variants`) and part of the "table" domain randomisation.
 """
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ from kiloforge import numfmt
 from kiloforge.errors import InputError
 from kiloforge.validate import check_keys, check_str, check_typed, show
 
+from .compat import world_from_file, world_to_file
 from .features import FEATURES, LEGACY_FEATURES, parse_features
 from .light import parse_lamps
 
@@ -103,11 +104,11 @@ class WorldConfig:
     arena_half_mm: float = 100.0  #: the arena is the square [-a, a]²; robot centres stay inside
     robot_radius_mm: float = 0.0  #: 0 = point robots (thesis); 16.5 = Kilobot discs
     collisions: bool = False  #: True: discs never overlap (pushed apart after every move)
-    #: how collisions move the target beacon's disc, relative to a searcher's: 0 = fixed (taped
-    #: down; a searcher touching it takes the whole push), 1 = pushed like any robot (a Kilobot
-    #: beacon standing on the table). Collision worlds only; the task follows the beacon's position
-    beacon_mobility: float = 0.0
-    #: the beacon's body: 0 = a robot's disc (above); > 0 = the beacon rides on a heavy disc of this radius that
+    #: how collisions move the emitter's disc, relative to a robot's: 0 = fixed (taped down; a robot
+    #: touching it takes the whole push), 1 = pushed like any robot (a Kilobot standing on the table).
+    #: Collision worlds only; the task follows the emitter's position
+    emitter_mobility: float = 0.0
+    #: the emitter's body: 0 = a robot's disc (above); > 0 = the emitter rides on a heavy disc of this radius that
     #: robots push together (:mod:`sim.body`: it moves only when their summed push exceeds ``body_friction``)
     body_radius_mm: float = 0.0
     #: the heavy body's static friction in full robot pushes: the summed push must exceed this to move it
@@ -134,7 +135,7 @@ class WorldConfig:
     dist_min_mm: float = 0.0  #: measured distances are clipped to [dist_min_mm, dist_max_mm]
     dist_max_mm: float = 255.0
     neighbour_table_size: int = 16  #: firmware neighbour-table capacity (searchers per period)
-    target_uid: int = 0  #: kilo_uid of the target beacon; searcher i has kilo_uid i + 1
+    emitter_uid: int = 0  #: kilo_uid of the emitter; robot i has kilo_uid i + 1
     # --- sensing ----------------------------------------------------------------------------
     n_rbf: int = 11  #: number of RBF bins in the distance histogram
     rbf_lo_mm: float = 0.0  #: first RBF centre
@@ -156,10 +157,10 @@ class WorldConfig:
     episode_steps: int = 200  #: control periods per episode
     reward_scale: float = 5.0  #: thesis §4.2 factor 5
     action_penalty: float = 0.01  #: thesis §4.2 weight of the squared action norm
-    spawn_margin_mm: float = 0.0  #: robots and target spawn this far inside the walls
-    #: True: a beacon robot (kilo_uid ``target_uid``) that only transmits stands in the world, and the firmware
-    #: has its beacon role; set by the task (:meth:`sim.tasks.Task.world`)
-    beacon: bool = True
+    spawn_margin_mm: float = 0.0  #: robots and the emitter spawn this far inside the walls
+    #: True: an emitter (kilo_uid ``emitter_uid``), a robot that only transmits, stands in the world, and the
+    #: firmware has its role; set by the task (:meth:`sim.tasks.Task.world`)
+    emitter: bool = True
     #: the observation, comma-separated feature names of :mod:`sim.features` in input order; set by the task
     obs_features: str = LEGACY_FEATURES
 
@@ -178,13 +179,13 @@ class WorldConfig:
         need(0 < self.arena_half_mm <= MAX_ARENA_HALF_MM,
              f"arena_half_mm must be in (0, {MAX_ARENA_HALF_MM}], got {self.arena_half_mm}")
         need(self.robot_radius_mm >= 0, f"robot_radius_mm must be >= 0, got {self.robot_radius_mm}")
-        need(0.0 <= self.beacon_mobility <= 1.0, f"beacon_mobility must be in [0, 1], got {self.beacon_mobility}")
+        need(0.0 <= self.emitter_mobility <= 1.0, f"emitter_mobility must be in [0, 1], got {self.emitter_mobility}")
         need(self.pivot_offset_mm >= 0, f"pivot_offset_mm must be >= 0, got {self.pivot_offset_mm}")
         need(0 <= self.body_radius_mm < self.arena_half_mm,
              f"body_radius_mm must be in [0, arena_half_mm), got {self.body_radius_mm}")
         need(0 <= self.body_friction <= 1e3, f"body_friction must be in [0, 1000], got {self.body_friction}")
-        need(self.body_radius_mm == 0 or (self.beacon and self.collisions and self.robot_radius_mm > 0),
-             "body_radius_mm > 0 needs a beacon and a collision world (robots push the body)")
+        need(self.body_radius_mm == 0 or (self.emitter and self.collisions and self.robot_radius_mm > 0),
+             "body_radius_mm > 0 needs an emitter and a collision world (robots push the body)")
         need(0.0 <= self.pivot_angle_deg <= 180.0, f"pivot_angle_deg must be in [0, 180], got {self.pivot_angle_deg}")
         need(self.pivot_offset_mm == 0 or self.tick_level,
              "pivot_offset_mm > 0 needs a tick-level world (the thesis kinematics turn about the centre)")
@@ -203,7 +204,7 @@ class WorldConfig:
              f"need 0 <= dist_min_mm <= dist_max_mm <= 255, got {self.dist_min_mm}, {self.dist_max_mm}")
         need(1 <= self.neighbour_table_size <= 64,
              f"neighbour_table_size must be in 1..64, got {self.neighbour_table_size}")
-        need(0 <= self.target_uid <= 0xFFFF, f"target_uid must be a uint16, got {self.target_uid}")
+        need(0 <= self.emitter_uid <= 0xFFFF, f"emitter_uid must be a uint16, got {self.emitter_uid}")
         need(1 <= self.n_rbf <= 32, f"n_rbf must be in 1..32, got {self.n_rbf}")
         need(self.rbf_hi_mm >= self.rbf_lo_mm >= 0, "need 0 <= rbf_lo_mm <= rbf_hi_mm")
         need(self.rbf_hi_mm <= MAX_RBF_CENTRE_MM, f"rbf_hi_mm must be <= {MAX_RBF_CENTRE_MM:g}, got {self.rbf_hi_mm}")
@@ -231,7 +232,7 @@ class WorldConfig:
         if self.tick_level:
             need(self.msg_period_ticks >= 1, "tick-level worlds need msg_period_ticks >= 1")
         check_str(self.obs_features, f"WorldConfig '{self.name}': obs_features", max_len=256)
-        features = parse_features(self.obs_features, self.beacon, f"WorldConfig '{self.name}'")
+        features = parse_features(self.obs_features, self.emitter, f"WorldConfig '{self.name}'")
         slices, i = {}, 0
         for n in features:  # the layout once: the simulator reads it every step
             w = FEATURES[n].width(self)
@@ -278,9 +279,9 @@ class WorldConfig:
 
     @property
     def has_roles(self) -> bool:
-        """True when a robot of the task's transmits with a role (localisation's beacon): the firmware gets the role
+        """True when a robot of the task's transmits with a role (the emitter): the firmware gets the role
         bit, the table of the kilo_uids that take the role and the role's program."""
-        return bool(self.beacon)
+        return bool(self.emitter)
 
     @property
     def tuple_dim(self) -> int:
@@ -306,7 +307,7 @@ class WorldConfig:
         return 3
 
     def state_dim(self, n_robots: int) -> int:
-        """Critic state width: target (x, y) and every robot's (x, y, φ), all normalised."""
+        """Critic state width: the emitter's (x, y) and every robot's (x, y, φ), all normalised."""
         return 2 + 3 * n_robots
 
     @property
@@ -316,20 +317,23 @@ class WorldConfig:
 
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """All fields, except later additions at the value that reproduces the older world (so the
-        worlds, and hashes, of artifacts written before a field existed stay the same)."""
+        """All fields under their world-JSON keys (:data:`sim.compat.WORLD_KEYS`), except later additions at the
+        value that reproduces the older world (so the worlds, and hashes, of artifacts written before a field
+        existed stay the same)."""
         d = dataclasses.asdict(self)
         for k, legacy in _LATER_FIELDS.items():
             if d[k] == legacy:
                 del d[k]
-        return d
+        return world_to_file(d)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "WorldConfig":
-        """Build from a dict (e.g. policy metadata); missing fields take the defaults, unknown keys
-        and values of the wrong type or range are an :class:`~kiloforge.errors.InputError` naming them."""
+        """Build from a dict (e.g. policy metadata) whose keys are field names or their world-JSON keys
+        (:data:`sim.compat.WORLD_KEYS`); missing fields take the defaults, unknown keys and values of the wrong
+        type or range are an :class:`~kiloforge.errors.InputError` naming them."""
         if not isinstance(d, dict):
             raise InputError(f"world config must be a JSON object, got {show(d)}")
+        d = world_from_file(d, "world config")
         check_keys(d, "world config", frozenset(f.name for f in dataclasses.fields(cls)))
         return cls(**d)
 
@@ -338,8 +342,8 @@ class WorldConfig:
 
 
 #: fields added after policy artifacts were first written, and the value that older worlds had
-_LATER_FIELDS: dict[str, Any] = {"beacon_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5,
-                                 "beacon": True, "obs_features": LEGACY_FEATURES, "lamps": "", "light_noise": 0.0,
+_LATER_FIELDS: dict[str, Any] = {"emitter_mobility": 0.0, "pivot_offset_mm": 0.0, "pivot_angle_deg": 125.5,
+                                 "emitter": True, "obs_features": LEGACY_FEATURES, "lamps": "", "light_noise": 0.0,
                                  "light_gain_spread": 0.0, "light_offset_spread": 0.0, "body_radius_mm": 0.0,
                                  "body_friction": 0.0}
 
@@ -350,7 +354,7 @@ KILOBOT = WorldConfig(
     arena_half_mm=250.0,
     robot_radius_mm=16.5,  # 33 mm body (platform notes)
     collisions=True,
-    beacon_mobility=0.0,  # taped down: the benchmarks' stationary beacon (see the module doc)
+    emitter_mobility=0.0,  # taped down: the benchmarks' stationary emitter (see the module doc)
     v_max_mm_s=10.0,  # ≈1 cm/s (platform notes)
     omega_max_rad_s=math.pi / 4,  # ≈45 deg/s pivot (platform notes)
     pivot_offset_mm=16.5,  # about a leg at the rim (platform notes; Kilombo: its 17 mm radius)

@@ -5,7 +5,7 @@ One control period per :meth:`SwarmEnv.step`:
 1. **Act.** Thesis worlds: the thesis kinematics on the float command (:func:`sim.kinematics.thesis_move`).
    Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
    motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
-   collision worlds are pushed apart, the target beacon's disc too (``cfg.beacon_mobility``: 0 =
+   collision worlds are pushed apart, the target beacon's disc too (``cfg.emitter_mobility``: 0 =
    fixed, 1 = pushed like a robot); a beacon riding on a heavy body (``cfg.body_radius_mm > 0``) takes no
    part in that: the body settles once per period after the moves (:mod:`sim.body`). Everything that
    follows uses the beacon's current position.
@@ -157,7 +157,7 @@ class SwarmEnv:
     """B synchronised envs of M searchers and a target (see the module doc for one step).
 
     Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
-    beacon's current position: collisions push it when ``cfg.beacon_mobility > 0``; None when the task
+    beacon's current position: collisions push it when ``cfg.emitter_mobility > 0``; None when the task
     has no beacon: then nothing but the robots transmits or collides),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
     ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
@@ -191,7 +191,7 @@ class SwarmEnv:
         self.neighbour_method = neighbour_method
         self._check_spawn_room()
         self._collider = Collider(cfg) if cfg.collisions and cfg.robot_radius_mm > 0 else None
-        self._mobility: float | np.ndarray = cfg.beacon_mobility  # scalar, or (B,) per env
+        self._mobility: float | np.ndarray = cfg.emitter_mobility  # scalar, or (B,) per env
         self._seed(seed)
         self.pos: np.ndarray | None = None
         self.heading: np.ndarray | None = None
@@ -253,7 +253,7 @@ class SwarmEnv:
         if self.spawn_box() <= 0:
             raise ValueError(f"no room to spawn: arena_half_mm {cfg.arena_half_mm} <= spawn margin / robot radius")
         if cfg.collisions and cfg.robot_radius_mm > 0:
-            discs = self.n_robots + int(self.cfg.beacon)
+            discs = self.n_robots + int(self.cfg.emitter)
             frac = discs * math.pi * cfg.robot_radius_mm ** 2 / (2 * self.spawn_box()) ** 2
             if frac > MAX_PACKING:
                 side = math.sqrt(discs * math.pi * cfg.robot_radius_mm ** 2 / MAX_PACKING)
@@ -302,7 +302,7 @@ class SwarmEnv:
         if self.randomise is not None:  # after the spawn: spawns equal the nominal world's
             self.world_draw = self.randomise.draw(self.cfg, M, self._rng_init)
         w = self.world_draw
-        self._mobility = self.cfg.beacon_mobility if w.beacon_mobility is None else w.beacon_mobility
+        self._mobility = self.cfg.emitter_mobility if w.emitter_mobility is None else w.emitter_mobility
         self.sensing = np.zeros((B, M), np.uint8)
         self._prev_wall = np.zeros((B, M), np.float32)
         self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
@@ -381,11 +381,11 @@ class SwarmEnv:
                 record = np.empty((P, B, M, 2))
                 beacon = np.empty((P, B, 2)) if self._pushable else None
             tick_move(self.pos, self.heading, q, cfg, self._collider, self._disc_body, record,
-                      target_record=beacon, motion=self.world_draw.motion, beacon_mobility=self._mobility)
+                      target_record=beacon, motion=self.world_draw.motion, emitter_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
-                self._collider.resolve(self.pos, self._disc_body, beacon_mobility=self._mobility)
+                self._collider.resolve(self.pos, self._disc_body, emitter_mobility=self._mobility)
         if self._heavy_body:  # once per period, after the robots' moves (sim.body)
             push_body(self.pos, self.target, cfg, self._collider)
             if record is not None:

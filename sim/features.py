@@ -104,7 +104,7 @@ def parse_features(spec: str, beacon: bool, where: str) -> tuple[str, ...]:
 
 def beacon_sends_light(cfg: WorldConfig) -> bool:
     """True when the beacon puts its light reading in its messages: the world's layout reads it (``object_light``)."""
-    return bool(cfg.beacon) and any(FEATURES[f].beacon_light for f in cfg.features)
+    return bool(cfg.emitter) and any(FEATURES[f].beacon_light for f in cfg.features)
 
 
 def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:

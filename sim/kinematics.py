@@ -267,7 +267,7 @@ class Collider:
         self.skin = max(SKIN_TRAVELS * travel, MIN_SKIN_FRAC * self.diam)
 
     def resolve(self, pos: np.ndarray, target: np.ndarray | None, tol: float = OVERLAP_TOL_MM,
-                beacon_mobility: float | np.ndarray = 0.0) -> int:
+                emitter_mobility: float | np.ndarray = 0.0) -> int:
         """Push overlapping discs apart in place until no pair overlaps by more than ``tol`` mm.
 
         pos (B, M, 2) robots; target (B, 2) the beacon disc (moved in place when its mobility is
@@ -275,7 +275,7 @@ class Collider:
         """
         B = pos.shape[0]
         allz = _discs(pos, target)
-        mob = None if target is None else np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,))
+        mob = None if target is None else np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,))
         flat = allz.reshape(-1)
         sweeps = _Contacts(flat, B, allz.shape[1], self.cfg, self.skin, mob).relax(flat, np.full(B, self.diam - tol))
         _store(allz, pos, target)
@@ -309,13 +309,13 @@ def max_overlap(pos: np.ndarray, target: np.ndarray | None, cfg: WorldConfig) ->
 def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldConfig,
               collider: Collider | None, target: np.ndarray | None, record: np.ndarray | None = None, *,
               target_record: np.ndarray | None = None, motion: MotionParams | None = None,
-              beacon_mobility: float | np.ndarray = 0.0) -> None:
+              emitter_mobility: float | np.ndarray = 0.0) -> None:
     """One control period of Kilobot motion in place (see the module doc for the scheme).
 
     q (B, M, 2) uint8 motor commands. ``record`` (P, B, M, 2), if given, receives the positions
     after each tick (the radio model needs who was where when a message flew); ``target_record``
     (P, B, 2) the beacon's. ``target`` (B, 2) is the beacon disc (collision worlds), pushed in place
-    with ``beacon_mobility`` (0 = taped down, 1 = like a robot; scalar or (B,)). ``motion``: per-robot
+    with ``emitter_mobility`` (0 = taped down, 1 = like a robot; scalar or (B,)). ``motion``: per-robot
     motion factors (None = nominal).
     """
     B, M = heading.shape
@@ -385,7 +385,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     has_beacon = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
-    mobility = np.broadcast_to(np.asarray(beacon_mobility, np.float64), (B,)) if has_beacon else None
+    mobility = np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)) if has_beacon else None
     if collider is not None and compiled.available():  # all of the else branch, compiled (bit-identical)
         if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
                                         mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,

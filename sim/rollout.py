@@ -230,7 +230,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
 
     n_rec = episodes if record is True else max(0, min(int(record), episodes))
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
-    has_beacon = env.cfg.beacon
+    has_beacon = env.cfg.emitter
     beacon = np.zeros((n_batches * B, 2)) if has_beacon else None
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)

@@ -49,7 +49,7 @@ Pivot point (per robot, ``pivot_offset_mm``)
     centre: each robot's pivot distance from its centre is drawn uniformly, at the world's
     ``pivot_angle_deg``. The "table" randomisation spans centre (0) to leg (16.5 mm) pivots; the
     suite also runs the centre pivot alone.
-Beacon (per env, ``beacon_mobility``)
+Beacon (per env, ``emitter_mobility``)
     Taped down (0, the nominal ``kilobot`` world), or pushed by collisions like a robot (1).
 Lamps (worlds with lamps only, :mod:`sim.light`; per env ``lamp_brightness``, ``lamp_shift_mm``,
 ``light_noise``)
@@ -86,7 +86,7 @@ class WorldDraw:
     msg_loss: np.ndarray | None = None  #: (B,)
     dist_noise_mm: np.ndarray | None = None  #: (B,)
     wall_zone_mm: np.ndarray | None = None  #: (B, 4) wall-flag zone of the +x, +y, -x, -y walls
-    beacon_mobility: np.ndarray | None = None  #: (B,)
+    emitter_mobility: np.ndarray | None = None  #: (B,)
     lamp_brightness: np.ndarray | None = None  #: (B,) factor on every lamp's peak
     lamp_shift_mm: np.ndarray | None = None  #: (B, 2) every lamp moved by this
     light_noise: np.ndarray | None = None  #: (B,) std of the light sensor's noise (ADC counts)
@@ -111,7 +111,7 @@ class Randomisation:
     msg_success: Range | None = None  #: fraction of messages received, per env
     dist_noise_mm: Range | None = None  #: std of the distance noise, per env
     wall_zone: Range | None = None  #: factor on wall_sense_mm, per env and wall
-    beacon_mobility: Range | None = None  #: per env
+    emitter_mobility: Range | None = None  #: per env
     pivot_offset_mm: Range | None = None  #: pivot point's distance from the centre, per robot
     #: worlds with lamps only (:mod:`sim.light`; others draw nothing for these): per env
     lamp_brightness: Range | None = None  #: factor on every lamp's peak
@@ -123,7 +123,7 @@ class Randomisation:
             if not cond:
                 raise ValueError(f"Randomisation: {msg}")
 
-        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "beacon_mobility", "pivot_offset_mm",
+        for name in ("speed", "turn", "msg_success", "dist_noise_mm", "wall_zone", "emitter_mobility", "pivot_offset_mm",
                      "lamp_brightness", "lamp_shift_mm", "light_noise"):
             r = getattr(self, name)
             need(r is None or (len(r) == 2 and 0 <= r[0] <= r[1]), f"{name} must be None or (lo, hi) with 0 <= lo <= hi, got {r}")
@@ -132,8 +132,8 @@ class Randomisation:
             need(r is None or r[0] > 0, f"{name} factors must be > 0, got {r}")
         need(self.msg_success is None or 0 < self.msg_success[0] and self.msg_success[1] <= 1,
              f"msg_success must lie in (0, 1], got {self.msg_success}")
-        need(self.beacon_mobility is None or self.beacon_mobility[1] <= 1,
-             f"beacon_mobility must lie in [0, 1], got {self.beacon_mobility}")
+        need(self.emitter_mobility is None or self.emitter_mobility[1] <= 1,
+             f"emitter_mobility must lie in [0, 1], got {self.emitter_mobility}")
         need(self.msg_period is None or (len(self.msg_period) == 2 and 1 <= self.msg_period[0] <= self.msg_period[1] <= 255),
              f"msg_period must be (lo, hi) ticks with 1 <= lo <= hi <= 255, got {self.msg_period}")
         for name in ("speed_spread", "turn_spread", "curve_deg_s", "wheel_spread"):
@@ -168,7 +168,7 @@ class Randomisation:
             sp, tl, tr, cu = (np.stack([d[k] for d in per_env]) for k in ("speed", "turn_left", "turn_right", "curve"))
             piv = np.stack([d["pivot_mm"] for d in per_env]) if self.pivot_offset_mm is not None else None
             out.motion = MotionParams(sp, tl, tr, cu if np.any(cu != 0) else None, piv)
-        for key in ("msg_period", "msg_loss", "dist_noise_mm", "wall_zone_mm", "beacon_mobility", "lamp_brightness",
+        for key in ("msg_period", "msg_loss", "dist_noise_mm", "wall_zone_mm", "emitter_mobility", "lamp_brightness",
                     "lamp_shift_mm", "light_noise"):
             if key in per_env[0]:
                 setattr(out, key, np.stack([d[key] for d in per_env]))
@@ -202,8 +202,8 @@ class Randomisation:
             d["dist_noise_mm"] = rng.uniform(*self.dist_noise_mm)
         if self.wall_zone is not None:
             d["wall_zone_mm"] = cfg.wall_sense_mm * rng.uniform(*self.wall_zone, 4)
-        if self.beacon_mobility is not None:
-            d["beacon_mobility"] = rng.uniform(*self.beacon_mobility)
+        if self.emitter_mobility is not None:
+            d["emitter_mobility"] = rng.uniform(*self.emitter_mobility)
         if self.pivot_offset_mm is not None:
             d["pivot_mm"] = rng.uniform(*self.pivot_offset_mm, M)
         if cfg.lamps:  # last: worlds without lamps draw as before
@@ -219,7 +219,7 @@ class Randomisation:
 
 _TABLE = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn_spread=0.1, curve_deg_s=2.0,
                        motors="mixed", wheel_spread=0.1, msg_period=(15, 17), msg_success=(0.6, 1.0),
-                       dist_noise_mm=(0.0, 6.0), wall_zone=(0.5, 1.5), beacon_mobility=(0.0, 1.0),
+                       dist_noise_mm=(0.0, 6.0), wall_zone=(0.5, 1.5), emitter_mobility=(0.0, 1.0),
                        pivot_offset_mm=(0.0, 16.5), lamp_brightness=(0.6, 1.4), lamp_shift_mm=(0.0, 50.0),
                        light_noise=(0.0, 30.0))
 
@@ -229,7 +229,7 @@ _TABLE = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn
 RANDOMISATIONS: dict[str, Randomisation] = {
     "none": Randomisation(),
     "table": _TABLE,
-    "table-free-beacon": dataclasses.replace(_TABLE, beacon_mobility=(1.0, 1.0)),
+    "table-free-beacon": dataclasses.replace(_TABLE, emitter_mobility=(1.0, 1.0)),
 }
 
 
@@ -279,7 +279,7 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
         suite["centre pivot"] = (r(cfg, pivot_offset_mm=0.0), None)
     else:
         suite["leg pivot"] = (r(cfg, pivot_offset_mm=LEG_PIVOT_MM), None)
-    if cfg.collisions and cfg.beacon:  # a world without a beacon has no beacon to tape or free
-        suite["beacon fixed" if cfg.beacon_mobility > 0 else "beacon pushed"] = (
-            r(cfg, beacon_mobility=0.0 if cfg.beacon_mobility > 0 else 1.0), None)
+    if cfg.collisions and cfg.emitter:  # a world without a beacon has no beacon to tape or free
+        suite["beacon fixed" if cfg.emitter_mobility > 0 else "beacon pushed"] = (
+            r(cfg, emitter_mobility=0.0 if cfg.emitter_mobility > 0 else 1.0), None)
     return suite

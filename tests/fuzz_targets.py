@@ -502,7 +502,7 @@ def onnx_mutation(draw) -> bytes:
             props = {p.key: p.value for p in m.metadata_props}
             props[key] = draw(st.one_of(st.sampled_from(["0", "-1", "1.0", "x", "999999", " 1", "true", "",
                                                          '{"n_rbf": 11.0}', '{"collisions": "true"}',
-                                                         '{"target_uid": 1.5}', nested_json(100_000), "NaN"]),
+                                                         '{"emitter_uid": 1.5}', nested_json(100_000), "NaN"]),
                                         st.text(max_size=10)))
             del m.metadata_props[:]
             for kk, vv in props.items():

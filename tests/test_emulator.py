@@ -48,7 +48,7 @@ def test_queue_keeps_the_first_messages_of_a_tick(qp):
 
 def test_beacons_ignore_messages(qp):
     """A robot whose uid is a target uid queues nothing."""
-    emu = _emu(qp, uids=(WORLD.target_uid, 5))
+    emu = _emu(qp, uids=(WORLD.emitter_uid, 5))
     acc = emu.accepted(_events([(0, 1, 9, 0, 0, 40), (1, 1, 9, 0, 0, 40)]))
     assert acc["robot"].tolist() == [1]
 
@@ -143,12 +143,12 @@ def test_motor_schedule_tick_by_tick(qp):
 
 def test_beacon_outputs_are_constant(qp):
     """Beacon robots never move, show blue, send role 1 with a valid CRC and run no control step."""
-    uids = np.array([WORLD.target_uid, 77, 3])
+    uids = np.array([WORLD.emitter_uid, 77, 3])
     R, T = 3, 5 * WORLD.period_ticks + 3
     ev = _events([(0, 2, 3, 0, 1, 40), (1, 9, 1, 1, 0, 40)])
     inputs = FirmwareInputs(uids=uids, calib=np.full((R, 4), 80), light=np.full((R, n_control_steps(T, 8)), 900),
                             events=ev, n_ticks=T)
-    out = FirmwareEmulator(qp, uids, np.full((R, 4), 80), emitter_uids=(WORLD.target_uid, 77)).run(inputs)
+    out = FirmwareEmulator(qp, uids, np.full((R, 4), 80), emitter_uids=(WORLD.emitter_uid, 77)).run(inputs)
     for r in (0, 1):
         assert not out.duties[r].any() and not out.spinup[r].any() and not out.steps[r].any()
         assert (out.led[r] == fwspec.rgb(*fwspec.LED_EMITTER)).all()
@@ -178,7 +178,7 @@ def test_events_from_sim_conversion():
     out = events_from_sim(ev, 5, cfg, n_robots=3)
     assert out["robot"].tolist() == [1, 1, 5]  # (env 0, rx 1) twice, sorted by tick, then (env 1, rx 2)
     assert out["tick"].tolist() == [5 * cfg.period_ticks + 2, 5 * cfg.period_ticks + 9, 5 * cfg.period_ticks + 3]
-    assert out["uid"].tolist() == [5, 1, cfg.target_uid]
+    assert out["uid"].tolist() == [5, 1, cfg.emitter_uid]
     assert out["dist"].tolist() == [33, 255, 41]
     assert out["role"].tolist() == [0, 0, 1] and out["flag"].tolist() == [0, 1, 0]
     assert (out["type"] == fwspec.DEFAULT_MSG_TYPE).all() and (out["version"] == fwspec.MSG_VERSION).all()

@@ -77,7 +77,7 @@ def test_contract_constants_are_rendered_from_python(program):
     """Message layout, queue size, ready value, CRC and LEDs in both programs (one without a beacon, and none of the
     beacon's constants) equal export.contract's."""
     qp, files = program
-    beacon = qp.world.beacon
+    beacon = qp.world.emitter
     for name in (POLICY_FILE, TARGET_FILE) if beacon else (POLICY_FILE,):
         d = defines(files[name])
         for key, want in CONTRACT.items():

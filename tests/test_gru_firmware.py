@@ -95,7 +95,7 @@ def test_random_streams_bit_exact(builds):
         files = render_firmware(qp, generator_version="test")
         exe = build_host(files[POLICY_FILE], builds, name=f"gru{i}")
         rng = np.random.default_rng(np.random.SeedSequence(20 + i))
-        inputs = random_inputs(rng, world.period_ticks, (world.target_uid,), spec,
+        inputs = random_inputs(rng, world.period_ticks, (world.emitter_uid,), spec,
                                comm_radius_mm=world.comm_radius_mm, light_threshold=world.light_threshold)
         emu = FirmwareEmulator(qp, inputs.uids, inputs.calib)
         want = emu.run(inputs)

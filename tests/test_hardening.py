@@ -132,14 +132,14 @@ def test_policy_meta_nested_deep(tmp_path):
         load_policy(path)
 
 
-LOOSE = [("n_rbf", 11.0, "11.0"), ("target_uid", 1.0, "1.0"), ("collisions", "true", '"true"'),
+LOOSE = [("n_rbf", 11.0, "11.0"), ("emitter_uid", 1.0, "1.0"), ("collisions", "true", '"true"'),
          ("tick_level", 1, "1"), ("arena_half_mm", float("inf"), "Infinity"), ("msg_loss", float("nan"), "NaN"),
          ("episode_steps", True, "true"), ("name", 7, "7")]
 
 
 @pytest.mark.parametrize("field, value, literal", LOOSE)
 def test_loose_world_types_refused_on_every_path(tmp_path, field, value, literal):
-    """Float n_rbf, float target_uid, string booleans, Infinity, NaN...: refused by WorldConfig, from_dict,
+    """Float n_rbf, float emitter_uid, string booleans, Infinity, NaN...: refused by WorldConfig, from_dict,
     preset overrides, a policy's meta (with a valid hash), an ONNX model's metadata and a --world-json file."""
     from export.interop.onnx_import import load_onnx_policy
     from tests.onnx_models import tiny_model

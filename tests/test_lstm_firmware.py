@@ -65,7 +65,7 @@ def _bit_exact(builds, specs, fill: str = "random:1") -> int:
         qp = qlstm(world, hidden, seed=10 + i, **opts)
         exe = build_host(render_firmware(qp, generator_version="test")[POLICY_FILE], builds, name=f"lstm{i}")
         rng = np.random.default_rng(np.random.SeedSequence(20 + i))
-        inputs = random_inputs(rng, world.period_ticks, (world.target_uid,), spec,
+        inputs = random_inputs(rng, world.period_ticks, (world.emitter_uid,), spec,
                                comm_radius_mm=world.comm_radius_mm, light_threshold=world.light_threshold)
         emu = FirmwareEmulator(qp, inputs.uids, inputs.calib)
         want = emu.run(inputs)

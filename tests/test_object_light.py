@@ -108,7 +108,7 @@ def test_policy_program_is_bit_exact_in_simavr():
     require_avr(simulate=True)
     qp = synthetic_qpolicy(WORLD, 2, (8,), ("relu",), seed=4)
     rng = np.random.default_rng(np.random.SeedSequence(6))
-    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.target_uid,), StreamSpec(n_robots=16, n_steps=20,
+    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.emitter_uid,), StreamSpec(n_robots=16, n_steps=20,
                                                                                         target_p=0.3),
                            fw.DEFAULT_MSG_TYPE, WORLD.comm_radius_mm, WORLD.light_threshold)
     check = avr.verify_simavr(qp, render_firmware(qp, generator_version="t"), inputs=inputs)

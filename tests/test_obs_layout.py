@@ -57,11 +57,11 @@ def test_permuted_layout_carries_the_same_inputs():
 
 def test_world_task_mismatch_is_one_line():
     """A world whose beacon or layout differs from the task's is refused in one line naming both."""
-    with pytest.raises(InputError, match=r"^world 'kilobot' has beacon True and observation wall,target,nbr_sensing,rbf; "
-                                         r"task 'aggregation' needs beacon False and observation wall,rbf") as e:
+    with pytest.raises(InputError, match=r"^world 'kilobot' has emitter True and observation wall,target,nbr_sensing,rbf; "
+                                         r"task 'aggregation' needs emitter False and observation wall,rbf") as e:
         SwarmEnv(preset("kilobot"), 1, 4, task=AGG)
     assert "\n" not in str(e.value)
-    with pytest.raises(InputError, match="task 'localisation' needs beacon True"):
+    with pytest.raises(InputError, match="task 'localisation' needs emitter True"):
         SwarmEnv(AGG.world(preset("thesis")), 1, 4)
 
 

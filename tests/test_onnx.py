@@ -83,8 +83,8 @@ def _emulate(qp, seed: int = 21, n_robots: int = 5, n_steps: int = 12):
     ev = np.zeros(n_ev, fwspec.EVENT_DTYPE)
     ev["robot"] = rng.integers(0, n_robots, n_ev)
     ev["tick"] = rng.integers(0, n_ticks, n_ev)
-    ev["uid"] = rng.choice(np.append(uids, qp.world.target_uid), n_ev)
-    ev["role"] = (ev["uid"] == qp.world.target_uid).astype(np.uint8)
+    ev["uid"] = rng.choice(np.append(uids, qp.world.emitter_uid), n_ev)
+    ev["role"] = (ev["uid"] == qp.world.emitter_uid).astype(np.uint8)
     ev["flag"] = rng.integers(0, 2, n_ev)
     ev["type"] = fwspec.DEFAULT_MSG_TYPE
     ev["version"] = fwspec.MSG_VERSION

@@ -64,7 +64,7 @@ def test_parallel_env_runs_another_task():
     """parallel_env(task="aggregation") plays a beaconless task: its world, state and success in the infos."""
     env = parallel_env("kilobot", n_robots=5, seed=2, render_mode="rgb_array", task="aggregation")
     obs, info = env.reset(seed=2)
-    assert env.cfg.beacon is False and env.state().shape == (15,)
+    assert env.cfg.emitter is False and env.state().shape == (15,)
     assert set(info["robot_0"]) == {"success", "robot_success"} and obs["robot_0"].shape == (env.cfg.obs_dim,)
     obs, rew, term, trunc, info = env.step({a: env.action_space(a).sample() for a in env.agents})
     assert 0 < info["robot_0"]["success"] <= 1 and env.render().ndim == 3

@@ -51,7 +51,7 @@ def test_every_template_is_rendered():
     """Every *.j2 in firmware_templates/ is loaded by some render (here: the golden and a wide policy)."""
     golden_files()  # every kind's partial
     render_firmware(synthetic_qpolicy(preset("kilobot"), 2, (5, 3), ("relu", "tanh")), generator_version="t")
-    light = dataclasses.replace(preset("kilobot"), beacon=False, obs_features="light,rbf,random")  # light and random
+    light = dataclasses.replace(preset("kilobot"), emitter=False, obs_features="light,rbf,random")  # light and random
     render_firmware(synthetic_qpolicy(light, 2, (5,)), generator_version="t")
     obj = dataclasses.replace(preset("kilobot"), obs_features="light,target,object_light,rbf")  # the beacon's light
     render_firmware(synthetic_qpolicy(obj, 2, (5,)), generator_version="t")

@@ -35,7 +35,7 @@ def _stream(seed: int, n_robots: int = 48, n_steps: int = 80) -> FirmwareInputs:
     threshold, drifting, -1, 0, 1023); no robot is the object's."""
     rng = np.random.default_rng(np.random.SeedSequence([44, seed]))
     spec = StreamSpec(n_robots=n_robots, n_steps=n_steps, rate=0.4, target_p=0.3, emitter_p=0.0)
-    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.target_uid,), spec, comm_radius_mm=WORLD.comm_radius_mm,
+    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.emitter_uid,), spec, comm_radius_mm=WORLD.comm_radius_mm,
                            light_threshold=shipped()[0].params.dark)
     light = inputs.light.astype(np.int64)
     drift = np.clip(550 + np.cumsum(rng.integers(-30, 31, light.shape), 1), 0, 1023)

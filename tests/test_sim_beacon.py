@@ -14,10 +14,10 @@ from sim.rollout import rollout
 
 def test_presets_choose_the_beacon():
     """The kilobot preset's beacon is taped down, as the thesis target is fixed."""
-    assert preset("kilobot").beacon_mobility == 0.0
-    assert preset("thesis").beacon_mobility == 0.0
-    with pytest.raises(ValueError, match="beacon_mobility"):
-        preset("kilobot", beacon_mobility=1.5)
+    assert preset("kilobot").emitter_mobility == 0.0
+    assert preset("thesis").emitter_mobility == 0.0
+    with pytest.raises(ValueError, match="emitter_mobility"):
+        preset("kilobot", emitter_mobility=1.5)
 
 
 def test_world_dicts_of_older_artifacts_are_unchanged():
@@ -26,11 +26,11 @@ def test_world_dicts_of_older_artifacts_are_unchanged():
     every world round-trips."""
     from sim.config import WorldConfig
 
-    old = preset("kilobot", beacon_mobility=0.0, pivot_offset_mm=0.0)  # the world older artifacts hold
+    old = preset("kilobot", emitter_mobility=0.0, pivot_offset_mm=0.0)  # the world older artifacts hold
     d = old.to_dict()
-    assert not {"beacon_mobility", "pivot_offset_mm", "pivot_angle_deg"} & set(d)
-    assert WorldConfig.from_dict(d).beacon_mobility == 0.0 and WorldConfig.from_dict(d).pivot_offset_mm == 0.0
-    new, pushed = preset("kilobot"), preset("kilobot", beacon_mobility=1.0)
+    assert not {"beacon_mobility", "pivot_offset_mm", "pivot_angle_deg"} & set(d)  # world-JSON keys (sim.compat)
+    assert WorldConfig.from_dict(d).emitter_mobility == 0.0 and WorldConfig.from_dict(d).pivot_offset_mm == 0.0
+    new, pushed = preset("kilobot"), preset("kilobot", emitter_mobility=1.0)
     assert "beacon_mobility" not in new.to_dict() and new.to_dict()["pivot_offset_mm"] == 16.5
     assert pushed.to_dict()["beacon_mobility"] == 1.0
     for w in (old, new, pushed, preset("kilobot", pivot_angle_deg=90.0)):
@@ -39,7 +39,7 @@ def test_world_dicts_of_older_artifacts_are_unchanged():
 
 def _pusher(mobility):
     """A robot driving straight at the beacon from 34 mm; a second robot just outside its range."""
-    cfg = preset("kilobot", beacon_mobility=mobility, msg_loss=0.0, dist_noise_mm=0.0, light_dropout=0.0)
+    cfg = preset("kilobot", emitter_mobility=mobility, msg_loss=0.0, dist_noise_mm=0.0, light_dropout=0.0)
     env = SwarmEnv(cfg, 1, 2, seed=0)
     env.reset()
     env.pos[...] = [[[-34.0, 0.0], [86.0, 0.0]]]
@@ -105,7 +105,7 @@ def test_tick_radio_uses_the_beacon_position_at_the_send_tick():
 def test_rollout_records_the_beacon_track():
     """A rollout of the searcher in the kilobot world with an untaped beacon records the pushed
     beacon's positions, and its in-range flags are measured from them."""
-    cfg = preset("kilobot", episode_steps=120, arena_half_mm=150.0, beacon_mobility=1.0)
+    cfg = preset("kilobot", episode_steps=120, arena_half_mm=150.0, emitter_mobility=1.0)
     res = rollout(SwarmEnv(cfg, 2, 12, seed=1), make_policy("baseline", cfg), 2, seed=3, record=True)
     tr = res.trajectories
     assert tr.target.shape == (2, 121, 2)

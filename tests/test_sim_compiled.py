@@ -17,7 +17,7 @@ from sim.variants import RANDOMISATIONS, Randomisation
 
 #: per-robot turn rates and pivot points on straight runs: tick_move's closed form with per-robot rotations
 UNCURVED = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn_spread=0.1,
-                         pivot_offset_mm=(0.0, 16.5), beacon_mobility=(0.0, 1.0))
+                         pivot_offset_mm=(0.0, 16.5), emitter_mobility=(0.0, 1.0))
 needs_jit = pytest.mark.skipif(not compiled.available(), reason=f"compiled code unavailable: {compiled.why_not()}")
 
 

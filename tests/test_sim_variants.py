@@ -153,25 +153,25 @@ def test_light_variants_move_the_wall_zone():
 
 
 def test_beacon_mobility_per_env():
-    """beacon_mobility (0, 0) tapes every beacon down even in a pushed-beacon world."""
-    cfg = preset("kilobot", beacon_mobility=1.0)
-    env = SwarmEnv(cfg, 2, 1, seed=0, randomise=Randomisation(beacon_mobility=(0.0, 0.0)))
+    """emitter_mobility (0, 0) tapes every beacon down even in a pushed-beacon world."""
+    cfg = preset("kilobot", emitter_mobility=1.0)
+    env = SwarmEnv(cfg, 2, 1, seed=0, randomise=Randomisation(emitter_mobility=(0.0, 0.0)))
     env.reset()
     env.pos[...] = [[[-34.0, 0.0]], [[-34.0, 0.0]]]
     env.heading[...] = 0.0
     env.target[...] = 0.0
     env.step_u8(np.full((2, 1, 2), 255, np.uint8))
     np.testing.assert_array_equal(env.target, 0.0)
-    np.testing.assert_array_equal(env.world_draw.beacon_mobility, [0.0, 0.0])
+    np.testing.assert_array_equal(env.world_draw.emitter_mobility, [0.0, 0.0])
 
 
 def test_free_beacon_randomisation_pushes_every_beacon():
     """The 'table-free-beacon' randomisation is 'table' except that every env's beacon is pushed like a robot."""
     free, table = RANDOMISATIONS["table-free-beacon"], RANDOMISATIONS["table"]
-    assert dataclasses.replace(free, beacon_mobility=table.beacon_mobility) == table
+    assert dataclasses.replace(free, emitter_mobility=table.emitter_mobility) == table
     env = SwarmEnv(preset("kilobot"), 2, 1, seed=0, randomise=free)
     env.reset()
-    np.testing.assert_array_equal(env.world_draw.beacon_mobility, [1.0, 1.0])
+    np.testing.assert_array_equal(env.world_draw.emitter_mobility, [1.0, 1.0])
     env.pos[...] = [[[-34.0, 0.0]], [[-34.0, 0.0]]]
     env.heading[...] = 0.0
     env.target[...] = 0.0
@@ -262,9 +262,9 @@ def test_suite_lists_the_table_variants():
     assert set(suite) == want and next(iter(suite)) == "nominal"
     assert suite["msg period 17"][0].msg_period_ticks == 17
     assert suite["msg success 0.6"][0].msg_loss == pytest.approx(0.4)
-    assert suite["beacon pushed"][0].beacon_mobility == 1.0 and suite["centre pivot"][0].pivot_offset_mm == 0.0
-    old = robustness_suite(preset("kilobot", beacon_mobility=1.0, pivot_offset_mm=0.0))  # the other way round
-    assert old["beacon fixed"][0].beacon_mobility == 0.0 and old["leg pivot"][0].pivot_offset_mm == 16.5
+    assert suite["beacon pushed"][0].emitter_mobility == 1.0 and suite["centre pivot"][0].pivot_offset_mm == 0.0
+    old = robustness_suite(preset("kilobot", emitter_mobility=1.0, pivot_offset_mm=0.0))  # the other way round
+    assert old["beacon fixed"][0].emitter_mobility == 0.0 and old["leg pivot"][0].pivot_offset_mm == 16.5
     assert math.isclose(suite["turn rate +30%"][0].omega_max_rad_s, 1.3 * math.pi / 4)
 
 

@@ -59,7 +59,7 @@ def test_firmware_is_bit_exact_in_simavr(qp):
     require_avr(simulate=True)
     files = render_firmware(qp)
     rng = np.random.default_rng(np.random.SeedSequence(5))
-    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.target_uid,), StreamSpec(n_robots=24, n_steps=25),
+    inputs = random_inputs(rng, WORLD.period_ticks, (WORLD.emitter_uid,), StreamSpec(n_robots=24, n_steps=25),
                            fwspec.DEFAULT_MSG_TYPE, WORLD.comm_radius_mm, WORLD.light_threshold)
     ev = inputs.events
     assert (ev["type"] != fwspec.DEFAULT_MSG_TYPE).any() and (ev["version"] != fwspec.MSG_VERSION).any()

@@ -22,7 +22,7 @@ from tests.fixtures import init_policy, synthetic_qpolicy
 AGG_WORLD = get_task("aggregation").world(preset("kilobot", neighbour_table_size=5, period_ticks=12))
 #: other layouts a task may choose: features reordered, a beacon without the neighbour flag
 LAYOUTS = [AGG_WORLD, dataclasses.replace(AGG_WORLD, obs_features="rbf,wall"),
-           dataclasses.replace(AGG_WORLD, beacon=True, obs_features="rbf,target,wall")]
+           dataclasses.replace(AGG_WORLD, emitter=True, obs_features="rbf,target,wall")]
 BEACON_PARTS = ("is_beacon", "KF_ROLE_BIT", "KF_SENSING_BIT", "KF_TARGET_UIDS", "KF_TGT", "tgt_heard",
                 "KF_LED_BEACON", "KF_OBS_TARGET", "KF_OBS_NBR_SENSING", ".flag")
 needs_gcc = pytest.mark.skipif(compiler() is None, reason="no host C compiler (gcc) installed")
@@ -53,7 +53,7 @@ def test_aggregation_budget_is_smaller():
 def test_layout_firmware_equals_emulator_on_fuzzed_streams(world, tmp_path):
     """Each layout's host build equals the emulator byte for byte (queue and table overflow, role-bit senders)."""
     qp = synthetic_qpolicy(world, 4, (8,), seed=7)
-    targets = (0, 77) if world.beacon else ()
+    targets = (0, 77) if world.emitter else ()
     files = render_firmware(qp, emitter_uids=targets or None, generator_version="t")
     exe = build_host(files[POLICY_FILE], tmp_path, name="layout")
     rng = np.random.default_rng(np.random.SeedSequence(42))
@@ -68,7 +68,7 @@ def test_layout_firmware_equals_emulator_on_fuzzed_streams(world, tmp_path):
     assert (acc["role"] == 1).sum() > 0 and np.unique(want.commands).size > 32  # the stream reached the rules
     rbf = want.obs[..., world.obs_slice("rbf")]
     assert (rbf > 0).mean() > 0.05 and rbf.max() >= 32  # bins summed over several neighbours
-    if not world.beacon:  # role bits are a neighbour's; the LED and message never change
+    if not world.emitter:  # role bits are a neighbour's; the LED and message never change
         assert not emu.is_emitter.any() and (want.led == fwspec.rgb(*fwspec.LED_OFF)).all()
         assert (want.messages[..., fwspec.MSG_INFO_BYTE] == 0).all()
 

@@ -190,7 +190,7 @@ def test_es_evaluates_in_its_tasks_world():
 
     cfg = ESConfig(task="aggregation", demo_policy="none", eval_steps=123)
     assert cfg.eval_world() == dataclasses.replace(cfg.world_config(), episode_steps=123)
-    assert not cfg.eval_world().beacon
+    assert not cfg.eval_world().emitter
 
 
 def test_hand_written_aggregator_beats_random():

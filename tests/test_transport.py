@@ -21,7 +21,7 @@ WORLD = TASK.world(preset("kilobot"))
 
 def test_transport_is_registered_with_its_world():
     """--task transport gives a beacon world with the heavy object, a side lamp and friction between k - 1 and k pushes."""
-    assert TASK.name == "transport" and TASK.beacon and WORLD.beacon
+    assert TASK.name == "transport" and TASK.beacon and WORLD.emitter
     assert WORLD.body_radius_mm > 0 and PUSHERS - 1 < WORLD.body_friction < PUSHERS
     assert WORLD.lamps.startswith("side:") and WORLD.features == ("light", "target", "rbf")
     TASK.check_world(WORLD)

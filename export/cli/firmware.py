@@ -184,7 +184,7 @@ def run_export(argv: Sequence[str]) -> int:
         raise BudgetError(f"quantised policy does not fit ({budget.summary()})")
 
     emitter_uids = (() if not has_emitter else args.emitter_uids if args.emitter_uids is not None
-                    else (policy.world.target_uid,))
+                    else (policy.world.emitter_uid,))
     files = render_firmware(qp, emitter_uids=emitter_uids or None, generator_version=generator_version(), task=args.task)
     budget = _exact_budget(budget, qp, files, skip=args.no_avr)
     built: dict[Path, bytes] = {}

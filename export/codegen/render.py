@@ -333,7 +333,7 @@ def render_firmware(qpolicy: QuantizedActor, emitter_uids: Iterable[int] | None 
     if not w.has_roles and emitter_uids is not None:
         raise ExportError(f"the policy's world '{w.name}' has no emitter: emitter uids do not apply")
     emitter = emitter_firmware(w, task)
-    uids = _check_uids((w.target_uid,) if emitter_uids is None else emitter_uids) if emitter else ()
+    uids = _check_uids((w.emitter_uid,) if emitter_uids is None else emitter_uids) if emitter else ()
     try:
         msg_type = fw.check_msg_type(msg_type)
         c_hex_digest(qp.policy_hash)

@@ -595,7 +595,7 @@ def verify_simavr(qpolicy: QuantizedActor, files: dict[str, str], *, emitter_uid
     if not roles:  # no emitter role: no robot is one (the stream's role bits are neighbours')
         emitters: tuple[int, ...] = ()
     else:
-        emitters = (qp.world.target_uid,) if emitter_uids is None else tuple(emitter_uids)
+        emitters = (qp.world.emitter_uid,) if emitter_uids is None else tuple(emitter_uids)
     P, obs_dim = qp.world.period_ticks, qp.world.obs_dim
     if inputs is None:
         rng = np.random.default_rng(np.random.SeedSequence(seed))

@@ -198,8 +198,8 @@ def _run(controller, cfg: WorldConfig, n_robots: int, episodes: int, seed: int, 
     assert episodes >= 1, f"episodes must be >= 1, got {episodes}"
     task = get_task(task)
     M = int(n_robots)
-    assert not 1 <= cfg.target_uid <= M, (
-        f"target_uid {cfg.target_uid} is also searcher {cfg.target_uid - 1}'s uid; use target_uid 0 or > {M}")
+    assert not 1 <= cfg.emitter_uid <= M, (
+        f"emitter_uid {cfg.emitter_uid} is also searcher {cfg.emitter_uid - 1}'s uid; use emitter_uid 0 or > {M}")
     B = int(n_envs) if n_envs is not None else default_n_envs(episodes, M)
     T = cfg.episode_steps
     seeds = batch_env_seeds(seed, math.ceil(episodes / B))

@@ -246,7 +246,7 @@ class FirmwareEmulator:
         self.rand_hard = host_rand_hard(self.uids) if rand_hard is None else np.asarray(rand_hard, np.uint8)
         assert self.calib.shape == (R, 4), f"calib must be (R, 4), got {self.calib.shape}"
         roles = self.world.has_roles
-        emitters = (self.world.target_uid,) if emitter_uids is None else tuple(int(u) for u in emitter_uids)
+        emitters = (self.world.emitter_uid,) if emitter_uids is None else tuple(int(u) for u in emitter_uids)
         assert roles or emitter_uids is None, "emitter uids in a world without an emitter"
         self.is_emitter = np.isin(self.uids.astype(np.int64), np.asarray(emitters, np.int64)) & roles  # (R,)
         self.msg_type = fw.check_msg_type(msg_type)
@@ -447,7 +447,7 @@ def events_from_sim(events: HeardEvents, period: int, cfg: WorldConfig, n_robots
     out = np.zeros(n, EVENT_DTYPE)
     out["robot"] = events.env.astype(np.int64) * n_robots + events.rx
     out["tick"] = int(period) * cfg.period_ticks + events.tick.astype(np.int64)
-    out["uid"] = np.where(events.sender < 0, cfg.target_uid, events.sender.astype(np.int64) + 1)
+    out["uid"] = np.where(events.sender < 0, cfg.emitter_uid, events.sender.astype(np.int64) + 1)
     out["role"] = events.role
     out["flag"] = events.flag
     out["type"] = fw.check_msg_type(msg_type)

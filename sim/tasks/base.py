@@ -94,7 +94,7 @@ class Task(ABC):
                                              Metric("return", "return"))
     #: baseline label -> name for :meth:`make_baseline`; labels start with "hand-written" or "random"
     baselines: ClassVar[dict[str, str]] = {}
-    #: True: a beacon robot (kilo_uid ``cfg.target_uid``) that only transmits stands in the world (a disc in
+    #: True: a beacon robot (kilo_uid ``cfg.emitter_uid``) that only transmits stands in the world (a disc in
     #: collision worlds), and the firmware gets its beacon role; False: only the M robots
     beacon: ClassVar[bool] = False
     #: what the beacon robot is, in messages to users (e.g. "the object's robot"); only with :attr:`beacon`
@@ -113,11 +113,11 @@ class Task(ABC):
         return TaskRef(self.name, self.version)
 
     def world(self, cfg: WorldConfig) -> WorldConfig:
-        """``cfg`` with this task's beacon and observation layout (every world a task runs in is made so)."""
+        """``cfg`` with this task's emitter (:attr:`beacon`) and observation layout (every world a task runs in is made so)."""
         spec = ",".join(self.features)
-        if cfg.beacon == self.beacon and cfg.obs_features == spec:
+        if cfg.emitter == self.beacon and cfg.obs_features == spec:
             return cfg
-        return dataclasses.replace(cfg, beacon=self.beacon, obs_features=spec)
+        return dataclasses.replace(cfg, emitter=self.beacon, obs_features=spec)
 
     def world_for(self, cfg: WorldConfig, n_robots: int) -> WorldConfig:
         """The world of a run with ``n_robots`` (default ``cfg``; a task whose geometry depends on the swarm size,
@@ -125,12 +125,12 @@ class Task(ABC):
         return cfg
 
     def check_world(self, cfg: WorldConfig) -> None:
-        """Raise InputError when the task cannot run in ``cfg``: a beacon or observation layout other than the
+        """Raise InputError when the task cannot run in ``cfg``: an emitter or observation layout other than the
         task's (:meth:`world`). A subclass that adds conditions calls this first."""
         spec = ",".join(self.features)
-        if cfg.beacon != self.beacon or cfg.obs_features != spec:
-            raise InputError(f"world '{cfg.name}' has beacon {cfg.beacon} and observation {cfg.obs_features}; task "
-                             f"'{self.name}' needs beacon {self.beacon} and observation {spec} (Task.world(cfg) makes it)")
+        if cfg.emitter != self.beacon or cfg.obs_features != spec:
+            raise InputError(f"world '{cfg.name}' has emitter {cfg.emitter} and observation {cfg.obs_features}; task "
+                             f"'{self.name}' needs emitter {self.beacon} and observation {spec} (Task.world(cfg) makes it)")
 
     @abstractmethod
     def spawn(self, env: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

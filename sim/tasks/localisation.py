@@ -1,7 +1,7 @@
 """Cooperative localisation (the thesis's task): searchers find a beacon and gather within range of it.
 
-The beacon is a robot of its own (``cfg.target_uid``) that only transmits; it is a disc in collision
-worlds, taped down or pushed (``cfg.beacon_mobility``). Success of a step is the *coverage*, the
+The beacon is a robot of its own (``cfg.emitter_uid``) that only transmits; it is a disc in collision
+worlds, taped down or pushed (``cfg.emitter_mobility``). Success of a step is the *coverage*, the
 fraction of searchers whose true distance to the beacon is at most the communication radius; the
 team reward is the thesis's §4.2 ``scale * (coverage² - penalty · (1/M) Σ_i ||a_i||²)``. The
 critic's state is the beacon's position and every robot's pose, normalised. Baselines: the

@@ -33,7 +33,7 @@ def main() -> int:
             qp = synthetic_qpolicy(w, t_prev, hidden, acts, seed=i)
             exe = build_host(render_firmware(qp, generator_version="bench")[POLICY_FILE], tmp, name=f"b{i}")
             rng = np.random.default_rng(np.random.SeedSequence(i))
-            inputs = random_inputs(rng, w.period_ticks, (w.target_uid,), StreamSpec(n_robots=R, n_steps=S),
+            inputs = random_inputs(rng, w.period_ticks, (w.emitter_uid,), StreamSpec(n_robots=R, n_steps=S),
                                    comm_radius_mm=w.comm_radius_mm, light_threshold=w.light_threshold)
             emu = FirmwareEmulator(qp, inputs.uids, inputs.calib)
             t0 = time.perf_counter()

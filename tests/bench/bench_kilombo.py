@@ -37,7 +37,7 @@ Rows (``--rows``): ``core`` = Kilombo nominal and random walk, ours nominal, sea
 the centre), run with the nominal settings. Each row: final coverage (mean ± 95 % CI), the ratio to
 our closed loop (paired bootstrap over episodes), the paired difference to its own nominal row, time
 to find, and how far the beacon was pushed (mean / max mm by the end of the episode).
-``--ours-beacon-pushed`` runs our rows with the beacon pushed like a robot (``beacon_mobility`` 1), so
+``--ours-beacon-pushed`` runs our rows with the beacon pushed like a robot (``emitter_mobility`` 1), so
 Kilombo's own untaped beacon is compared with an untaped beacon in our world, not a taped one.
 """
 from __future__ import annotations
@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--extra-kilombo", action="append", default=[], metavar="LABEL=DIR",
                     help="another Kilombo build to run with the nominal settings (a row of its own)")
     ap.add_argument("--ours-beacon-pushed", action="store_true",
-                    help="our rows with the beacon pushed like a robot (beacon_mobility 1), the counterpart of "
+                    help="our rows with the beacon pushed like a robot (emitter_mobility 1), the counterpart of "
                          "Kilombo's untaped beacon (default: taped down, as the kilobot world)")
     ap.add_argument("--json", type=Path, default=None, help="write every per-episode number here")
     args = ap.parse_args(argv)
@@ -422,11 +422,11 @@ def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, An
     M, E, T, seed = args.robots, args.episodes, args.steps, args.seed
     world = dataclasses.replace(qp.world, episode_steps=T)
     if args.ours_beacon_pushed:
-        world = dataclasses.replace(world, beacon_mobility=1.0)
+        world = dataclasses.replace(world, emitter_mobility=1.0)
     eps = Episodes(world, M, E, seed)
     print(f"policy {source} ({policy.hash[:12]}), {M} searchers + beacon (uid {BEACON_UID}), {E} episodes x "
           f"{T} steps, seed {seed}; Kilombo at {prefix}" + (f", --set {sets}" if sets else "")
-          + (f"; our beacon pushed (beacon_mobility {world.beacon_mobility:g})" if args.ours_beacon_pushed else ""))
+          + (f"; our beacon pushed (emitter_mobility {world.emitter_mobility:g})" if args.ours_beacon_pushed else ""))
 
     rows: list[Row] = []
     want_k = args.rows in ("all", "kilombo")
@@ -474,7 +474,7 @@ def _bench(args, prefix: Path, extra: list[tuple[str, Path]], sets: dict[str, An
         from kiloforge.io import write_atomic
 
         doc = {"policy": source, "policy_hash": policy.hash, "robots": M, "episodes": E, "steps": T, "seed": seed,
-               "kilombo": str(prefix), "set": sets, "ours_beacon_mobility": world.beacon_mobility,
+               "kilombo": str(prefix), "set": sets, "ours_beacon_mobility": world.emitter_mobility,
                "rows": [{"label": r.label, "sim": r.sim, "base": r.base, "note": r.note, "wall_s": r.wall_s,
                          "paired": r.paired, "final_coverage": r.final.tolist(), "time_to_find": r.t_find.tolist(),
                          "beacon_moved_mm": None if r.beacon_mm is None else r.beacon_mm.tolist()} for r in rows]}

@@ -22,7 +22,7 @@ the policy's), in blocks of 5 steps; a run reports its best block. Each row runs
 subprocess; ``--against REV`` also runs it on the ``sim/``
 of git revision REV (``git archive``), alternating the two trees every round, and prints both and
 the speed-up (best and median over rounds). ``--old-physics`` runs every tree with a taped-down
-beacon and a centre pivot where it has ``beacon_mobility`` / ``pivot_offset_mm`` (the physics of
+beacon and a centre pivot where it has ``emitter_mobility`` (``beacon_mobility`` in older trees) / ``pivot_offset_mm`` (the physics of
 81d913c and older trees), so only the code differs. ``--jit-ab`` also runs this tree with
 ``KILOFORGE_JIT=0`` (the NumPy contact loop instead of :mod:`sim.compiled`'s compiled one).
 
@@ -111,7 +111,7 @@ from sim.env import SwarmEnv
 from sim.baselines import make_policy
 M, B, policy, warm, steps = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
 fields = {f.name for f in dataclasses.fields(WorldConfig)}
-over = {k: 0.0 for k in ("beacon_mobility", "pivot_offset_mm") if k in fields} if sys.argv[6] == "old" else {}
+over = {k: 0.0 for k in ("emitter_mobility", "beacon_mobility", "pivot_offset_mm") if k in fields} if sys.argv[6] == "old" else {}
 cfg = preset("kilobot", episode_steps=warm + steps + 5, **over)
 env = SwarmEnv(cfg, B, M, seed=0)
 pol = make_policy(policy, cfg)

@@ -33,7 +33,7 @@ def main(policy: str) -> None:
                  StreamSpec(n_robots=256, n_steps=200, rate=0.6, n_senders=8)]
         for i, spec in enumerate(specs):
             rng = np.random.default_rng(np.random.SeedSequence(40 + i))
-            inputs = random_inputs(rng, world.period_ticks, (world.target_uid,), spec,
+            inputs = random_inputs(rng, world.period_ticks, (world.emitter_uid,), spec,
                                    comm_radius_mm=world.comm_radius_mm, light_threshold=world.light_threshold)
             emu = FirmwareEmulator(q, inputs.uids, inputs.calib)
             want = emu.run(inputs)
