@@ -126,6 +126,8 @@ def test_emitter_firmware_comes_from_the_task():
         with pytest.raises(ExportError) as err:
             render_firmware(qp, generator_version="t", task=task)
         assert "\n" not in str(err.value) and "task 'odd' has an emitter" in str(err.value), why
+    with pytest.raises(ExportError, match="^task 'aggregation' has no emitter"):
+        EmitterFirmware(get_task("aggregation"))
 
 
 def test_generic_templates_name_no_task():

@@ -25,6 +25,7 @@ from kiloforge.io import check_writable, write_files_atomic
 from kiloforge.validate import parse_decimal, quote
 from sim.config import KILOBOT, run_steps
 from sim.tasks import Task, get_task
+from sim.tasks.emitter import task_emitter
 
 from ..codegen import budget as bud
 from ..codegen.manifest import build_manifest, generator_version, manifest_json
@@ -146,7 +147,7 @@ def run_export(argv: Sequence[str]) -> int:
     if out.name in ("", ".", "..") or out.suffix != ".c":
         raise OutputError(f"--out must name a .c file, got '{out}'")
     args.task = get_task(args.task)  # resolved once: a task file is imported once, every later step gets this Task
-    emitter = EmitterFirmware(args.task) if args.task.beacon else None  # its program's file name, or none
+    emitter = EmitterFirmware(args.task) if task_emitter(args.task) else None  # its program's file name, or none
     emitter_path = out.with_name(emitter.program) if emitter else None
     if emitter_path == out:
         raise OutputError(f"--out must not be named {emitter.program} (that name is the emitter program's)")

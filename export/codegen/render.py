@@ -43,6 +43,7 @@ from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 from sim.tasks import DEFAULT_TASK, Task, get_task
 from sim.tasks.base import TASK_NAME
+from sim.tasks.emitter import task_emitter
 
 from ..contract import crc
 from ..contract import firmware as fw
@@ -89,10 +90,14 @@ def _check_uids(emitter_uids: Iterable[int]) -> tuple[int, ...]:
 
 class EmitterFirmware:
     """A task's emitter firmware: its partials' folder, the C names of its role (``emitter.c.j2``'s variables) and
-    the file its own program is written to. Raises :class:`ExportError` when the task gives none or a bad one."""
+    the file its own program is written to. Raises :class:`ExportError` when the task has no emitter, or gives no
+    partials or a bad file name."""
 
     def __init__(self, task: Task) -> None:
-        folder, program = task.firmware, task.emitter_program
+        declared = task_emitter(task)
+        if declared is None:
+            raise ExportError(f"task '{task.name}' has no emitter: it has no emitter firmware")
+        folder, program = declared.firmware, declared.program
         where = f"task '{task.name}' has an emitter"
         if not (isinstance(folder, str) and TASK_NAME.fullmatch(folder)
                 and (TEMPLATE_DIR / TASK_PARTIALS / folder / "emitter.c.j2").is_file()):
@@ -104,7 +109,7 @@ class EmitterFirmware:
         self.partial = f"{TASK_PARTIALS}/{folder}/emitter.c.j2"
         self.program_template = f"{TASK_PARTIALS}/{folder}/program.c.j2"
         self.program = program
-        self.role_name = task.beacon_role
+        self.role_name = declared.role
         module = environment().get_template(self.partial).module
         self.uids_table, self.n_uids, self.led = (str(getattr(module, n)) for n in ("uids_table", "n_uids", "led"))
 
