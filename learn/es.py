@@ -22,7 +22,7 @@ several swarm sizes is what is ascended, which is what the exported policy is ju
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -72,17 +72,29 @@ class PopulationMLP:
     def in_dim(self) -> int:
         return self.layers[0][0][1]
 
-    def forward(self, theta: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """theta (K, P), x (K, N, in) -> raw outputs (K, N, out) of member k on its rows x[k]."""
+    def bind(self, theta: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, Callable]]:
+        """theta (K, P) -> per layer (bias (K, 1, out), weight (K, in, out), activation): views of theta, cut once
+        for the many calls of one rollout (:meth:`forward_bound`)."""
         K = theta.shape[0]
         assert theta.shape == (K, self.n_params), f"theta must be (K, {self.n_params}), got {tuple(theta.shape)}"
-        i = 0
+        i, out = 0, []
         for (o, n), act in self.layers:
             w = theta[:, i:i + o * n].reshape(K, o, n)
             b = theta[:, i + o * n:i + o * n + o]
             i += o * n + o
-            x = ACTIVATIONS[act](torch.baddbmm(b[:, None, :], x, w.transpose(1, 2)))
+            out.append((b[:, None, :], w.transpose(1, 2), ACTIVATIONS[act]))
+        return out
+
+    @staticmethod
+    def forward_bound(bound: list[tuple[torch.Tensor, torch.Tensor, Callable]], x: torch.Tensor) -> torch.Tensor:
+        """x (K, N, in) -> raw outputs (K, N, out) through the layers of :meth:`bind`."""
+        for b, wt, act in bound:
+            x = act(torch.baddbmm(b, x, wt))
         return x
+
+    def forward(self, theta: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """theta (K, P), x (K, N, in) -> raw outputs (K, N, out) of member k on its rows x[k]."""
+        return self.forward_bound(self.bind(theta), x)
 
 
 @dataclass
@@ -110,14 +122,14 @@ def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConf
     seeds = [episode_seeds[e] for _ in range(K) for e in range(E)]  # env index k * E + e
     env = SwarmEnv(world, n_envs=K * E, n_robots=M, seed=seeds, randomise=randomise, task=task)
     history = History(t_prev, world.obs_dim)
-    th = theta.float()
+    layers = pop.bind(theta.float())
     prev = None  # the members' last actions (float32), as the history holds them
 
     def act(t: int, obs: np.ndarray, info) -> np.ndarray:
         nonlocal prev
         h = history.reset(obs) if t == 0 else history.push(prev, obs)
         x = torch.from_numpy(h).reshape(K, E * M, -1)
-        prev = pop.forward(th, x).clamp_(0.0, 1.0).reshape(K * E, M, -1).numpy()
+        prev = pop.forward_bound(layers, x).clamp_(0.0, 1.0).reshape(K * E, M, -1).numpy()
         return prev.astype(np.float64)
 
     loop = EpisodeLoop(env).run(act)

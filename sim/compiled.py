@@ -10,6 +10,9 @@
   of a few dozen discs, so interpreter overhead is most of its cost. Here it runs env by env in machine code.
 * :func:`radio_messages`: who hears whom at which tick in :func:`sim.radio.tick_radio` (before loss and
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
+* :func:`neighbour_tables`: the neighbour tables of :func:`sim.radio.observe_fast` (one entry per sender, the
+  table's overflow, the sensing-neighbour flag and the RBF sums), one receiver after the other instead of
+  NumPy passes over all messages; distances in integer mm, so ψ comes from a table NumPy computed.
 
 Both compute exactly what the NumPy code does, float operation for float operation:
 
@@ -150,6 +153,15 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
         np.ascontiguousarray(pos_ticks, np.float64), np.ascontiguousarray(target, np.float64), tt, moves,
         np.ascontiguousarray(phases, np.int64), int(tick0), np.ascontiguousarray(periods, np.int64), float(R))
     return e, rx, snd, k, d, bool(single)
+
+
+def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_col, rbf_col) -> None:
+    """The neighbour tables of :func:`sim.radio.observe_fast` (integer distances: ``table`` holds ψ of 0..255),
+    compiled: writes the sensing-neighbour column ``nbr_col`` (-1: none) and the RBF sums from ``rbf_col`` into
+    ``obs`` (B·M, obs_dim) in place."""
+    assert obs.flags.c_contiguous and obs.dtype == np.float32, "obs must be C-contiguous float32 (written in place)"
+    _need().neighbour_tables(g, snd, tick, f, d, bool(single), int(M), int(table_size), table, obs, int(nbr_col),
+                             int(rbf_col))
 
 
 def closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel) -> None:

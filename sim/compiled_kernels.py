@@ -514,3 +514,58 @@ def closed_form(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta
                     y = min(y, lim - (max(hy, 0.0) - d.imag))
                     y = max(y, (d.imag - min(ly, 0.0)) - lim)
                 zk[k, b, i] = complex(max(min(x, lim), -lim), max(min(y, lim), -lim))
+
+
+@jit
+def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_col, rbf_col):
+    """The neighbour-table part of sim.radio.observe_fast for integer distances: per receiver ``g`` (non-decreasing,
+    messages in (receiver, sender, tick) order) one entry per sender (its first tick and flag, its last distance),
+    the table's first ``table_size`` entries by (first tick, sender) when it overflows; writes the flag column
+    ``nbr_col`` (any kept sender sensing; -1: none) and the RBF sums from column ``rbf_col`` of ``obs``
+    (B·M, obs_dim), adding ``table`` rows (ψ of the integer distance) in sender order from 0."""
+    n = g.size
+    nr = table.shape[1]
+    eg = np.empty(n, np.int64)
+    ek = np.empty(n, np.int64)  # (first tick, sender), the overflow order
+    ef = np.empty(n, np.bool_)
+    ed = np.empty(n, np.int64)
+    m = 0
+    i = 0
+    while i < n:
+        j = i
+        if not single:
+            while j + 1 < n and g[j + 1] == g[i] and snd[j + 1] == snd[i]:
+                j += 1
+        eg[m] = g[i]
+        ek[m] = tick[i] * M + snd[i]
+        ef[m] = f[i] > 0
+        ed[m] = int(d[j])
+        m += 1
+        i = j + 1
+    acc = np.empty(nr)
+    a = 0
+    while a < m:
+        r = eg[a]
+        b = a
+        while b < m and eg[b] == r:
+            b += 1
+        full = b - a > table_size
+        flag = False
+        for c in range(nr):
+            acc[c] = 0.0
+        for x in range(a, b):
+            if full:
+                rank = 0
+                for y in range(a, b):
+                    if ek[y] < ek[x]:
+                        rank += 1
+                if rank >= table_size:
+                    continue
+            flag = flag or ef[x]
+            for c in range(nr):
+                acc[c] += table[ed[x], c]
+        if nbr_col >= 0:
+            obs[r, nbr_col] = 1.0 if flag else 0.0
+        for c in range(nr):
+            obs[r, rbf_col + c] = acc[c]
+        a = b

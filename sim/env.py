@@ -192,6 +192,7 @@ class SwarmEnv:
         self._check_spawn_room()
         self._collider = Collider(cfg) if cfg.collisions and cfg.robot_radius_mm > 0 else None
         self._mobility: float | np.ndarray = cfg.emitter_mobility  # scalar, or (B,) per env
+        self._mobile = False  # some env's emitter can be pushed (set at reset)
         self._seed(seed)
         self.pos: np.ndarray | None = None
         self.heading: np.ndarray | None = None
@@ -224,8 +225,7 @@ class SwarmEnv:
     @property
     def _pushable(self) -> bool:
         """True when collisions can move the beacon (so the radio needs its position per tick)."""
-        return (self._collider is not None and self._disc_body is not None
-                and bool(np.any(np.asarray(self._mobility) > 0)))
+        return self._collider is not None and self._disc_body is not None and self._mobile
 
     @property
     def tick_level_radio(self) -> bool:
@@ -303,6 +303,7 @@ class SwarmEnv:
             self.world_draw = self.randomise.draw(self.cfg, M, self._rng_init)
         w = self.world_draw
         self._mobility = self.cfg.emitter_mobility if w.emitter_mobility is None else w.emitter_mobility
+        self._mobile = bool(np.any(np.asarray(self._mobility) > 0))  # some env's emitter can be pushed
         self.sensing = np.zeros((B, M), np.uint8)
         self._prev_wall = np.zeros((B, M), np.float32)
         self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
@@ -333,7 +334,8 @@ class SwarmEnv:
         """Advance one control period with float actions (B, M, 2) in [0, 1]."""
         a = self._check_actions(actions)
         if self.cfg.tick_level:
-            return self.step_u8(action_to_u8(a))
+            q = action_to_u8(a)  # valid uint8 commands: step_u8's checks would pass
+            return self._advance(q / 255.0, q)
         return self._advance(a, None)
 
     def step_u8(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
@@ -356,7 +358,7 @@ class SwarmEnv:
         shape = (self.n_envs, self.n_robots, 2)
         if a.shape != shape:
             raise ValueError(f"actions must have shape (B, M, 2) = {shape}, got {a.shape}")
-        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        if a.dtype.kind not in "fiu":  # floats or integers
             raise ValueError(f"actions must be floats in [0, 1], got dtype {a.dtype}")
         a = np.asarray(a, np.float64)  # no copy for float64 input (never written to)
         lo, hi = a.min(), a.max()  # NaN propagates through min / max

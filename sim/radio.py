@@ -368,9 +368,17 @@ def _rbf_table(cfg: WorldConfig) -> np.ndarray:
     return t
 
 
+_NO_RBF = np.zeros((1, 0))  #: the RBF table of a world without the rbf feature (no columns)
+
+
+def _integer_mm(cfg: WorldConfig) -> bool:
+    """Whether measured distances are integers in 0..255 mm (ψ by table lookup)."""
+    return cfg.dist_integer and cfg.dist_min_mm >= 0 and cfg.dist_max_mm <= 255
+
+
 def rbf_rows(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
     """rbf_fast(cfg, d_mm), by table lookup when distances are integer mm (the same values)."""
-    if cfg.dist_integer and cfg.dist_min_mm >= 0 and cfg.dist_max_mm <= 255:
+    if _integer_mm(cfg):
         return _rbf_table(cfg).take(d_mm.astype(np.intp), axis=0)
     return rbf_fast(cfg, d_mm)
 
@@ -379,6 +387,29 @@ def _run_ends(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(first, last) index of each run of equal values in a non-decreasing ``key``."""
     brk = np.flatnonzero(key[1:] != key[:-1]) + 1
     return np.concatenate(([0], brk)), np.concatenate((brk - 1, [key.size - 1]))
+
+
+def _table_entries(g: np.ndarray, d: np.ndarray, f: np.ndarray, ui: np.ndarray | None, snd: np.ndarray,
+                   tick: np.ndarray, single: bool, B: int, M: int, P: int, table_size: int):
+    """The neighbour tables' entries of the messages to receivers ``g``: (g, d, f, ui, counts per receiver).
+
+    One entry per (receiver, sender): its first tick ranks the sender, its last distance is kept; a receiver
+    with more than ``table_size`` senders keeps the first by (first tick, sender)."""
+    if not single and g.size:  # one entry per (receiver, sender): first tick, latest distance
+        first, last = _run_ends(g * M + snd)
+        g, snd, tick, f, d, ui = g.take(first), snd.take(first), tick.take(first), f.take(first), d.take(last), None
+    counts = np.bincount(g, minlength=B * M)  # (B*M,) table entries per receiver
+    if g.size and counts.max() > table_size:  # table full: later senders are dropped
+        over = np.flatnonzero(counts.take(g) > table_size)
+        o = over.take(np.argsort((g.take(over) * P + tick.take(over)) * M + snd.take(over), kind="stable"))
+        go = g.take(o)  # overflowing receivers' entries by (receiver, first tick, sender)
+        rank = np.arange(o.size) - np.searchsorted(go, go)
+        keep = np.ones(g.size, bool)
+        keep[o[rank >= table_size]] = False
+        g, d, f = g[keep], d[keep], f[keep]
+        ui = ui[keep] if ui is not None else None
+        counts = np.minimum(counts, table_size)
+    return g, d, f, ui, counts
 
 
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
@@ -394,20 +425,10 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     P = period.period_ticks
     g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing
     d, f, ui, snd, tick = period.s_dist, period.s_flag, period.s_uidx, period.s_snd, period.s_tick
-    if not period.single and g.size:  # one entry per (receiver, sender): first tick, latest distance
-        first, last = _run_ends(g * M + snd)
-        g, snd, tick, f, d, ui = g.take(first), snd.take(first), tick.take(first), f.take(first), d.take(last), None
-    counts = np.bincount(g, minlength=B * M)  # (B*M,) table entries per receiver
-    if g.size and counts.max() > cfg.neighbour_table_size:  # table full: later senders are dropped
-        over = np.flatnonzero(counts.take(g) > cfg.neighbour_table_size)
-        o = over.take(np.argsort((g.take(over) * P + tick.take(over)) * M + snd.take(over), kind="stable"))
-        go = g.take(o)  # overflowing receivers' entries by (receiver, first tick, sender)
-        rank = np.arange(o.size) - np.searchsorted(go, go)
-        keep = np.ones(g.size, bool)
-        keep[o[rank >= cfg.neighbour_table_size]] = False
-        g, d, f = g[keep], d[keep], f[keep]
-        ui = ui[keep] if ui is not None else None
-        counts = np.minimum(counts, cfg.neighbour_table_size)
+    # the tables compiled (sim.compiled.neighbour_tables) where distances are integer mm and asymmetric
+    tables = ui is None and _integer_mm(cfg) and compiled.available()
+    if not tables:
+        g, d, f, ui, counts = _table_entries(g, d, f, ui, snd, tick, period.single, B, M, P, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
     if cfg.has_feature("wall"):
         wall = (light >= cfg.light_threshold).astype(np.float64)
@@ -434,7 +455,12 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
             t_light[tg.take(lit)] = period.t_light.take(lit)
         prev = np.full((B, M), -1) if prev_object_light is None else prev_object_light
         obs[..., cfg.obs_slice("object_light")] = object_light_feature(held_object_light(t_light.reshape(B, M), prev))
-    if d.size:
+    if tables:
+        compiled.neighbour_tables(g, snd, tick, f, d, period.single, M, cfg.neighbour_table_size,
+                                  _rbf_table(cfg) if cfg.has_feature("rbf") else _NO_RBF, obs.reshape(B * M, -1),
+                                  cfg.obs_index("nbr_sensing") if cfg.has_feature("nbr_sensing") else -1,
+                                  cfg.obs_index("rbf") if cfg.has_feature("rbf") else 0)
+    elif d.size:
         rcv = np.flatnonzero(counts)  # receivers with table entries
         cnt = counts[rcv]
         starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)

@@ -85,6 +85,35 @@ def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, var
 
 
 @needs_jit
+@pytest.mark.parametrize("msg_period,table", [(16, 3), (40, 5), (9, 16)])
+def test_compiled_neighbour_tables_give_the_numpy_observation(monkeypatch, msg_period, table):
+    """observe_fast's compiled neighbour tables (repeat senders, full tables, sensing flags, RBF sums) equal NumPy's."""
+    from sim.events import observe
+    from sim.radio import observe_fast
+
+    cfg = preset("kilobot", msg_period_ticks=msg_period, neighbour_table_size=table, msg_loss=0.1, dist_noise_mm=3.0)
+    rng = np.random.default_rng(msg_period)
+    P, B, M = cfg.period_ticks, 5, 24
+    pos = rng.uniform(-90, 90, (B, M, 2)) + np.cumsum(rng.normal(0, 1.0, (P, B, M, 2)), axis=0)
+    target = rng.uniform(-60, 60, (B, 2))
+    flags = rng.integers(0, 2, (B, M)).astype(np.uint8)
+    phases = draw_phases([np.random.default_rng(e) for e in range(B)], M, cfg)
+    period = tick_radio(pos, target, phases, 31, flags, cfg, [np.random.default_rng(50 + e) for e in range(B)])
+    light = rng.choice([-1, 0, 900], (B, M)).astype(np.int16)
+    prev_wall = rng.integers(0, 2, (B, M)).astype(np.float32)
+    counts = np.bincount(period.s_env * M + period.s_rx, minlength=B * M)
+    assert counts.max() > table and period.single == (msg_period > P)  # full tables; repeat senders or not
+    out = []
+    for jit in (True, False):
+        monkeypatch.setenv(compiled.ENV_SWITCH, "1" if jit else "0")
+        out.append(observe_fast(period, light, prev_wall, cfg))
+    out.append(observe(period.events(), light, prev_wall, cfg))
+    for obs, heard in out[1:]:
+        np.testing.assert_array_equal(out[0][0], obs)
+        np.testing.assert_array_equal(out[0][1], heard)
+
+
+@needs_jit
 def test_compiled_loop_in_a_crowded_small_arena(monkeypatch):
     """A dense jam against the walls of a small arena (many sweeps and pair-list rebuilds) stays bit-identical."""
     cfg = preset("kilobot", arena_half_mm=150.0, episode_steps=80)
