@@ -1,7 +1,7 @@
 """A heavy body that robots push together: quasi-static pushing against static friction.
 
-A world with ``body_radius_mm > 0`` (the transport task's) mounts its beacon robot on a disc of that
-radius, centred on the beacon (``env.target``). Robots move through their period as if the body were
+A world with ``body_radius_mm > 0`` (the transport task's) mounts its emitter on a disc of that
+radius, centred on the emitter (``env.target``). Robots move through their period as if the body were
 not there (:mod:`sim.kinematics`; the body takes no part in the per-tick contacts); then, once per
 control period, :func:`push_body` settles the contacts:
 
@@ -71,7 +71,7 @@ def _hold_off(pos: np.ndarray, body: np.ndarray, cfg: WorldConfig, collider: Col
 
 def push_body(pos: np.ndarray, body: np.ndarray, cfg: WorldConfig, collider: Collider) -> None:
     """Settle one period's robot-body contacts in place: ``pos`` (B, M, 2) the robots after their moves,
-    ``body`` (B, 2) its centre (the beacon's position), moved when the pushes beat the friction."""
+    ``body`` (B, 2) its centre (the emitter's position), moved when the pushes beat the friction."""
     depth, normal = body_depth(pos, body, cfg)
     sel = np.flatnonzero((depth > OVERLAP_TOL_MM).any(axis=1))
     if not sel.size:

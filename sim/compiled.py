@@ -194,17 +194,17 @@ def period_contacts(zk, z0, zb, travel, leg, disp, inc, e, t, s, mobility, targe
     ``target_record`` is not written)."""
     kernel = _need().period_contacts
     assert zk.flags.c_contiguous and zk.dtype == np.complex128, "zk must be C-contiguous complex128 (written in place)"
-    has_beacon = zb is not None
-    want = has_beacon and target_record is not None
+    has_emitter = zb is not None
+    want = has_emitter and target_record is not None
     if want:
         assert target_record.flags.c_contiguous and target_record.dtype == np.float64
     c0 = np.zeros(1, np.complex128)
     return bool(kernel(
-        zk, np.ascontiguousarray(z0), zb if has_beacon else c0, has_beacon, np.ascontiguousarray(travel, np.float64),
+        zk, np.ascontiguousarray(z0), zb if has_emitter else c0, has_emitter, np.ascontiguousarray(travel, np.float64),
         bool(leg), np.ascontiguousarray(disp), np.ascontiguousarray(inc) if inc is not None else np.zeros((1, 1, 1), np.complex128),
         inc is not None, np.ascontiguousarray(e, np.complex128) if e is not None else np.zeros((1, 1), np.complex128),
         np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
-        np.ascontiguousarray(mobility, np.float64) if has_beacon else np.zeros(1),
+        np.ascontiguousarray(mobility, np.float64) if has_emitter else np.zeros(1),
         target_record if want else np.zeros((1, 1, 2)), want,
         float(skin), float(diam), float(diam - tol_end), float(diam - tol_tick), float(diam + skin), float(lim),
         float(diam + margin), float(0.5 * omega), float((diam + skin) * (diam + skin)), int(cap), int(max_iters)))

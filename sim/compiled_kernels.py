@@ -56,10 +56,10 @@ def walls(x, y, N, lim):
 
 
 @jit
-def shares(fj, n, N, has_beacon, m_env, wi, wj):
+def shares(fj, n, N, has_emitter, m_env, wi, wj):
     """Push shares of an env's n pairs (relative to an equal share), as _Contacts._shares."""
     for p in range(n):
-        m = m_env if (has_beacon and fj[p] == N - 1) else 1.0
+        m = m_env if (has_emitter and fj[p] == N - 1) else 1.0
         wi[p] = 2.0 / (1.0 + m)
         wj[p] = 2.0 * m / (1.0 + m)
 
@@ -109,7 +109,7 @@ def sweeps(x, y, N, n, fi, fj, wi, wj, limit, capped, cap, target, gain, lim, hi
             f = (target - hd[h]) * gain / max(hd[h], 1e-300)
             hx[h] = (hx[h] + 1e-300) * f
             hy[h] = (hy[h] + 0.0) * f
-        for h in range(nh):  # shares are 1.0 without a beacon (shares()), and a product with 1.0 is exact
+        for h in range(nh):  # shares are 1.0 without an emitter (shares()), and a product with 1.0 is exact
             p = hit[h]
             x[fi[p]] += hx[h] * wi[p]
             y[fi[p]] += hy[h] * wi[p]
@@ -122,11 +122,11 @@ def sweeps(x, y, N, n, fi, fj, wi, wj, limit, capped, cap, target, gain, lim, hi
 
 @jit
 def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mobility,
-              has_beacon, lim, target, gain, skin, r2, cap, max_iters, zs, rec):
+              has_emitter, lim, target, gain, skin, r2, cap, max_iters, zs, rec):
     """The tick loop of sim.kinematics._per_tick for the envs ``sel`` (arguments as _per_tick computes
     them); fills rec (k_end - kmin, Bs, N) and zs (Bs, N)."""
     P, B, M = zk.shape
-    N = M + 1 if has_beacon else M
+    N = M + 1 if has_emitter else M
     maxp = max(1, N * (N - 1) // 2)
     fi = np.empty(maxp, np.int64)
     fj = np.empty(maxp, np.int64)
@@ -148,20 +148,20 @@ def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, 
             z = z0[b, i] if k_s == 0 else zk[k_s - 1, b, i]
             x[i] = z.real
             y[i] = z.imag
-        if has_beacon:
+        if has_emitter:
             x[M] = zb[b].real
             y[M] = zb[b].imag
-        for k in range(kmin, k_s):  # before the env's first contact: its closed form, the beacon at rest
+        for k in range(kmin, k_s):  # before the env's first contact: its closed form, the emitter at rest
             for i in range(M):
                 rec[k - kmin, e, i] = zk[k, b, i]
-            if has_beacon:
+            if has_emitter:
                 rec[k - kmin, e, M] = zb[b]
         n = ptr[e + 1] - ptr[e]
         for p in range(n):
             fi[p] = pi[ptr[e] + p]
             fj[p] = pj[ptr[e] + p]
-        m_env = mobility[e] if has_beacon else 1.0
-        shares(fj, n, N, has_beacon, m_env, wi, wj)
+        m_env = mobility[e] if has_emitter else 1.0
+        shares(fj, n, N, has_emitter, m_env, wi, wj)
         for i in range(N):
             bx[i] = built0[e, i].real
             by[i] = built0[e, i].imag
@@ -182,7 +182,7 @@ def tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, 
                     if moved <= half_skin:
                         break
                     n = rebuild(x, y, N, r2, fi, fj)
-                    shares(fj, n, N, has_beacon, m_env, wi, wj)
+                    shares(fj, n, N, has_emitter, m_env, wi, wj)
                     for i in range(N):
                         bx[i] = x[i]
                         by[i] = y[i]
@@ -285,14 +285,14 @@ def moves(k, turn, straight, leg):
 
 
 @jit
-def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e2, t, s, mobility, trec, want_trec,
+def period_contacts(zk, z0, zb, has_emitter, travel, leg, disp, inc3, use_inc3, e2, t, s, mobility, trec, want_trec,
                     skin, diam, lim_end, lim_tick, diam_skin, lim, target, gain, r2_rebuild, cap, max_iters):
     """The collision part of sim.kinematics.tick_move after the closed-form paths ``zk`` (P, B, M): the pairs
     that can touch (sim.grid's test at the period start), each env's first contact (_first_contacts), and
     for the envs with one the tick loop (_per_tick: its set-up, tick_loop, the write-back into zk, zb and
     ``trec``). Returns whether any env had a contact (else ``trec`` is left to the caller)."""
     P, B, M = zk.shape
-    N = M + 1 if has_beacon else M
+    N = M + 1 if has_emitter else M
     trmax = 0.0
     for b in range(B):
         for i in range(M):
@@ -315,7 +315,7 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
         for i in range(M):
             x[i] = z0[b, i].real
             y[i] = z0[b, i].imag
-        if has_beacon:
+        if has_emitter:
             x[M] = zb[b].real
             y[M] = zb[b].imag
         for i in range(N):
@@ -407,12 +407,12 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
             pj[ptr[q] + p] = pj_all[b, p]
         for i in range(M):
             built0[q, i] = z0[b, i]
-        if has_beacon:
+        if has_emitter:
             built0[q, M] = zb[b]
             mob[q] = mobility[b]
     rec = np.empty((k_end - kmin, Bs, N), np.complex128)
     zs = np.empty((Bs, N), np.complex128)
-    tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mob, has_beacon, lim,
+    tick_loop(zk, z0, zb, sel, inc, moving, limit, loose, ks, kmin, k_end, ptr, pi, pj, built0, mob, has_emitter, lim,
               target, gain, skin, r2_rebuild, cap, max_iters, zs, rec)
     for q in range(Bs):  # _store_ticks
         b = sel[q]
@@ -422,7 +422,7 @@ def period_contacts(zk, z0, zb, has_beacon, travel, leg, disp, inc3, use_inc3, e
         for k in range(k_end, P):
             for i in range(M):
                 zk[k, b, i] = zs[q, i]
-    if has_beacon:
+    if has_emitter:
         if want_trec:
             for k in range(P):
                 for b in range(B):

@@ -5,10 +5,10 @@ One control period per :meth:`SwarmEnv.step`:
 1. **Act.** Thesis worlds: the thesis kinematics on the float command (:func:`sim.kinematics.thesis_move`).
    Tick-level worlds: the command is quantised to uint8 (:func:`sim.motion.action_to_u8`) and the
    motor schedule runs tick by tick (:func:`sim.kinematics.tick_move`). Walls clip; discs in
-   collision worlds are pushed apart, the target beacon's disc too (``cfg.emitter_mobility``: 0 =
-   fixed, 1 = pushed like a robot); a beacon riding on a heavy body (``cfg.body_radius_mm > 0``) takes no
+   collision worlds are pushed apart, the emitter's disc too (``cfg.emitter_mobility``: 0 =
+   fixed, 1 = pushed like a robot); an emitter riding on a heavy body (``cfg.body_radius_mm > 0``) takes no
    part in that: the body settles once per period after the moves (:mod:`sim.body`). Everything that
-   follows uses the beacon's current position.
+   follows uses the emitter's current position.
 2. **Hear.** The radio stage of :mod:`sim.radio` (thesis or tick-level mode) gives the period's
    messages; messages carry each sender's ``sensing`` flag of its last control step.
 3. **Observe.** Light at the control tick, then :func:`sim.events.observe` (or its bit-identical
@@ -19,7 +19,7 @@ One control period per :meth:`SwarmEnv.step`:
 
 Domain randomisation (``randomise=``, :mod:`sim.variants`): each env draws its own speed, turn
 rates, per-robot calibration, motor model, message period and success, distance noise, light
-zones and beacon mobility at every reset, from its init stream after the spawn.
+zones and emitter mobility at every reset, from its init stream after the spawn.
 
 Random numbers: every env owns three generators (init, radio, light) from its own
 ``SeedSequence``; env e of ``SwarmEnv(..., seed=s)`` uses ``SeedSequence(s, spawn_key=(e,))``
@@ -45,13 +45,14 @@ from .variants import Randomisation, WorldDraw
 from .radio import (RadioPeriod, draw_phases, light_readings, observe_period, target_distance,
                     thesis_radio, tick_radio)
 from .tasks import Task, get_task
-from .features import beacon_sends_light, held_light, held_object_light
+from .features import emitter_sends_light, held_light, held_object_light
 from .light import draw_sensors
 
 ACTION_TOL = 1e-6  #: actions may exceed [0, 1] by this much (then they are clipped)
 MAX_PACKING = 0.45  #: collision worlds refuse to spawn more disc area than this fraction of the arena
-#: per-env random streams; "beacon_light" (the beacon's own light sensor) is drawn only in worlds with ``object_light``
-_STREAMS = ("init", "radio", "light", "beacon_light")
+#: per-env random streams (children of the env's seed sequence in this order); "emitter_light" (the emitter's own
+#: light sensor) is drawn only in worlds with ``object_light``
+_STREAMS = ("init", "radio", "light", "emitter_light")
 
 
 
@@ -157,8 +158,8 @@ class SwarmEnv:
     """B synchronised envs of M searchers and a target (see the module doc for one step).
 
     Attributes: ``pos`` (B, M, 2) mm, ``heading`` (B, M) rad in (-π, π], ``target`` (B, 2) mm (the
-    beacon's current position: collisions push it when ``cfg.emitter_mobility > 0``; None when the task
-    has no beacon: then nothing but the robots transmits or collides),
+    emitter's current position: collisions push it when ``cfg.emitter_mobility > 0``; None when the task
+    has no emitter: then nothing but the robots transmits or collides),
     ``t`` steps done this episode, ``sensing`` (B, M) uint8, ``cfg``, ``n_envs``, ``n_robots``.
     ``randomise`` (:class:`sim.variants.Randomisation`): domain randomisation, every env drawing its
     own world parameters at every reset from its init stream (``world_draw`` holds them).
@@ -198,7 +199,7 @@ class SwarmEnv:
         self.heading: np.ndarray | None = None
         self.target: np.ndarray | None = None
         self.sensing: np.ndarray | None = None
-        self.target_dist: np.ndarray | None = None  # (B, M) true robot-beacon distance after the last move
+        self.target_dist: np.ndarray | None = None  # (B, M) true robot-emitter distance after the last move
         self.phase: np.ndarray | None = None  # (B, M + 1) transmit phases (tick-level radio)
         self.t = 0
         self._started = False
@@ -214,17 +215,17 @@ class SwarmEnv:
 
     @property
     def _heavy_body(self) -> bool:
-        """True when the beacon rides on a heavy body robots push together (:mod:`sim.body`)."""
+        """True when the emitter rides on a heavy body robots push together (:mod:`sim.body`)."""
         return self.cfg.body_radius_mm > 0 and self.target is not None
 
     @property
     def _disc_body(self) -> np.ndarray | None:
-        """The beacon as a disc of the per-tick contacts (None without one, or when it rides on a heavy body)."""
+        """The emitter as a disc of the per-tick contacts (None without one, or when it rides on a heavy body)."""
         return None if self._heavy_body else self.target
 
     @property
     def _pushable(self) -> bool:
-        """True when collisions can move the beacon (so the radio needs its position per tick)."""
+        """True when collisions can move the emitter (so the radio needs its position per tick)."""
         return self._collider is not None and self._disc_body is not None and self._mobile
 
     @property
@@ -237,7 +238,7 @@ class SwarmEnv:
         seqs = env_seed_sequences(seed, self.n_envs)
         self.seed_sequences = seqs
         streams = [[np.random.default_rng(_child(ss, k)) for ss in seqs] for k in range(len(_STREAMS))]
-        self._rng_init, self._rng_radio, self._rng_light, self._rng_beacon_light = streams
+        self._rng_init, self._rng_radio, self._rng_light, self._rng_emitter_light = streams
 
     @property
     def init_streams(self) -> list[np.random.Generator]:
@@ -308,10 +309,10 @@ class SwarmEnv:
         self._prev_wall = np.zeros((B, M), np.float32)
         self._light_held = np.full((B, M), -1, np.int16)  # the light feature's held reading (-1: none yet)
         self._sensors = draw_sensors(self.cfg, M, self._rng_light)  # per-robot light sensor gain and offset
-        self._beacon_light = self._object_held = self._beacon_sensor = None
-        if beacon_sends_light(self.cfg):  # the beacon reads the light and sends its held reading
-            self._beacon_sensor = draw_sensors(self.cfg, 1, self._rng_beacon_light)
-            self._beacon_light = np.full(B, -1, np.int64)  # none until its first control tick
+        self._emitter_light = self._object_held = self._emitter_sensor = None
+        if emitter_sends_light(self.cfg):  # the emitter reads the light and sends its held reading
+            self._emitter_sensor = draw_sensors(self.cfg, 1, self._rng_emitter_light)
+            self._emitter_light = np.full(B, -1, np.int64)  # none until its first control tick
             self._object_held = np.full((B, M), -1, np.int64)  # what each robot holds of it (-1: none yet)
         self._rand_word = self.rand_hard = None
         if self.cfg.has_feature("random"):  # last from the init stream: worlds without it draw as before
@@ -375,15 +376,15 @@ class SwarmEnv:
             raise RuntimeError(f"the episode ended after {self.cfg.episode_steps} steps; call reset()")
         cfg = self.cfg
         B, M = self.n_envs, self.n_robots
-        record = beacon = None
+        record = emitter = None
         P = cfg.period_ticks
         if cfg.tick_level:
             assert q is not None
             if self.tick_level_radio:
                 record = np.empty((P, B, M, 2))
-                beacon = np.empty((P, B, 2)) if self._pushable else None
+                emitter = np.empty((P, B, 2)) if self._pushable else None
             tick_move(self.pos, self.heading, q, cfg, self._collider, self._disc_body, record,
-                      target_record=beacon, motion=self.world_draw.motion, emitter_mobility=self._mobility)
+                      target_record=emitter, motion=self.world_draw.motion, emitter_mobility=self._mobility)
         else:
             thesis_move(self.pos, self.heading, u, cfg)
             if self._collider is not None:
@@ -395,7 +396,7 @@ class SwarmEnv:
         if not cfg.tick_level and self.tick_level_radio:  # thesis kinematics, tick-level radio: robots stand still
             record = np.broadcast_to(self.pos, (P, B, M, 2))
         self.target_dist = self._target_distance()
-        obs, info = self._sense(self._hear(record, self.target_dist, beacon))
+        obs, info = self._sense(self._hear(record, self.target_dist, emitter))
         reward = self.task.reward(self, u, info)
         self.t += 1
         self._tick0 += cfg.period_ticks
@@ -404,7 +405,7 @@ class SwarmEnv:
         return obs, reward, terminated, truncated, info
 
     def _target_distance(self) -> np.ndarray | None:
-        """(B, M) true robot–beacon distances after the move (None without a beacon)."""
+        """(B, M) true robot–emitter distances after the move (None without an emitter)."""
         return None if self.target is None else target_distance(self.pos, self.target)
 
     def _check_success(self, info: StepInfo) -> None:
@@ -414,36 +415,36 @@ class SwarmEnv:
             raise InputError(f"task '{self.task.name}': step_info()['success'] must be (B,) = ({self.n_envs},) "
                              f"values in [0, 1], got {s.dtype} {s.shape}")
 
-    def _hear(self, record: np.ndarray | None, dt: np.ndarray, beacon: np.ndarray | None = None) -> RadioPeriod:
+    def _hear(self, record: np.ndarray | None, dt: np.ndarray, emitter: np.ndarray | None = None) -> RadioPeriod:
         if self.tick_level_radio:
             w = self.world_draw
             return tick_radio(record, self.target, self.phase, self._tick0, self.sensing, self.cfg,
-                              self._rng_radio, self.neighbour_method, target_ticks=beacon,
+                              self._rng_radio, self.neighbour_method, target_ticks=emitter,
                               msg_period=w.msg_period, msg_loss=w.msg_loss, dist_noise_mm=w.dist_noise_mm)
         return thesis_radio(self.pos, self.target, self.sensing, self.cfg, self._rng_radio, dt,
                             self.neighbour_method)
 
-    def _beacon_reading(self) -> np.ndarray:
-        """(B,) the beacon's ambient-light reading now: the robots' sensor model at the body's centre, on top of it,
+    def _emitter_reading(self) -> np.ndarray:
+        """(B,) the emitter's ambient-light reading now: the robots' sensor model at the body's centre, on top of it,
         so unshaded (its own gain and offset, noise and dropout from its stream)."""
-        return light_readings(self.target[:, None, :], self.cfg, self._rng_beacon_light, self.world_draw.wall_zone_mm,
-                              self._beacon_sensor, self.world_draw)[:, 0].astype(np.int64)
+        return light_readings(self.target[:, None, :], self.cfg, self._rng_emitter_light, self.world_draw.wall_zone_mm,
+                              self._emitter_sensor, self.world_draw)[:, 0].astype(np.int64)
 
     def _sense(self, period: RadioPeriod) -> tuple[np.ndarray, StepInfo]:
         light = light_readings(self.pos, self.cfg, self._rng_light, self.world_draw.wall_zone_mm, self._sensors,
                                self.world_draw, self.target if self._heavy_body else None)
         if self._rand_word is not None:  # the firmware steps its word once per control step
             self._rand_word = xorshift32(self._rand_word)
-        if self._beacon_light is not None:  # this period's beacon messages carry its held reading
-            period.t_light = self._beacon_light.take(period.t_env)
+        if self._emitter_light is not None:  # this period's emitter messages carry its held reading
+            period.t_light = self._emitter_light.take(period.t_env)
         obs, flags = observe_period(period, light, self._prev_wall, self.cfg, self.fast_observe, self._light_held,
                                     self._rand_word, self._object_held)
         if self.cfg.has_feature("light"):  # only the light feature reads the held reading
             self._light_held = held_light(light, self._light_held)
-        if self._beacon_light is not None:
-            heard = (flags > 0) & (self._beacon_light >= 0)[:, None]
-            self._object_held = held_object_light(np.where(heard, self._beacon_light[:, None], -1), self._object_held)
-            self._beacon_light = held_light(self._beacon_reading(), self._beacon_light)  # read at the control tick
+        if self._emitter_light is not None:
+            heard = (flags > 0) & (self._emitter_light >= 0)[:, None]
+            self._object_held = held_object_light(np.where(heard, self._emitter_light[:, None], -1), self._object_held)
+            self._emitter_light = held_light(self._emitter_reading(), self._emitter_light)  # read at the control tick
         self.sensing = flags
         if self.cfg.has_feature("wall"):
             self._prev_wall = obs[..., self.cfg.obs_index("wall")].copy()
@@ -451,7 +452,7 @@ class SwarmEnv:
         return obs, info
 
     def state(self) -> np.ndarray:
-        """The task's critic state (B, state_dim) float32 (localisation: beacon xy, then each robot's x, y, φ)."""
+        """The task's critic state (B, state_dim) float32 (localisation: the emitter's xy, then each robot's x, y, φ)."""
         if not self._started:
             raise RuntimeError("call reset() before state()")
         return self.task.state(self)

@@ -50,7 +50,7 @@ class HeardEvents:
     dist_mm: np.ndarray  # (N,) float64, measured distance
     role: np.ndarray  # (N,) uint8, ROLE_SEARCHER or ROLE_TARGET
     flag: np.ndarray  # (N,) uint8, sender's "I sense the target" flag carried in the message
-    #: (N,) int, the beacon's light reading a target message carries (-1: none); None: no message carries one
+    #: (N,) int, the emitter's light reading a target message carries (-1: none); None: no message carries one
     light: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -149,7 +149,7 @@ def observe(events: HeardEvents, light: np.ndarray, prev_wall: np.ndarray, cfg: 
     ``light`` (B, M) int: ambient-light readings at the control tick (-1 = busy, keep last flag).
     ``prev_wall`` (B, M) float: last period's wall flag (0 at reset).
     ``prev_light`` (B, M) int: the held light reading before this period (-1: none; the ``light`` feature).
-    ``prev_object_light`` (B, M) int: the beacon reading held before this period (-1: none; ``object_light``).
+    ``prev_object_light`` (B, M) int: the emitter reading held before this period (-1: none; ``object_light``).
     """
     B, M = light.shape
     assert prev_wall.shape == (B, M), f"prev_wall shape {prev_wall.shape} != light shape {(B, M)}"

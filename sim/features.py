@@ -10,8 +10,8 @@ feature's first input. Each feature has
   straight from the message arrays;
 * its integer firmware block, ``firmware_templates/features/<name>.c.j2`` (rendered into ``kf_observe``),
   and the block's bit-exact emulator twin (:data:`export.verify.emulator.INT_FEATURES`);
-* what it needs of the world and the message: ``target`` the beacon (a target slot, the beacon role),
-  ``nbr_sensing`` the beacon and the message's "I sense the target" bit.
+* what it needs of the world and the message: ``target`` the emitter (the task's transmitting robot:
+  a target slot, the emitter role), ``nbr_sensing`` the emitter and the message's "I sense the target" bit.
 
 ``wall``: 1 when the ambient light is at least ``light_threshold`` (a reading of -1 keeps the last flag).
 ``light`` (2 inputs, what run-and-tumble needs): the *held* reading h (the latest reading >= 0: a
@@ -19,10 +19,10 @@ reading of -1, receiving, keeps the last one, as the firmware does) as ``h / 102
 since the last control step ``(h - h_prev) / 1024`` (0 when this step's reading is -1 or no reading
 was held before). The firmware block quantises both at the input exponent: level ``(h · ONE) >> 10``,
 change the difference of levels.
-``target``: ``min(d / comm_radius, 1)`` when the beacon was heard this period, else -1.
-``object_light``: the beacon's own ambient-light reading, which it puts in its messages (it reads at its control
+``target``: ``min(d / comm_radius, 1)`` when the emitter was heard this period, else -1.
+``object_light``: the emitter's own ambient-light reading, which it puts in its messages (it reads at its control
 ticks and sends its held reading: :data:`export.contract.firmware.MSG_LIGHT_BYTE`), as ``L / 1024`` with L the
-reading of the latest beacon message that carried one, held between messages and periods; -1 before any. The
+reading of the latest emitter message that carried one, held between messages and periods; -1 before any. The
 firmware block writes ``(L · ONE) >> 10`` (the ``light`` level's scale, so a policy can compare the two).
 ``nbr_sensing``: 1 when a table entry's latest message says its sender senses the target.
 ``random``: ``b / 128`` with b the signed top byte of the robot's xorshift32 word (:mod:`kiloforge.xorshift`),
@@ -51,14 +51,14 @@ class Feature:
 
     name: str
     doc: str  #: one line: what the input says
-    needs_beacon: bool = False  #: reads the beacon's messages: only in worlds with a beacon
+    needs_emitter: bool = False  #: reads the emitter's messages: only in worlds with an emitter
     uses_flag: bool = False  #: reads the message's "I sense the target" bit
     per_rbf: bool = False  #: ``n_rbf`` inputs, else one
     input_name: str = ""  #: the input's name in ONNX metadata (default: the feature's name)
     parts: tuple[str, ...] = ()  #: several named inputs (``<name>_<part>``), else one
     reads_light: bool = False  #: reads get_ambientlight() (the program reads it once per control step)
     random: bool = False  #: reads the robot's xorshift32 word (stepped once per control step)
-    beacon_light: bool = False  #: reads the beacon's light reading in its messages (the beacon reads and sends it)
+    emitter_light: bool = False  #: reads the emitter's light reading in its messages (the emitter reads and sends it)
 
     def width(self, cfg: WorldConfig) -> int:
         return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
@@ -68,12 +68,12 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
     Feature("wall", "1 when the ambient light says a wall is near, else 0", reads_light=True),
     Feature("light", "the held ambient-light reading / 1024 and its change since the last control period",
             parts=("level", "change"), reads_light=True),
-    Feature("target", "distance to the beacon / comm radius in [0, 1] when heard this period, else -1",
-            needs_beacon=True, input_name="target_dist"),
-    Feature("object_light", "the beacon's broadcast light reading / 1024, the latest heard (held), else -1",
-            needs_beacon=True, beacon_light=True),
-    Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the beacon, else 0",
-            needs_beacon=True, uses_flag=True),
+    Feature("target", "distance to the emitter / comm radius in [0, 1] when heard this period, else -1",
+            needs_emitter=True, input_name="target_dist"),
+    Feature("object_light", "the emitter's broadcast light reading / 1024, the latest heard (held), else -1",
+            needs_emitter=True, emitter_light=True),
+    Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the emitter, else 0",
+            needs_emitter=True, uses_flag=True),
     Feature("random", "a uniform draw in [-1, 1) from the robot's xorshift32 stream, new each control period",
             random=True),
     Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True),
@@ -83,9 +83,9 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
 LEGACY_FEATURES = "wall,target,nbr_sensing,rbf"
 
 
-def parse_features(spec: str, beacon: bool, where: str) -> tuple[str, ...]:
+def parse_features(spec: str, emitter: bool, where: str) -> tuple[str, ...]:
     """The feature names of ``spec`` (comma-separated, in input order), checked: known, each once, and
-    beacon features only with a beacon. InputError naming ``where`` otherwise."""
+    the emitter's features only with an emitter. InputError naming ``where`` otherwise."""
     names = tuple(spec.split(",")) if spec else ()
     if not names:
         raise InputError(f"{where}: obs_features is empty; choose from: {', '.join(FEATURES)}")
@@ -95,16 +95,16 @@ def parse_features(spec: str, beacon: bool, where: str) -> tuple[str, ...]:
                          f"choose from: {', '.join(FEATURES)}")
     if len(set(names)) != len(names):
         raise InputError(f"{where}: obs_features lists a feature twice: {spec!r}")
-    if not beacon:
-        need = [n for n in names if FEATURES[n].needs_beacon]
+    if not emitter:
+        need = [n for n in names if FEATURES[n].needs_emitter]
         if need:
-            raise InputError(f"{where}: observation feature(s) {', '.join(need)} need a beacon (beacon is False)")
+            raise InputError(f"{where}: observation feature(s) {', '.join(need)} need an emitter (emitter is False)")
     return names
 
 
-def beacon_sends_light(cfg: WorldConfig) -> bool:
-    """True when the beacon puts its light reading in its messages: the world's layout reads it (``object_light``)."""
-    return bool(cfg.emitter) and any(FEATURES[f].beacon_light for f in cfg.features)
+def emitter_sends_light(cfg: WorldConfig) -> bool:
+    """True when the emitter puts its light reading in its messages: the world's layout reads it (``object_light``)."""
+    return bool(cfg.emitter) and any(FEATURES[f].emitter_light for f in cfg.features)
 
 
 def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
@@ -133,13 +133,13 @@ def light_feature(light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
 
 
 def held_object_light(target_light: np.ndarray, prev_held: np.ndarray) -> np.ndarray:
-    """(B, M) the beacon reading each robot holds after this period: ``target_light`` (the period's latest beacon
+    """(B, M) the emitter reading each robot holds after this period: ``target_light`` (the period's latest emitter
     message's reading, -1 where none was heard or carried one) where >= 0, else ``prev_held`` (-1: none yet)."""
     return np.where(target_light >= 0, target_light, prev_held)
 
 
 def object_light_feature(held: np.ndarray) -> np.ndarray:
-    """(B, M, 1) float64 ``object_light`` feature from the held beacon readings (-1: none)."""
+    """(B, M, 1) float64 ``object_light`` feature from the held emitter readings (-1: none)."""
     return np.where(held >= 0, held / 1024.0, -1.0)[..., None]
 
 
@@ -154,7 +154,7 @@ def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.n
     """Feature ``name`` of every robot in float64, shape (B, M, width): the definition the firmware block
     and the fast path follow. ``prev_light`` (B, M): the held reading before this step (-1: none).
     ``rand_word`` (B, M) uint32: the robots' xorshift32 words after this step's draw (``random``).
-    ``prev_object_light`` (B, M): the beacon reading held before this step (-1: none; ``object_light``)."""
+    ``prev_object_light`` (B, M): the emitter reading held before this step (-1: none; ``object_light``)."""
     B, M = light.shape
     if name == "wall":
         return wall_flag(light, prev_wall, cfg)[..., None]

@@ -32,7 +32,7 @@ after the period's last moving tick, until no pair overlaps by more than :data:`
 Inside a period contacts are thus slightly soft: in a robot pushing into a jam, what the sweeps of
 one tick leave is resolved with the next tick's (worst overlap between ticks ≈ 0.6 mm in a
 32-robot jam, where sweeping to 0.01 mm every tick took ~20 sweeps per tick); at the end of every
-period no discs overlap. Robot pairs share a push equally; the beacon disc takes ``m / (1 + m)`` of a push with its
+period no discs overlap. Robot pairs share a push equally; the emitter disc takes ``m / (1 + m)`` of a push with its
 robot (mobility m: 0 = taped down, the robot takes the whole push; 1 = pushed like a robot).
 
 How a period is computed (same model as stepping every robot tick by tick, without a Python loop
@@ -160,7 +160,7 @@ class _Contacts:
         self.lim = cfg.arena_half_mm - cfg.robot_radius_mm
         self.extent = cfg.arena_half_mm
         self.skin = skin
-        self.mobility = mobility  # (n_env,) beacon mobility, or None: no beacon disc (last disc is a robot)
+        self.mobility = mobility  # (n_env,) emitter mobility, or None: no emitter disc (last disc is a robot)
         if pairs is None:
             pairs = self._within(z, np.arange(n_env))
         self.pe, self.fi, self.fj, self.wi, self.wj = self._shares(*pairs)
@@ -176,10 +176,10 @@ class _Contacts:
     def _shares(self, pe: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple:
         """(env, flat i, flat j, share i, share j) of pairs (env, i, j)."""
         N = self.n_disc
-        fi, fj = pe * N + i, pe * N + j  # i < j, so the beacon is always j
+        fi, fj = pe * N + i, pe * N + j  # i < j, so the emitter is always j
         if self.mobility is None:
             return pe, fi, fj, None, None  # every pair shares its push equally
-        # robot-beacon pairs: shares by mobility (robot 1, beacon m): 1 / (1 + m) and m / (1 + m)
+        # robot-emitter pairs: shares by mobility (robot 1, emitter m): 1 / (1 + m) and m / (1 + m)
         m = np.where(j == N - 1, self.mobility.take(pe), 1.0)
         return pe, fi, fj, 2.0 / (1.0 + m), 2.0 * m / (1.0 + m)  # relative to an equal share
 
@@ -248,7 +248,7 @@ class _Contacts:
             else:
                 np.add.at(z, fi.take(hit), push * wi.take(hit))
                 np.subtract.at(z, fj.take(hit), push * wj.take(hit))
-            np.minimum(zf, lim, out=zf)  # walls (robots and beacon)
+            np.minimum(zf, lim, out=zf)  # walls (robots and emitter)
             np.maximum(zf, -lim, out=zf)
         return MAX_RELAX_ITERS
 
@@ -270,7 +270,7 @@ class Collider:
                 emitter_mobility: float | np.ndarray = 0.0) -> int:
         """Push overlapping discs apart in place until no pair overlaps by more than ``tol`` mm.
 
-        pos (B, M, 2) robots; target (B, 2) the beacon disc (moved in place when its mobility is
+        pos (B, M, 2) robots; target (B, 2) the emitter disc (moved in place when its mobility is
         > 0), or None. Returns the number of sweeps.
         """
         B = pos.shape[0]
@@ -283,7 +283,7 @@ class Collider:
 
 
 def _discs(pos: np.ndarray, target: np.ndarray | None) -> np.ndarray:
-    """(B, N) complex disc centres: the robots, then the beacon (N = M + 1) when given."""
+    """(B, N) complex disc centres: the robots, then the emitter (N = M + 1) when given."""
     B, M, _ = pos.shape
     z = np.empty((B, M + (target is not None)), np.complex128)
     z.real[:, :M], z.imag[:, :M] = pos[..., 0], pos[..., 1]
@@ -300,7 +300,7 @@ def _store(z: np.ndarray, pos: np.ndarray, target: np.ndarray | None) -> None:
 
 
 def max_overlap(pos: np.ndarray, target: np.ndarray | None, cfg: WorldConfig) -> float:
-    """Largest disc overlap (mm) among robots (and the beacon), 0 when none. For tests."""
+    """Largest disc overlap (mm) among robots (and the emitter), 0 when none. For tests."""
     allpos = pos if target is None else np.concatenate([pos, target[:, None, :]], axis=1)
     p = grid.pairs_within(allpos, 2.0 * cfg.robot_radius_mm, cfg.arena_half_mm)
     return float(np.max(2.0 * cfg.robot_radius_mm - p.dist)) if len(p) else 0.0
@@ -314,7 +314,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     q (B, M, 2) uint8 motor commands. ``record`` (P, B, M, 2), if given, receives the positions
     after each tick (the radio model needs who was where when a message flew); ``target_record``
-    (P, B, 2) the beacon's. ``target`` (B, 2) is the beacon disc (collision worlds), pushed in place
+    (P, B, 2) the emitter's. ``target`` (B, 2) is the emitter disc (collision worlds), pushed in place
     with ``emitter_mobility`` (0 = taped down, 1 = like a robot; scalar or (B,)). ``motion``: per-robot
     motion factors (None = nominal).
     """
@@ -383,15 +383,15 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         np.maximum(zkf, -lim, out=zkf)
     k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
 
-    has_beacon = collider is not None and target is not None
-    zb = target[:, 0] + 1j * target[:, 1] if has_beacon else None
-    mobility = np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)) if has_beacon else None
+    has_emitter = collider is not None and target is not None
+    zb = target[:, 0] + 1j * target[:, 1] if has_emitter else None
+    mobility = np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)) if has_emitter else None
     if collider is not None and compiled.available():  # all of the else branch, compiled (bit-identical)
         if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
                                         mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,
                                         RELAX_OMEGA, OVERLAP_TOL_MM, TICK_OVERLAP_TOL_MM, TICK_SWEEPS,
                                         MAX_RELAX_ITERS) and target_record is not None:
-            target_record[...] = target  # no contact anywhere: the beacon stays put
+            target_record[...] = target  # no contact anywhere: the emitter stays put
     else:
         start = cand = None
         if collider is not None:  # pairs near enough to touch this period (also the per-tick contact lists)
@@ -405,9 +405,9 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
             _per_tick(zk, zb, z0, disp, inc if inc is not None else e, t, s, leg, k0, cfg, collider, mobility,
                       target_record, start, cand)
         elif target_record is not None:
-            target_record[...] = target  # the beacon stays put
+            target_record[...] = target  # the emitter stays put
     pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
-    if has_beacon:
+    if has_emitter:
         target[:, 0], target[:, 1] = zb.real, zb.imag
     if record is not None and not np.shares_memory(record, zk):
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
@@ -494,7 +494,7 @@ def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr:
                     diam: float) -> np.ndarray:
     """(B,) first tick at which two discs on their collision-free paths ``zk`` (P, B, M) come closer
     than 2r - OVERLAP_TOL_MM in each env (P: never). ``cand``: the disc pairs within 2r + the largest
-    ``tr[e, i] + tr[e, j]`` at the period start, ``tr`` (B, N) each disc's path length (0: the beacon)."""
+    ``tr[e, i] + tr[e, j]`` at the period start, ``tr`` (B, N) each disc's path length (0: the emitter)."""
     P, B, M = zk.shape
     first = np.full(B, P, np.int64)
     if not len(cand):
@@ -510,9 +510,9 @@ def _first_contacts(cand: grid.Pairs, zk: np.ndarray, zb: np.ndarray | None, tr:
     if zb is None:
         zj = zf.take(e * M + j, axis=1)
     else:
-        beacon = j == M
+        emitter = j == M
         zj = zf.take(e * M + np.minimum(j, M - 1), axis=1)
-        zj[:, beacon] = zb[e[beacon]]  # the beacon stays put unless pushed
+        zj[:, emitter] = zb[e[emitter]]  # the emitter stays put unless pushed
     touch = np.abs(zi - zj) < diam - OVERLAP_TOL_MM  # (P, K)
     hit = touch.any(axis=0).nonzero()[0]
     if hit.size:
@@ -601,7 +601,7 @@ def _per_tick(zk: np.ndarray, zb: np.ndarray | None, z0: np.ndarray, disp: np.nd
         zk[kmin:k_end, sel] = own
         zk[k_end:, sel] = body
     if zb is not None:
-        if target_record is not None:  # the beacon rests until the first contact
+        if target_record is not None:  # the emitter rests until the first contact
             bz = np.concatenate([np.broadcast_to(zb[sel], (kmin, Bs)), rec[..., M],
                                  np.broadcast_to(zs[:, M], (P - k_end, Bs))])
             target_record[...] = np.stack([zb.real, zb.imag], -1)[None]

@@ -4,14 +4,14 @@ Two message models, chosen by ``cfg.msg_period_ticks``:
 
 Thesis mode (``msg_period_ticks == 0``, :func:`thesis_radio`)
     Every searcher within the communication radius (true distance, after the move) is heard by
-    every other searcher exactly once per period, at tick 0; the target beacon likewise. Events are
+    every other searcher exactly once per period, at tick 0; the emitter likewise. Events are
     in arrival order: per receiver the target first, then senders by ascending index.
 
 Tick-level mode (``msg_period_ticks >= 1``, :func:`tick_radio`)
     Every transmitter (the M searchers and the target) has a phase in ``[0, msg_period_ticks)``,
     drawn at reset; it sends at the global ticks ``g`` with ``(g - phase) % msg_period_ticks == 0``.
     Each robot within the communication radius at that tick (true distance, positions of robots
-    and beacon after that tick's move) hears it. Events carry the tick within the period (0 .. P-1);
+    and emitter after that tick's move) hears it. Events carry the tick within the period (0 .. P-1);
     :meth:`RadioPeriod.events` lists them in arrival order: by tick, then sender index with the
     target first.
 
@@ -83,7 +83,7 @@ class RadioPeriod:
     #: (``s_dist == s_udist[s_uidx]``), set when distances are symmetric (no noise)
     s_udist: np.ndarray | None = None
     s_uidx: np.ndarray | None = None
-    #: optional: (Nt,) int the beacon's light reading each target message carries (-1: none yet), set by the env
+    #: optional: (Nt,) int the emitter's light reading each target message carries (-1: none yet), set by the env
     #: in worlds whose observation reads it (``object_light``)
     t_light: np.ndarray | None = None
     _events: HeardEvents | None = field(default=None, repr=False)
@@ -160,7 +160,7 @@ PAIR_DTYPE = np.float64
 def thesis_radio(pos: np.ndarray, target: np.ndarray | None, flags: np.ndarray, cfg: WorldConfig,
                  rngs: Sequence[np.random.Generator], target_dist: np.ndarray | None = None,
                  method: str = "auto") -> RadioPeriod:
-    """Thesis-mode messages for one period. pos (B, M, 2), target (B, 2) or None (no beacon), flags (B, M) uint8."""
+    """Thesis-mode messages for one period. pos (B, M, 2), target (B, 2) or None (no emitter), flags (B, M) uint8."""
     B, M, _ = pos.shape
     R = cfg.comm_radius_mm
     pr = grid.pairs_within(pos, R, cfg.arena_half_mm, method, ordered=True, dtype=PAIR_DTYPE)  # (env, rx, snd)
@@ -218,9 +218,9 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray | None, phases: np.ndar
                dist_noise_mm: np.ndarray | None = None) -> RadioPeriod:
     """Tick-level messages of the period covering global ticks ``tick0 .. tick0 + P - 1``.
 
-    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) the beacon (None: no
-    beacon), or its positions after each tick ``target_ticks`` (P, B, 2) when it moves; phases (B, M + 1)
-    (column M, the beacon's, is drawn without a beacon too, so the streams do not depend on the task);
+    pos_ticks (P, B, M, 2): robot positions after each tick's move; target (B, 2) the emitter (None: no
+    emitter), or its positions after each tick ``target_ticks`` (P, B, 2) when it moves; phases (B, M + 1)
+    (column M, the emitter's, is drawn without an emitter too, so the streams do not depend on the task);
     flags (B, M) uint8 senders' flags. Per-env or per-transmitter variations (None = ``cfg``'s):
     ``msg_period`` (B, M + 1) ticks between sends, ``msg_loss`` (B,), ``dist_noise_mm`` (B,).
     """
@@ -254,7 +254,7 @@ def _messages(pos_ticks: np.ndarray, target: np.ndarray | None, target_ticks: np
     (env, receiver, sender, tick) order, and whether no candidate sender sends more than once."""
     P, B, M, _ = pos_ticks.shape
     N = M + (target is not None)
-    Z = np.empty((P, B, N), np.complex128)  # robots and (column M) the beacon, if any, after each tick
+    Z = np.empty((P, B, N), np.complex128)  # robots and (column M) the emitter, if any, after each tick
     Z.real[..., :M], Z.imag[..., :M] = pos_ticks[..., 0], pos_ticks[..., 1]
     if target is not None:
         tt = np.broadcast_to(target, (P, B, 2)) if target_ticks is None else target_ticks
@@ -451,7 +451,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if cfg.has_feature("object_light"):
         t_light = np.full(B * M, -1, np.int64)  # the latest target message's reading that carries one
         if tg.size and period.t_light is not None:
-            lit = np.flatnonzero(period.t_light >= 0)  # one reading per env and period: the beacon reads at control ticks
+            lit = np.flatnonzero(period.t_light >= 0)  # one reading per env and period: the emitter reads at control ticks
             t_light[tg.take(lit)] = period.t_light.take(lit)
         prev = np.full((B, M), -1) if prev_object_light is None else prev_object_light
         obs[..., cfg.obs_slice("object_light")] = object_light_feature(held_object_light(t_light.reshape(B, M), prev))

@@ -56,7 +56,7 @@ def test_beacon_reads_the_unshaded_light_at_the_body_centre():
     env = SwarmEnv(w, 3, 4, seed=2, task=TASK)
     env.reset()
     want = np.rint(w.light_floor + LAMP_PEAK * 0.5 * (1 + env.target[:, 0] / w.arena_half_mm))
-    np.testing.assert_array_equal(env._beacon_reading(), want)
+    np.testing.assert_array_equal(env._emitter_reading(), want)
 
 
 def test_events_carry_the_beacons_reading():

@@ -78,7 +78,7 @@ def test_legacy_layout_leaves_the_world_dict_unchanged():
 @pytest.mark.parametrize("fields,msg", [({"obs_features": "wall,compass"}, "unknown observation feature"),
                                         ({"obs_features": "wall,wall"}, "lists a feature twice"),
                                         ({"obs_features": ""}, "obs_features is empty"),
-                                        ({"beacon": False}, r"target, nbr_sensing need a beacon")])
+                                        ({"beacon": False}, r"target, nbr_sensing need an emitter")])
 def test_bad_layout_is_refused(fields, msg):
     """Unknown, repeated or missing features, and beacon features without a beacon, are one-line errors."""
     with pytest.raises(InputError, match=msg):

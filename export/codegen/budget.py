@@ -30,7 +30,7 @@ from kiloforge import numfmt
 from kiloforge.actors.base import ActorKind, BudgetItem, FloatPolicy, QuantizedActor, Resize
 from kiloforge.actors.registry import kind_of
 from sim.config import WorldConfig
-from sim.features import FEATURES, beacon_sends_light
+from sim.features import FEATURES, emitter_sends_light
 
 from ..contract import firmware as fw
 from .cformat import clamp_index_table, nonzero_windows
@@ -206,7 +206,7 @@ def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numf
     n_w = sum(o * i for o, i in spec.dense)
     n_rows = sum(o for o, _ in spec.dense)
     rbf_b, tgt_b = sensing_table_bytes(world, e_in)
-    light_msg = beacon_sends_light(world)
+    light_msg = emitter_sends_light(world)
     rx_b = RX_ENTRY_B + EMITTER_LIGHT_RX_B * light_msg
     misc_b = MISC_STATE_B + EMITTER_LIGHT_STATE_B * light_msg
     code_note = f"{CODE_ESTIMATE_B['base']} + {CODE_ESTIMATE_B['per_layer']} x {n_layers} layers"

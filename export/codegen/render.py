@@ -38,7 +38,7 @@ from kiloforge.actors.registry import kind_of
 from kiloforge.errors import QuantizeError
 from kiloforge.xorshift import SEED_ADD, SEED_MUL
 from sim.config import ACTION_DIM, WorldConfig
-from sim.features import FEATURES, beacon_sends_light
+from sim.features import FEATURES, emitter_sends_light
 from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 from sim.tasks import DEFAULT_TASK, Task, get_task
@@ -156,7 +156,7 @@ def _common_defines(msg_type: int, world: WorldConfig, emitter: EmitterFirmware 
     """The message and LED constants: the role and sensing bits and their LEDs only where the world has an emitter."""
     roles = emitter is not None
     nbr = world.has_feature("nbr_sensing")
-    light = beacon_sends_light(world)
+    light = emitter_sends_light(world)
     defines = [
         _define("KF_MSG_TYPE", _u(msg_type), "message type of ours (a user type: < 0x80, not 1)"),
         _define("KF_MSG_VERSION", _u(fw.MSG_VERSION), "data[0] of our messages; others are dropped"),
@@ -272,7 +272,7 @@ def _layout_context(w: WorldConfig, emitter: EmitterFirmware | None) -> dict[str
             "obs_features": list(w.features),
             "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
             "reads_light": any(FEATURES[f].reads_light for f in w.features),
-            "msg_light": beacon_sends_light(w),
+            "msg_light": emitter_sends_light(w),
             "observe_counters": ", ".join(sorted(counters))}
 
 
@@ -348,7 +348,7 @@ def render_firmware(qpolicy: QuantizedActor, emitter_uids: Iterable[int] | None 
         generator_version = installed_version()
     env = environment()
     common = {"defines_common": _common_defines(msg_type, w, emitter), "defines_runtime": _runtime_defines(),
-              "runtime_c": inline_sources(RUNTIME_SOURCES), "msg_light": beacon_sends_light(w)}
+              "runtime_c": inline_sources(RUNTIME_SOURCES), "msg_light": emitter_sends_light(w)}
     role = emitter.role_name if emitter else ""
     policy_ctx = dict(common, **_policy_context(qp, uids, emitter),
                       banner=_banner(POLICY_FILE, qp, generator_version,

@@ -49,7 +49,7 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.xorshift import rng_seed, top_byte, xorshift32
 from sim.config import ROLE_TARGET, WorldConfig
 from sim.events import HeardEvents, PeriodSummary, summarise
-from sim.features import beacon_sends_light
+from sim.features import emitter_sends_light
 from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
 
@@ -262,7 +262,7 @@ class FirmwareEmulator:
         self.msg_searcher = np.stack([message_bytes(self.uids, np.zeros(R, np.uint8), self.msg_type),
                                       message_bytes(self.uids, np.full(R, fw.SENSING_BIT, np.uint8),
                                                     self.msg_type)], 1)  # (R, 2, 12)
-        self.sends_light = beacon_sends_light(self.world)
+        self.sends_light = emitter_sends_light(self.world)
         self.msg_emitter = self._emitter_message(np.full(R, fw.LIGHT_NONE))
         self.led_codes = {name: fw.rgb(*c) for name, c in (
             ("off", fw.LED_OFF), ("emitter", fw.LED_EMITTER), ("sensing", fw.LED_SENSING),
