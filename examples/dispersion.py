@@ -16,12 +16,40 @@ import math
 import numpy as np
 
 from sim.config import ACTION_DIM
-from sim.tasks import Metric, Task
+from sim.tasks import Metric, TableFeature, Task
+
+CLOSE_MM = 66  # two body diameters: a neighbour this close crowds a robot
+
+
+class Crowd(TableFeature):
+    """The task's own input: neighbours heard closer than CLOSE_MM, as min(n, 4) / 4 (0 alone, 1 crowded).
+
+    Three parts that must agree: the float reference the simulator gives the actor, the integer twin the
+    emulator runs, and the C the robot runs (``export --verify host`` checks the last two bit for bit).
+    """
+
+    name = "crowd"
+    doc = f"neighbours heard closer than {CLOSE_MM} mm, min(n, 4) / 4"
+    firmware_decl = "    uint8_t crowd_n = 0u;\n"
+    firmware = f"""
+    for (i = 0u; i < s->nbr_count; ++i) {{
+        crowd_n = (uint8_t)(crowd_n + (s->nbr[i].dist < {CLOSE_MM}u ? 1u : 0u));
+    }}
+    obs[KF_OBS_CROWD] = (int8_t)(((int16_t)(crowd_n < 4u ? crowd_n : 4u) * KF_ONE) >> 2);
+"""
+
+    def reference(self, table, cfg):
+        n = table.sum(table.dist_mm < CLOSE_MM)  # (robots,) close entries of each robot's table
+        return (np.minimum(n, 4) / 4.0)[:, None]
+
+    def integer(self, table, one):
+        n = table.sum((table.dist_mm < CLOSE_MM).astype(np.int64))
+        return ((np.minimum(n, 4) * one) >> 2)[:, None]
 
 
 class Dispersion(Task):
     name = "dispersion"  # recorded in every policy trained for it
-    version = 1
+    version = 2  # 2: observes its own feature, crowd
     description = "robots start crowded and spread out until none hears another"
     success_label = "fraction of robots alone"
     robot_label = "alone"
@@ -31,7 +59,8 @@ class Dispersion(Task):
                Metric("mean_alone", "mean alone"), Metric("return", "return"))
     baselines = {"hand-written": "disperser", "random": "random"}
     beacon = False  # nothing but the robots
-    features = ("wall", "rbf")  # the observation: the lit-wall flag and the RBF histogram of neighbour distances
+    features = ("wall", "crowd", "rbf")  # the observation: the lit-wall flag, its own crowd input, the RBF histogram
+    own_features = (Crowd,)
 
     def spawn(self, env):
         """Robots uniform in the middle quarter of the arena (the env then separates overlapping discs)."""

@@ -55,7 +55,7 @@ from kiloforge.errors import InputError
 from kiloforge.validate import check_keys, check_str, check_typed, show
 
 from .compat import world_from_file, world_to_file
-from .features import FEATURES, LEGACY_FEATURES, parse_features
+from .features import LEGACY_FEATURES, feature, parse_features
 from .light import parse_lamps
 
 # Localisation's observation layout (docs/design.md control-step contract, step 2; thesis §4.1), the
@@ -235,7 +235,7 @@ class WorldConfig:
         features = parse_features(self.obs_features, self.emitter, f"WorldConfig '{self.name}'")
         slices, i = {}, 0
         for n in features:  # the layout once: the simulator reads it every step
-            w = FEATURES[n].width(self)
+            w = feature(n).width(self)
             slices[n] = slice(i, i + w)
             i += w
         object.__setattr__(self, "_features", features)

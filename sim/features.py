@@ -19,6 +19,9 @@ reading of -1, receiving, keeps the last one, as the firmware does) as ``h / 102
 since the last control step ``(h - h_prev) / 1024`` (0 when this step's reading is -1 or no reading
 was held before). The firmware block quantises both at the input exponent: level ``(h · ONE) >> 10``,
 change the difference of levels.
+A task may bring features of its own, computed from the neighbour table (:mod:`sim.table_features`); resolving
+the task registers them in :data:`TASK_FEATURES`, and :func:`feature` finds a built-in or a task's feature by name.
+
 ``target``: ``min(d / comm_radius, 1)`` when the emitter was heard this period, else -1.
 ``object_light``: the emitter's own ambient-light reading, which it puts in its messages (it reads at its control
 ticks and sends its held reading: :data:`export.contract.firmware.MSG_LIGHT_BYTE`), as ``L / 1024`` with L the
@@ -42,6 +45,8 @@ import numpy as np
 from kiloforge.errors import InputError
 from kiloforge.xorshift import top_byte
 
+from .table_features import NeighbourTable
+
 #: annotations only: sim.config imports this module, so it cannot import sim.config or sim.events
 WorldConfig = PeriodSummary = Any
 
@@ -59,6 +64,7 @@ class Feature:
     reads_light: bool = False  #: reads get_ambientlight() (the program reads it once per control step)
     random: bool = False  #: reads the robot's xorshift32 word (stepped once per control step)
     emitter_light: bool = False  #: reads the emitter's light reading in its messages (the emitter reads and sends it)
+    table: Any = None  #: a task's own feature (:class:`sim.table_features.TableFeature`): computed from the table
 
     def width(self, cfg: WorldConfig) -> int:
         return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
@@ -79,6 +85,33 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
     Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True),
 )}
 
+#: the features tasks brought (:attr:`sim.tasks.Task.own_features`), registered when a task is resolved
+TASK_FEATURES: dict[str, Feature] = {}
+
+
+def feature(name: str) -> Feature:
+    """The built-in or task feature ``name`` (KeyError when neither knows it)."""
+    f = FEATURES.get(name)
+    return f if f is not None else TASK_FEATURES[name]
+
+
+def register(table_feature: Any, where: str) -> None:
+    """Make a task's own feature (checked: :func:`sim.table_features.check`) known by its name; InputError when
+    another task already brought a different feature of that name."""
+    from .table_features import check
+
+    tf = check(table_feature, where, set(FEATURES))
+    known = TASK_FEATURES.get(tf.name)
+    def origin(obj: Any) -> tuple[str, str]:  # a task file imported again defines the same class anew
+        return type(obj).__module__, type(obj).__qualname__
+
+    if known is not None and origin(known.table) != origin(tf):
+        raise InputError(f"{where}: feature {tf.name!r} is already defined by {'.'.join(origin(known.table))}; "
+                         "choose another name")
+    parts = tuple(str(k) for k in range(tf.width)) if tf.width > 1 else ()
+    TASK_FEATURES[tf.name] = Feature(tf.name, tf.doc, parts=parts, table=tf)
+
+
 #: localisation's layout (the thesis's 14 inputs), the layout of every world written before layouts were chosen
 LEGACY_FEATURES = "wall,target,nbr_sensing,rbf"
 
@@ -89,14 +122,15 @@ def parse_features(spec: str, emitter: bool, where: str) -> tuple[str, ...]:
     names = tuple(spec.split(",")) if spec else ()
     if not names:
         raise InputError(f"{where}: obs_features is empty; choose from: {', '.join(FEATURES)}")
-    unknown = [n for n in names if n not in FEATURES]
+    unknown = [n for n in names if n not in FEATURES and n not in TASK_FEATURES]
     if unknown:
         raise InputError(f"{where}: unknown observation feature(s) {', '.join(map(repr, unknown[:4]))}; "
-                         f"choose from: {', '.join(FEATURES)}")
+                         f"choose from: {', '.join([*FEATURES, *TASK_FEATURES])} (a task's own features are known "
+                         "once its --task is given)")
     if len(set(names)) != len(names):
         raise InputError(f"{where}: obs_features lists a feature twice: {spec!r}")
     if not emitter:
-        need = [n for n in names if FEATURES[n].needs_emitter]
+        need = [n for n in names if feature(n).needs_emitter]
         if need:
             raise InputError(f"{where}: observation feature(s) {', '.join(need)} need an emitter (emitter is False)")
     return names
@@ -104,7 +138,7 @@ def parse_features(spec: str, emitter: bool, where: str) -> tuple[str, ...]:
 
 def emitter_sends_light(cfg: WorldConfig) -> bool:
     """True when the emitter puts its light reading in its messages: the world's layout reads it (``object_light``)."""
-    return bool(cfg.emitter) and any(FEATURES[f].emitter_light for f in cfg.features)
+    return bool(cfg.emitter) and any(feature(f).emitter_light for f in cfg.features)
 
 
 def rbf(cfg: WorldConfig, d_mm: np.ndarray) -> np.ndarray:
@@ -156,6 +190,10 @@ def reference(name: str, summ: PeriodSummary, light: np.ndarray, prev_wall: np.n
     ``rand_word`` (B, M) uint32: the robots' xorshift32 words after this step's draw (``random``).
     ``prev_object_light`` (B, M): the emitter reading held before this step (-1: none; ``object_light``)."""
     B, M = light.shape
+    tf = feature(name).table
+    if tf is not None:
+        table = NeighbourTable.of(summ.table_env * M + summ.table_rx, summ.table_dist_mm, B * M)
+        return tf.float_values(table, cfg).reshape(B, M, -1)
     if name == "wall":
         return wall_flag(light, prev_wall, cfg)[..., None]
     if name == "light":
@@ -183,7 +221,7 @@ def input_names(cfg: WorldConfig) -> list[str]:
     """A name per observation input, in order (``rbf_0`` .. for the histogram)."""
     out: list[str] = []
     for n in cfg.features:
-        f = FEATURES[n]
+        f = feature(n)
         name = f.input_name or f.name
         if f.per_rbf:
             out += [f"{name}_{k}" for k in range(cfg.n_rbf)]

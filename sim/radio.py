@@ -49,8 +49,9 @@ import numpy as np
 from . import compiled, grid
 from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
-from .features import held_object_light, light_feature, object_light_feature, random_feature
+from .features import TASK_FEATURES, feature, held_object_light, light_feature, object_light_feature, random_feature
 from .light import SensorDraw, sensor_readings
+from .table_features import NeighbourTable
 from .variants import WorldDraw
 
 _NO_DRAW = WorldDraw()
@@ -412,6 +413,12 @@ def _table_entries(g: np.ndarray, d: np.ndarray, f: np.ndarray, ui: np.ndarray |
     return g, d, f, ui, counts
 
 
+@functools.lru_cache(maxsize=16)
+def _table_features(cfg: WorldConfig) -> tuple[str, ...]:
+    """The world's features that a task brought (:mod:`sim.table_features`), in input order."""
+    return tuple(n for n in cfg.features if feature(n).table is not None)
+
+
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
                  prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None,
                  prev_object_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -426,10 +433,14 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing
     d, f, ui, snd, tick = period.s_dist, period.s_flag, period.s_uidx, period.s_snd, period.s_tick
     # the tables compiled (sim.compiled.neighbour_tables) where distances are integer mm and asymmetric
-    tables = ui is None and _integer_mm(cfg) and compiled.available()
+    own = _table_features(cfg) if TASK_FEATURES else ()  # a task's own features need the entries themselves
+    tables = ui is None and _integer_mm(cfg) and compiled.available() and not own
     if not tables:
         g, d, f, ui, counts = _table_entries(g, d, f, ui, snd, tick, period.single, B, M, P, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
+    for name in own:
+        obs.reshape(B * M, cfg.obs_dim)[:, cfg.obs_slice(name)] = feature(name).table.float_values(
+            NeighbourTable.of(g, d, B * M), cfg)
     if cfg.has_feature("wall"):
         wall = (light >= cfg.light_threshold).astype(np.float64)
         obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall

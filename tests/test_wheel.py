@@ -234,7 +234,7 @@ def test_example_task_round_trip_outside_the_repository(installed):
             assert res.returncode in (0, 1), (cmd, res.stdout[-2000:], res.stderr[-2000:])  # verify: 1 = FAIL
             out.append(res.stdout)
     meta = json.loads(bytes(__import__("numpy").load(cwd / "run" / "policy_best.npz")["meta"]).decode())
-    assert meta["task"] == {"name": "dispersion", "version": 1}
+    assert meta["task"] == {"name": "dispersion", "version": 2}
     ev = json.loads((cwd / "eval" / "evaluation.json").read_text())
     assert ev["task"]["primary_metric"] == "final_alone" and {"hand-written", "random"} <= set(ev["robots"]["4"]["metrics"])
     assert "bit-exact" in out[2] and (cwd / "disp.c").is_file() and not (cwd / "kilobot_target.c").exists()

@@ -30,7 +30,7 @@ from kiloforge import numfmt
 from kiloforge.actors.base import ActorKind, BudgetItem, FloatPolicy, QuantizedActor, Resize
 from kiloforge.actors.registry import kind_of
 from sim.config import WorldConfig
-from sim.features import FEATURES, emitter_sends_light
+from sim.features import emitter_sends_light, feature
 
 from ..contract import firmware as fw
 from .cformat import clamp_index_table, nonzero_windows
@@ -188,7 +188,7 @@ def sensing_table_bytes(world: WorldConfig, e_in: int = numfmt.DEFAULT_INPUT_EXP
 
 def neighbour_entry_bytes(world: WorldConfig) -> int:
     """One neighbour-table entry as rendered: the sensing flag only when a feature reads it."""
-    return NEIGHBOUR_ENTRY_B - (not any(FEATURES[f].uses_flag for f in world.features))
+    return NEIGHBOUR_ENTRY_B - (not any(feature(f).uses_flag for f in world.features))
 
 
 def estimate(kind: ActorKind, world: WorldConfig, arch: Any, *, e_in: int = numfmt.DEFAULT_INPUT_EXP,

@@ -38,7 +38,7 @@ from kiloforge.actors.registry import kind_of
 from kiloforge.errors import QuantizeError
 from kiloforge.xorshift import SEED_ADD, SEED_MUL
 from sim.config import ACTION_DIM, WorldConfig
-from sim.features import FEATURES, emitter_sends_light
+from sim.features import emitter_sends_light, feature
 from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, SCHEDULE_SHIFT, schedule_constants
 from sim.tasks import DEFAULT_TASK, Task, get_task
@@ -267,11 +267,12 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec,
 def _layout_context(w: WorldConfig, emitter: EmitterFirmware | None) -> dict[str, Any]:
     """What the shared template renders from the world's roles and observation layout (``roles``: one robot of the
     task transmits with a role bit, the others track whether they heard it; ``emitter_partial``: the task's role)."""
-    counters = {c for f in w.features for c in FEATURE_COUNTERS.get(f, ())}
+    counters = {c for f in w.features
+                for c in FEATURE_COUNTERS.get(f, ("i",) if feature(f).table is not None else ())}
     return {"roles": emitter is not None, "emitter_partial": emitter.partial if emitter else "",
             "obs_features": list(w.features),
-            "uses_flag": any(FEATURES[f].uses_flag for f in w.features),
-            "reads_light": any(FEATURES[f].reads_light for f in w.features),
+            "uses_flag": any(feature(f).uses_flag for f in w.features),
+            "reads_light": any(feature(f).reads_light for f in w.features),
             "msg_light": emitter_sends_light(w),
             "observe_counters": ", ".join(sorted(counters))}
 

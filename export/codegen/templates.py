@@ -11,8 +11,11 @@ from typing import Any, Iterable
 
 import jinja2
 
+from sim.features import TASK_FEATURES
+
 TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "firmware_templates"
 
+_TASK_BLOCK = re.compile(r"features/([a-z][a-z0-9_]*)\.c\.j2")
 _LOCAL_INCLUDE = re.compile(r'^\s*#\s*include\s+"([A-Za-z0-9_./]+)"\s*$')
 
 
@@ -21,9 +24,16 @@ class _RecordingLoader(jinja2.FileSystemLoader):
 
     loaded: set[str] = set()
 
-    def get_source(self, environment: jinja2.Environment, template: str) -> tuple[str, str, Any]:
+    def get_source(self, environment: jinja2.Environment, template: str) -> tuple[str, str | None, Any]:
         _RecordingLoader.loaded.add(template)
-        return super().get_source(environment, template)
+        try:
+            return super().get_source(environment, template)
+        except jinja2.TemplateNotFound:
+            own = _TASK_BLOCK.fullmatch(template)
+            tf = TASK_FEATURES.get(own.group(1)) if own else None
+            if tf is None:
+                raise
+            return tf.table.template(), None, lambda: False  # a task's own feature (sim.table_features)
 
 
 def environment() -> jinja2.Environment:

@@ -49,9 +49,10 @@ from kiloforge.actors.base import QuantizedActor
 from kiloforge.xorshift import rng_seed, top_byte, xorshift32
 from sim.config import ROLE_TARGET, WorldConfig
 from sim.events import HeardEvents, PeriodSummary, summarise
-from sim.features import emitter_sends_light
+from sim.features import emitter_sends_light, feature
 from sim.light import ADC_MAX
 from sim.motion import MODE_LEFT, MODE_RIGHT, MODE_STOP, MODE_STRAIGHT, schedule
+from sim.table_features import NeighbourTable
 
 from ..contract import firmware as fw
 from ..contract.crc import crc16_rows
@@ -196,6 +197,19 @@ def host_rand_hard(uids: np.ndarray) -> np.ndarray:
 INT_FEATURES: dict[str, Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]] = {
     "wall": _int_wall, "light": _int_light, "target": _int_target, "object_light": _int_object_light,
     "nbr_sensing": _int_nbr_sensing, "rbf": _int_rbf, "random": _int_random}
+
+
+def int_feature(name: str) -> Callable[["FirmwareEmulator", PeriodSummary], np.ndarray]:
+    """The integer twin of feature ``name``: a built-in's, or a task's own (its ``integer`` on the period's table)."""
+    if name in INT_FEATURES:
+        return INT_FEATURES[name]
+    tf = feature(name).table
+
+    def twin(emu: "FirmwareEmulator", summ: PeriodSummary) -> np.ndarray:
+        table = NeighbourTable.of(summ.table_rx, summ.table_dist_mm, emu.R)
+        return tf.int_values(table, int(emu.qp.one_q))
+
+    return twin
 
 
 def message_bytes(uids: np.ndarray, info: np.ndarray, msg_type: int, light: np.ndarray | None = None) -> np.ndarray:
@@ -368,7 +382,7 @@ class FirmwareEmulator:
             self.msg_emitter = self._emitter_message(self.emitter_light)
         obs = np.zeros((R, w.obs_dim), np.int64)
         for name in w.features:
-            obs[:, w.obs_slice(name)] = INT_FEATURES[name](self, summ)
+            obs[:, w.obs_slice(name)] = int_feature(name)(self, summ)
 
         act = np.asarray(qp.action_table, np.int64)[self.q.astype(np.int64)]  # (R, 2) ACT[previous q], a_0 = ACT[0] = 0
         q, self.state = qp.step_int(np.concatenate([act, obs], 1), self.state)  # (R, 2) uint8

@@ -13,6 +13,9 @@ from pathlib import Path
 
 from kiloforge.errors import InputError
 
+from ..features import register
+from ..table_features import NeighbourTable, TableFeature
+
 from .base import LEGACY_TASK, Metric, Task, TaskRef
 from .guard import check_attributes, guarded
 from .aggregation import Aggregation
@@ -20,7 +23,8 @@ from .localisation import Localisation
 from .phototaxis import Phototaxis
 from .transport import Transport
 
-__all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "TASKS", "TASK_HELP", "Task", "TaskRef",
+__all__ = ["DEFAULT_TASK", "ENTRY_POINT_GROUP", "LEGACY_TASK", "Metric", "NeighbourTable", "TASKS", "TASK_HELP",
+           "TableFeature", "Task", "TaskRef",
            "check_policy_task", "get_task", "is_task_file", "recorded_task", "task_names"]
 
 ENTRY_POINT_GROUP = "kiloforge.tasks"
@@ -63,6 +67,8 @@ def _checked(cls: object, where: str) -> Task:
     except Exception as e:  # a user's constructor: report it in one line
         raise InputError(f"{where} could not be created: {type(e).__name__}: {e}") from None
     check_attributes(task, where)
+    for f in task.own_features:
+        register(f, where)
     keys = [m.key for m in task.metrics]
     if task.primary_metric not in keys:
         raise InputError(f"{where}: primary_metric {task.primary_metric!r} is not among its metrics {keys}")

@@ -107,6 +107,9 @@ class Task(ABC):
     emitter_program: ClassVar[str] = ""
     #: the observation: features of :mod:`sim.features` in input order (the world's ``obs_features``)
     features: ClassVar[tuple[str, ...]] = ("wall", "rbf")
+    #: the task's own features (:class:`sim.table_features.TableFeature` subclasses), computed from the neighbour
+    #: table; list their names in ``features`` to observe them (docs/tasks.md, "Your own feature")
+    own_features: ClassVar[tuple[Any, ...]] = ()
 
     @property
     def ref(self) -> TaskRef:

@@ -22,7 +22,8 @@ from .base import TASK_NAME, Metric, Task
 _ATTRS: dict[str, tuple[type, ...]] = {"description": (str,), "success_label": (str,), "robot_label": (str,),
                                        "success_plot": (str,), "primary_metric": (str,), "mean_metric": (str,), "beacon": (bool,), "beacon_role": (str,),
                                        "firmware": (str,), "emitter_program": (str,),
-                                       "metrics": (tuple, list), "features": (tuple, list), "baselines": (dict,)}
+                                       "metrics": (tuple, list), "features": (tuple, list), "own_features": (tuple, list),
+                                       "baselines": (dict,)}
 
 
 def check_attributes(task: Task, where: str) -> None:
