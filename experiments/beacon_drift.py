@@ -64,8 +64,8 @@ def main() -> int:
                 res = rollout(env, ctl, args.episodes, seed=args.seed, record=True)  # record: the start position
                 m = res.metrics(ceiling=True)  # ceiling at the final beacon position
                 cov, ceil = m.final_coverage, m.ceiling
-                wall = (lim - np.abs(res.beacon)).min(axis=1)
-                drift = np.linalg.norm(res.beacon - res.trajectories.target[:, 0], axis=1)
+                wall = (lim - np.abs(res.emitter)).min(axis=1)
+                drift = np.linalg.norm(res.emitter - res.trajectories.target[:, 0], axis=1)
                 print(f"| {M} | {name} | {'pushed' if mob else 'taped'} | {cov.mean():.3f} | {ceil.mean():.3f} | "
                       f"{np.mean(cov / ceil):.3f} | {drift.mean():.0f} | {np.mean(wall < 5.0):.0%} |", flush=True)
     return 0

@@ -71,6 +71,7 @@ def evaluate(paths: list[str], episodes: int, seed: int) -> None:
     from sim.config import WorldConfig
     from sim.env import SwarmEnv
     from sim.metrics import compare
+    from sim.tasks import get_task
     from sim.rollout import rollout
 
     world = WorldConfig.from_dict({**load_policy(paths[0]).world.to_dict(), "episode_steps": 500})
@@ -80,7 +81,7 @@ def evaluate(paths: list[str], episodes: int, seed: int) -> None:
         contenders.update({p: swarm_policy(load_policy(p), world) for p in paths})
         table = {k: rollout(env, c, episodes, seed=seed).metrics(ceiling=True) for k, c in contenders.items()}
         print(f"\n{M} robots, 500 steps, {episodes} episodes from seed {seed}, with the coin (mean ± 95 % CI)")
-        print(compare(table), flush=True)
+        print(compare(table, get_task("localisation").columns), flush=True)
 
 
 def main() -> int:

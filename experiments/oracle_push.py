@@ -32,6 +32,7 @@ from sim.config import HELD_OUT_SEED, WorldConfig
 from sim.env import SwarmEnv
 from sim.kinematics import wrap_angle
 from sim.metrics import compare
+from sim.tasks import get_task
 from sim.rollout import rollout
 
 #: the kilobot world's pivot commands: (1, 0) turns counter-clockwise (heading grows), (0, 1) clockwise
@@ -144,7 +145,7 @@ def main() -> None:
         table = {name: rollout(env, c, args.episodes, seed=args.seed).metrics(ceiling=True)
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
-        print(compare(table), flush=True)
+        print(compare(table, get_task("localisation").columns), flush=True)
 
 
 if __name__ == "__main__":

@@ -33,7 +33,9 @@ from sim.tasks.ceiling import capacity
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
 from sim.kinematics import wrap_angle
-from sim.metrics import compare, final_coverage
+from sim.metrics import compare
+from sim.tasks import get_task
+from sim.tasks.localisation_metrics import final_coverage
 from sim.rollout import rollout
 
 FULL_TURN_RAD = np.deg2rad(45.0)  #: a period of full pivoting turns the kilobot world's robot by about this
@@ -124,8 +126,8 @@ PLACES = {"corner (C < 12)": (0, 12), "wall (12 <= C < 20)": (12, 20), "open (C 
 
 def ceiling_by_place(res, world: WorldConfig, n_robots: int) -> list[tuple[float, int]]:
     """(mean fraction of the ceiling, episodes) per place of :data:`PLACES`, at the final beacon positions."""
-    cap = capacity(world, res.beacon)
-    frac = final_coverage(res.coverage) * n_robots / np.minimum(cap, n_robots)
+    cap = capacity(world, res.emitter)
+    frac = final_coverage(res.success) * n_robots / np.minimum(cap, n_robots)
     rows = []
     for lo, hi in PLACES.values():
         sel = (cap >= lo) & (cap < hi)
@@ -161,7 +163,7 @@ def main() -> None:
             bands[name] = band_counts(env)
             by_place[name] = ceiling_by_place(res, world, M)
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed} (mean ± 95 % CI)")
-        print(compare(table), flush=True)
+        print(compare(table, get_task("localisation").columns), flush=True)
         print(f"\nrobots per episode by distance from the beacon (mm) at the end, beacon in the open "
               f"(>= {OPEN_MM:g} mm from both walls of the centres' box), last batch of episodes: "
               + "  ".join(f"[{lo:g}, {hi:g})" for lo, hi in zip(BANDS_MM[:-1], BANDS_MM[1:])))

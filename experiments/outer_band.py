@@ -46,6 +46,7 @@ from sim.config import OBS_TARGET, OBS_WALL, WorldConfig
 from sim.env import SwarmEnv
 from sim.kinematics import wrap_angle
 from sim.metrics import compare
+from sim.tasks import get_task
 from sim.rollout import rollout
 
 MEMORY = 3  #: periods a heard distance stays "the latest" (the current one and two missed)
@@ -230,7 +231,7 @@ def main() -> None:
                  for name, c in contenders.items()}
         print(f"\n{M} robots, {args.steps} steps, {args.episodes} episodes from seed {args.seed}, band within "
               f"{args.stop_mm:g} mm (mean ± 95 % CI)")
-        print(compare(table), flush=True)
+        print(compare(table, get_task("localisation").columns), flush=True)
         for c in contenders.values():
             if isinstance(c, OuterBand) and c.compass:
                 for name, errs in c.errors.items():

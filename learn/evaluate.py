@@ -23,7 +23,7 @@ from kiloforge.io import file_stem, write_atomic
 from kiloforge.policies import swarm_policy
 from sim.config import WorldConfig
 from sim.env import SwarmEnv
-from sim.metrics import EpisodeMetrics, compare
+from sim.metrics import TaskMetrics, compare
 from sim.rollout import RolloutResult, rollout
 from sim.tasks import Task, check_policy_task, get_task
 
@@ -46,7 +46,7 @@ class Evaluator:
             b -= 1
         self.env = make_env(world, b, n_robots, seed, randomise, self.task)
 
-    def __call__(self, policy) -> EpisodeMetrics:
+    def __call__(self, policy) -> TaskMetrics:
         """Metrics of ``policy`` (a :class:`sim.rollout.SwarmPolicy`, e.g. :class:`LearnerPolicy`), the task's kind."""
         return rollout(self.env, policy, self.episodes, seed=self.seed).metrics()
 
@@ -187,7 +187,7 @@ def _plot_size(runs: dict[str, RolloutResult], gif_of: str | None, world: WorldC
                         label=task.robot_label)
 
 
-def metrics_row(m: EpisodeMetrics, task: "Task | str | None" = None) -> dict[str, float]:
+def metrics_row(m: TaskMetrics, task: "Task | str | None" = None) -> dict[str, float]:
     """The evaluation columns of the trainer's metrics CSV: return (mean, std), then ``eval_<key>`` for each
     of the task's evaluation metrics (:attr:`sim.tasks.Task.eval_keys`)."""
     s = m.summary()

@@ -1,44 +1,31 @@
-"""Episode metrics: any task's (:class:`SuccessMetrics`, from its per-step success) and the
-cooperative-localisation task's (:class:`EpisodeMetrics`), besides the reward.
+"""Episode metrics of any task from its per-step success, besides the reward.
 
-Localisation, per episode (arrays over E episodes of T steps):
+A task's success signal is (E, T) values in [0, 1] over E episodes of T steps (:meth:`sim.tasks.Task.step_info`).
+Every task reports, per episode:
 
-* coverage curve: fraction of robots within the communication radius of the target after each step;
-* time to find: the first step t (1..T) after which at least one robot is within range;
-  ``T`` when no robot ever is (check ``found`` to tell the two apart);
-* final coverage: mean coverage over the last 25 % of the episode (the last ``ceil(T / 4)`` steps);
+* final success: the mean success over the last 25 % of the episode (the last ``ceil(T / 4)`` steps);
+* mean success: the mean over the whole episode;
 * return: the sum of the team rewards;
-* of ceiling (when the episodes' packing ceilings are given, :mod:`sim.tasks.ceiling`): final coverage
-  divided by the episode's ceiling, the highest final coverage the beacon's place allows.
+* of ceiling (when the task gives each episode an upper bound on final success): final success divided by it.
 
-:func:`summarise` gives mean, sample std and a 95 % confidence half-width (Student t) over episodes;
-:func:`compare` prints several policies side by side.
+Tasks name these metrics (:attr:`sim.tasks.Task.metrics`) and may add their own (a task module holds them,
+e.g. :mod:`sim.tasks.localisation_metrics`). :func:`summarise` gives mean, sample std and a 95 % confidence
+half-width (Student t) over episodes; :func:`compare` prints several policies side by side.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-FINAL_FRACTION = 0.25  #: final coverage averages over this trailing fraction of the episode
+FINAL_FRACTION = 0.25  #: final success averages over this trailing fraction of the episode
 
 # two-sided 95 % Student-t quantiles t_{0.975, df} for df = 1..30; beyond that 1.96 is within 2 %
 _T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160,
          2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056,
          2.052, 2.048, 2.045, 2.042)
-
-
-def time_to_find(coverage: np.ndarray) -> np.ndarray:
-    """(E, T) coverage → (E,) int: first step (1-based) with any robot in range, T if never.
-
-    >>> time_to_find(np.array([[0, 0, 0.5, 0], [0, 0, 0, 0], [1, 1, 1, 1]])).tolist()
-    [3, 4, 1]
-    """
-    c = np.asarray(coverage, np.float64)
-    assert c.ndim == 2, f"coverage must be (episodes, steps), got {c.shape}"
-    hit = c > 0
-    return np.where(hit.any(axis=1), hit.argmax(axis=1) + 1, c.shape[1]).astype(np.int64)
 
 
 def final_window(steps: int, fraction: float = FINAL_FRACTION) -> int:
@@ -51,7 +38,7 @@ def final_window(steps: int, fraction: float = FINAL_FRACTION) -> int:
 
 
 def final_success(success: np.ndarray, fraction: float = FINAL_FRACTION) -> np.ndarray:
-    """(E, T) → (E,): a task's mean success over the last ``final_window(T)`` steps (localisation: final coverage).
+    """(E, T) → (E,): a task's mean success over the last ``final_window(T)`` steps.
 
     >>> final_success(np.array([[0, 0, 0, 0, 0, 0, 1, 0.5]])).tolist()
     [0.75]
@@ -59,9 +46,6 @@ def final_success(success: np.ndarray, fraction: float = FINAL_FRACTION) -> np.n
     c = np.asarray(success, np.float64)
     assert c.ndim == 2, f"success must be (episodes, steps), got {c.shape}"
     return c[:, -final_window(c.shape[1], fraction):].mean(axis=1)
-
-
-final_coverage = final_success  #: localisation's name of :func:`final_success`
 
 
 @dataclass(frozen=True)
@@ -98,82 +82,38 @@ def summarise(x: np.ndarray) -> Summary:
 
 
 class EpisodeSteps:
-    """``episodes`` and ``steps`` of a record of E episodes of T steps whose ``coverage`` is an (E, T) array
-    (:class:`EpisodeMetrics`, :class:`sim.rollout.RolloutResult`, the closed loop's runs)."""
+    """``episodes`` and ``steps`` of a record of E episodes of T steps whose ``success`` is an (E, T) array
+    (a task's metrics, :class:`sim.rollout.RolloutResult`, the closed loop's runs)."""
 
-    coverage: np.ndarray
+    success: np.ndarray
 
     @property
     def episodes(self) -> int:
-        return int(self.coverage.shape[0])
+        return int(self.success.shape[0])
 
     @property
     def steps(self) -> int:
-        return int(self.coverage.shape[1])
+        return int(self.success.shape[1])
 
 
-@dataclass
-class EpisodeMetrics(EpisodeSteps):
-    """Per-episode task metrics (E episodes) and the coverage curves they came from."""
+@runtime_checkable
+class TaskMetrics(Protocol):
+    """What a task's :meth:`~sim.tasks.Task.episode_metrics` returns: per-episode metrics under the task's keys."""
 
-    coverage: np.ndarray  # (E, T) fraction of robots in range after each step
-    returns: np.ndarray  # (E,) sum of team rewards
-    time_to_find: np.ndarray  # (E,) int steps, T when never found
-    found: np.ndarray  # (E,) bool, some robot was in range at some step
-    final_coverage: np.ndarray  # (E,) mean coverage over the last 25 %
-    ceiling: np.ndarray | None = None  # (E,) packing ceiling of each episode (None: not computed)
+    episodes: int
+    steps: int
 
     def summary(self) -> dict[str, Summary]:
-        """Summaries of the scalar metrics, keyed by metric name (``of_ceiling`` and ``ceiling``
-        only when the ceilings are known)."""
-        s = {
-            "final_coverage": summarise(self.final_coverage),
-            "time_to_find": summarise(self.time_to_find),
-            "found_rate": summarise(self.found.astype(np.float64)),
-            "mean_coverage": summarise(self.coverage.mean(axis=1)),
-            "return": summarise(self.returns),
-        }
-        if self.ceiling is not None:
-            s["of_ceiling"] = summarise(self.final_coverage / self.ceiling)
-            s["ceiling"] = summarise(self.ceiling)
-        return s
+        """A :class:`Summary` per metric key."""
+        ...
 
     def per_episode(self, key: str) -> np.ndarray:
-        """(E,) values of one metric (``return``, ``final_coverage``, ``mean_coverage``, ``time_to_find``, ``found_rate``)."""
-        return {"return": self.returns, "final_coverage": self.final_coverage, "mean_coverage": self.coverage.mean(axis=1),
-                "time_to_find": self.time_to_find.astype(np.float64), "found_rate": self.found.astype(np.float64)}[key]
+        """(E,) values of one metric."""
+        ...
 
     def to_dict(self, per_episode: bool = True) -> dict:
-        """JSON-ready: summaries, plus per-episode values when asked."""
-        d: dict = {"episodes": self.episodes, "steps": self.steps,
-                   "summary": {k: v.to_dict() for k, v in self.summary().items()}}
-        if per_episode:
-            d["per_episode"] = {
-                "final_coverage": self.final_coverage.tolist(),
-                "time_to_find": self.time_to_find.tolist(),
-                "found": self.found.tolist(),
-                "return": self.returns.tolist(),
-            }
-            if self.ceiling is not None:
-                d["per_episode"]["ceiling"] = self.ceiling.tolist()
-        return d
-
-
-def episode_metrics(rewards: np.ndarray, coverage: np.ndarray, ceiling: np.ndarray | None = None) -> EpisodeMetrics:
-    """Metrics from per-step team rewards (E, T) and coverage (E, T); ``ceiling`` (E,): each
-    episode's packing ceiling, when known."""
-    r = np.asarray(rewards, np.float64)
-    c = np.asarray(coverage, np.float64)
-    assert r.shape == c.shape and r.ndim == 2, f"rewards {r.shape} and coverage {c.shape} must both be (E, T)"
-    if ceiling is not None:
-        ceiling = np.asarray(ceiling, np.float64)
-        assert ceiling.shape == r.shape[:1] and np.all(ceiling > 0), f"ceiling must be (E,) > 0, got {ceiling.shape}"
-    return EpisodeMetrics(coverage=c, returns=r.sum(axis=1), time_to_find=time_to_find(c),
-                          found=(c > 0).any(axis=1), final_coverage=final_coverage(c), ceiling=ceiling)
-
-
-_COLUMNS = (("final_coverage", "final cov"), ("of_ceiling", "of ceiling"), ("mean_coverage", "mean cov"),
-            ("time_to_find", "steps to find"), ("found_rate", "found"), ("return", "return"))
+        """JSON-ready: ``episodes``, ``steps``, ``summary`` and, when asked, ``per_episode``."""
+        ...
 
 
 @dataclass
@@ -181,7 +121,7 @@ class SuccessMetrics(EpisodeSteps):
     """Per-episode metrics of a task from its success curve: the final value (mean over the last 25 %),
     the mean over the episode and the return, under the task's keys (``final_key``, ``mean_key``)."""
 
-    coverage: np.ndarray  # (E, T) the task's success after each step (named as EpisodeMetrics' for the plots)
+    success: np.ndarray  # (E, T) the task's success after each step
     returns: np.ndarray  # (E,) sum of team rewards
     final: np.ndarray  # (E,) mean success over the last 25 %
     final_key: str = "final_success"
@@ -192,10 +132,10 @@ class SuccessMetrics(EpisodeSteps):
         """(E,) values of one metric (``return``, the final or the mean key, ``of_ceiling`` with a ceiling)."""
         if key == "of_ceiling" and self.ceiling is not None:
             return self.final / self.ceiling
-        return {"return": self.returns, self.final_key: self.final, self.mean_key: self.coverage.mean(axis=1)}[key]
+        return {"return": self.returns, self.final_key: self.final, self.mean_key: self.success.mean(axis=1)}[key]
 
     def summary(self) -> dict[str, Summary]:
-        s = {self.final_key: summarise(self.final), self.mean_key: summarise(self.coverage.mean(axis=1)),
+        s = {self.final_key: summarise(self.final), self.mean_key: summarise(self.success.mean(axis=1)),
              "return": summarise(self.returns)}
         if self.ceiling is not None:
             s["of_ceiling"] = summarise(self.final / self.ceiling)
@@ -222,16 +162,18 @@ def success_metrics(rewards: np.ndarray, success: np.ndarray, final_key: str, me
 
 def compare(table: dict, columns: tuple[tuple[str, str], ...] | None = None) -> str:
     """A text table, one row per named policy: mean ± 95 % CI of each metric (``columns``: (key, label)
-    pairs, default localisation's; a task's are ``[(m.key, m.label) for m in task.metrics]``).
+    pairs, a task's :attr:`~sim.tasks.Task.columns`; default: the first entry's metric keys).
 
-    >>> m = episode_metrics(np.zeros((2, 4)), np.array([[0, 0.5, 1, 1], [0, 0, 0, 0.5]]))
-    >>> print(compare({"demo": m}))  # doctest: +NORMALIZE_WHITESPACE
-    policy  final cov      mean cov       steps to find   found          return         episodes
-    demo    0.750 ± 3.176  0.375 ± 3.176  3.000 ± 12.706  1.000 ± 0.000  0.000 ± 0.000  2
+    >>> m = success_metrics(np.zeros((2, 4)), np.array([[0, 0.5, 1, 1], [0, 0, 0, 0.5]]), "final", "mean")
+    >>> print(compare({"demo": m}, (("final", "final"), ("mean", "mean"), ("return", "return"))))
+    ... # doctest: +NORMALIZE_WHITESPACE
+    policy  final          mean           return         episodes
+    demo    0.750 ± 3.176  0.375 ± 3.176  0.000 ± 0.000  2
     """
     assert table, "compare needs at least one entry"
     sums = {name: m.summary() for name, m in table.items()}
-    cols = [(key, label) for key, label in (columns or _COLUMNS) if any(key in s for s in sums.values())]
+    default = tuple((k, k) for k in next(iter(sums.values())))
+    cols = [(key, label) for key, label in (columns or default) if any(key in s for s in sums.values())]
     header = ["policy"] + [label for _, label in cols] + ["episodes"]
     rows = []
     for name, m in table.items():

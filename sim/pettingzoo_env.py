@@ -11,7 +11,8 @@ Optional extra: ``pip install kiloforge[pettingzoo]`` (pettingzoo, gymnasium). T
 * rewards: the shared team reward of thesis §4.2, given to every agent;
 * terminations are always False; truncations become True for all agents after
   ``cfg.episode_steps`` steps, and ``agents`` is then empty until :meth:`reset`;
-* infos: ``{"in_range": bool, "coverage": float}`` per agent;
+* infos per agent: the task's team ``success`` (float), ``robot_success`` (bool: this robot counts towards
+  it) and the task's other per-robot and team ``info`` entries;
 * :meth:`state`: the critic's global state (target, every robot's x, y, φ; normalised);
 * ``render_mode="rgb_array"``: :meth:`render` returns an (H, W, 3) uint8 frame.
 """
@@ -86,8 +87,7 @@ class SwarmParallelEnv(_ParallelEnv):
 
     def _split(self, obs: np.ndarray, info):
         """Per-agent observations and infos: the task's ``success`` of the team, whether this robot counts
-        towards it (``robot_success``), and the task's own per-robot / team entries (localisation:
-        ``in_range`` and ``coverage``)."""
+        towards it (``robot_success``), and the task's own per-robot / team entries."""
         M = len(self.possible_agents)
         self._last_success = robot_success(info, 1, M)[0]
         team = {k: float(v[0]) for k, v in info.items() if k not in ("events", "light") and np.shape(v) == (1,)}

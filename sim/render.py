@@ -2,15 +2,14 @@
 
 * :func:`plot_trajectories` — each robot's path, start cross, end circle, target diamond, the comm
   radius around the target and the arena border (like thesis Figs 5.9/5.10), to PNG; a pushed
-  beacon's path too (dashed, diamond and circle at its final place);
+  emitter's path too (dashed, diamond and circle at its final place);
 * :func:`animate_episode` — an animated GIF (matplotlib draws the arena once, Pillow paints the
-  robots and the beacon and writes the GIF): robots as discs sized by ``robot_radius_mm`` (dots for
-  point robots) with heading ticks, robots within range of the target highlighted, a step counter;
+  robots and the emitter and writes the GIF): robots as discs sized by ``robot_radius_mm`` (dots for
+  point robots) with heading ticks, the robots the task counts as successful highlighted, a step counter;
 
-The target is ``(2,)`` (a fixed beacon), ``(T+1, 2)`` (its position at every step), or None (a task
-without a beacon).
-* :func:`plot_success` (alias ``plot_coverage``) — a task's success over time (localisation: the fraction of
-  robots in range), mean and 95 % band per policy;
+The target is the emitter's position: ``(2,)`` (a fixed one), ``(T+1, 2)`` (its position at every step), or
+None (a task without an emitter).
+* :func:`plot_success` — a task's success over time, mean and 95 % band per policy;
 * :func:`render_frame` — one frame as an RGB array (used by the PettingZoo wrapper).
 
 Every file is written atomically (:func:`kiloforge.io.atomic_path`); every figure is a
@@ -64,7 +63,7 @@ def _arena_axes(fig: Figure, cfg: WorldConfig, target: np.ndarray | None):
 
 
 def _target_track(target: np.ndarray | None, steps: int) -> np.ndarray | None:
-    """The target's position at each of ``steps`` steps, (steps, 2), from (2,) or (steps, 2); None: no beacon."""
+    """The target's position at each of ``steps`` steps, (steps, 2), from (2,) or (steps, 2); None: no emitter."""
     if target is None:
         return None
     t = np.asarray(target, np.float64)
@@ -81,7 +80,7 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray | None, cfg: Wor
     track = _target_track(target, positions.shape[0])
     fig = _figure()
     ax = _arena_axes(fig, cfg, None if track is None else track[-1])
-    if track is not None and np.any(track != track[0]):  # a pushed beacon: its path and where it started
+    if track is not None and np.any(track != track[0]):  # a pushed emitter: its path and where it started
         ax.plot(track[:, 0], track[:, 1], lw=1.0, ls="--", color=C_TARGET, alpha=0.9)
         ax.plot([track[0, 0]], [track[0, 1]], marker="D", ms=6, mfc="none", color=C_TARGET, ls="none",
                 label="target start")
@@ -99,7 +98,7 @@ def plot_trajectories(positions: np.ndarray, target: np.ndarray | None, cfg: Wor
 
 
 def plot_success(curves: dict[str, np.ndarray], path: str | os.PathLike, title: str | None = None,
-                 ylabel: str = "fraction of robots in range") -> Path:
+                 ylabel: str = "success") -> Path:
     """A task's success over time to PNG: per name, ``(E, T)`` values in [0, 1] → mean line and 95 % CI band."""
     assert curves, "plot_success needs at least one curve"
     fig = figure(6.0, 3.6)
@@ -119,7 +118,7 @@ def plot_success(curves: dict[str, np.ndarray], path: str | os.PathLike, title: 
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_title(title or "coverage of the target", fontsize=9)
+    ax.set_title(title or "success over time", fontsize=9)
     return save_png(fig, path)
 
 
@@ -176,9 +175,6 @@ class _FramePainter:
         draw.text(self.label_xy, label, fill="black")
         return img
 
-
-
-plot_coverage = plot_success  #: localisation's name of :func:`plot_success`
 
 def animate_episode(positions: np.ndarray, headings: np.ndarray, target: np.ndarray | None, in_range: np.ndarray,
                     cfg: WorldConfig, path: str | os.PathLike, max_frames: int = 80, fps: int = 10,

@@ -12,8 +12,8 @@ callback, step, the team reward and the task's success recorded, hooks for what 
 :func:`rollout`, the closed-loop verification, calibration, demonstrations, evolution strategies and the
 learners' env groups all step through it, and :class:`TaskEpisodes` asks the task for the metrics.
 
-:func:`rollout` runs ``episodes`` episodes, ``env.n_envs`` at a time, and returns rewards, coverage
-and (optionally) trajectories for plotting. Same env config, same policy, same seed ⇒ same result.
+:func:`rollout` runs ``episodes`` episodes, ``env.n_envs`` at a time, and returns rewards, the task's
+success and (optionally) trajectories for plotting. Same env config, same policy, same seed ⇒ same result.
 """
 from __future__ import annotations
 
@@ -85,32 +85,27 @@ class Trajectories:
 
     positions: np.ndarray  # (E, T+1, M, 2) float32 mm, index 0 = after reset
     headings: np.ndarray  # (E, T+1, M) float32 rad
-    target: np.ndarray | None  # (E, T+1, 2) float32 mm, the target beacon after each step (pushed ones move); None: no beacon
+    target: np.ndarray | None  # (E, T+1, 2) float32 mm, the emitter after each step (pushed ones move); None: no emitter
     in_range: np.ndarray  # (E, T+1, M) bool, robots counting towards success (localisation: in range; index 0 = at reset)
     actions: np.ndarray  # (E, T, M, 2) float32, the commands sent
 
 
 class TaskEpisodes(EpisodeSteps):
-    """A record of E episodes of T steps of a task: ``cfg``, ``n_robots``, team ``rewards`` and the task's ``coverage``
-    (its success) (E, T), ``task``, and optionally each episode's final ``beacon``; its metrics are the task's."""
+    """A record of E episodes of T steps of a task: ``cfg``, ``n_robots``, team ``rewards`` and the task's
+    ``success`` (E, T), ``task``, and optionally each episode's final ``emitter`` position; its metrics are the task's."""
 
     cfg: WorldConfig
     n_robots: int
     rewards: np.ndarray
     task: Any
 
-    @property
-    def success(self) -> np.ndarray:
-        """(E, T) the task's success after each step."""
-        return self.coverage
-
     def metrics(self, ceiling: bool = False):
         """The task's metrics of these episodes (:meth:`sim.tasks.Task.episode_metrics`); ``ceiling``: also
         relative to the task's upper bound (localisation: each episode's packing ceiling)."""
         from .tasks import get_task
 
-        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.coverage,
-                                                   getattr(self, "beacon", None), ceiling)
+        return get_task(self.task).episode_metrics(self.cfg, self.n_robots, self.rewards, self.success,
+                                                   getattr(self, "emitter", None), ceiling)
 
 
 @dataclass
@@ -121,10 +116,10 @@ class RolloutResult(TaskEpisodes):
     n_robots: int
     seed: int | None
     rewards: np.ndarray  # (E, T) float64 team reward per step
-    coverage: np.ndarray  # (E, T) float64 the task's success after each step (localisation: coverage)
+    success: np.ndarray  # (E, T) float64 the task's success after each step
     trajectories: Trajectories | None = None
     extra: dict = field(default_factory=dict)
-    beacon: np.ndarray | None = None  # (E, 2) float64 mm, the target beacon at the end of each episode (None: no beacon)
+    emitter: np.ndarray | None = None  # (E, 2) float64 mm, the emitter at the end of each episode (None: no emitter)
     task: Any = None  #: the env's task (sim.tasks.Task): its metrics; None: localisation
 
 
@@ -230,12 +225,12 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
 
     n_rec = episodes if record is True else max(0, min(int(record), episodes))
     rec_batches = math.ceil(n_rec / B)  # record whole batches, trim at the end
-    has_beacon = env.cfg.emitter
-    beacon = np.zeros((n_batches * B, 2)) if has_beacon else None
+    has_emitter = env.cfg.emitter
+    emitter = np.zeros((n_batches * B, 2)) if has_emitter else None
     if n_rec:
         pos = np.zeros((rec_batches * B, T + 1, M, 2), np.float32)
         head = np.zeros((rec_batches * B, T + 1, M), np.float32)
-        tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32) if has_beacon else None
+        tgt = np.zeros((rec_batches * B, T + 1, 2), np.float32) if has_emitter else None
         inr = np.zeros((rec_batches * B, T + 1, M), bool)
         acts = np.zeros((rec_batches * B, T, M, 2), np.float32)
     loop = EpisodeLoop(env, n_batches)
@@ -246,7 +241,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
             rows = loop.rows
             pos[rows, 0] = env.pos
             head[rows, 0] = env.heading
-            if has_beacon:
+            if has_emitter:
                 tgt[rows, 0] = env.target
             inr[rows, 0] = robot_success(info, B, M)
 
@@ -258,7 +253,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
             rows = loop.rows
             pos[rows, t + 1] = env.pos
             head[rows, t + 1] = env.heading
-            if has_beacon:
+            if has_emitter:
                 tgt[rows, t + 1] = env.target
             inr[rows, t + 1] = robot_success(info, B, M)
             acts[rows, t] = a
@@ -266,7 +261,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
             bar.update(1)
 
     def end(k: int) -> None:
-        beacon[loop.rows] = env.target
+        emitter[loop.rows] = env.target
 
     bar = None
     if progress:
@@ -274,7 +269,7 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
 
         bar = progress_bar(total=n_batches * T, unit="step", desc=f"{episodes} episodes", leave=False)
     try:
-        loop.run(act, env_seeds, begin, observe if (n_rec or bar is not None) else None, end if has_beacon else None)
+        loop.run(act, env_seeds, begin, observe if (n_rec or bar is not None) else None, end if has_emitter else None)
     finally:
         if bar is not None:
             bar.close()
@@ -283,5 +278,5 @@ def rollout(env, policy: SwarmPolicy, episodes: int, seed: int | None = 0, recor
     if n_rec:
         traj = Trajectories(pos[:n_rec], head[:n_rec], None if tgt is None else tgt[:n_rec], inr[:n_rec], acts[:n_rec])
     return RolloutResult(cfg=cfg, n_robots=M, seed=seed, rewards=loop.rewards[:episodes],
-                         coverage=loop.success[:episodes], trajectories=traj,
-                         beacon=None if beacon is None else beacon[:episodes], task=env.task)
+                         success=loop.success[:episodes], trajectories=traj,
+                         emitter=None if emitter is None else emitter[:episodes], task=env.task)

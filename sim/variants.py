@@ -49,8 +49,9 @@ Pivot point (per robot, ``pivot_offset_mm``)
     centre: each robot's pivot distance from its centre is drawn uniformly, at the world's
     ``pivot_angle_deg``. The "table" randomisation spans centre (0) to leg (16.5 mm) pivots; the
     suite also runs the centre pivot alone.
-Beacon (per env, ``emitter_mobility``)
-    Taped down (0, the nominal ``kilobot`` world), or pushed by collisions like a robot (1).
+Emitter (per env, ``emitter_mobility``)
+    The task's transmitting robot taped down (0, the nominal ``kilobot`` world), or pushed by collisions
+    like a robot (1).
 Lamps (worlds with lamps only, :mod:`sim.light`; per env ``lamp_brightness``, ``lamp_shift_mm``,
 ``light_noise``)
     Lamp bulbs, their height and the room light differ from table to table, a lamp is never exactly
@@ -68,6 +69,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .compat import EMITTER_FIXED_VARIANT, EMITTER_PUSHED_VARIANT, FREE_EMITTER_RANDOMISATION
 from .config import KILOBOT, WorldConfig
 from .kinematics import MotionParams
 
@@ -82,7 +84,7 @@ class WorldDraw:
     """One reset's drawn parameters of a batch; None = the world config's value for everyone."""
 
     motion: MotionParams | None = None  #: per-robot motion factors (B, M)
-    msg_period: np.ndarray | None = None  #: (B, M + 1) ticks between sends, per transmitter (M: the beacon)
+    msg_period: np.ndarray | None = None  #: (B, M + 1) ticks between sends, per transmitter (M: the emitter)
     msg_loss: np.ndarray | None = None  #: (B,)
     dist_noise_mm: np.ndarray | None = None  #: (B,)
     wall_zone_mm: np.ndarray | None = None  #: (B, 4) wall-flag zone of the +x, +y, -x, -y walls
@@ -224,12 +226,12 @@ _TABLE = Randomisation(speed=(0.7, 1.3), turn=(0.7, 1.3), speed_spread=0.1, turn
                        light_noise=(0.0, 30.0))
 
 #: named randomisations for training: "none" is the nominal world; "table" spans the suite's variants;
-#: "table-free-beacon" is "table" with a beacon that collisions push like a robot in every episode (an
-#: untaped beacon Kilobot, the suite's hardest variant at 32 robots; "table" draws its mobility from 0-1)
+#: :data:`~sim.compat.FREE_EMITTER_RANDOMISATION` is "table" with an emitter that collisions push like a robot in
+#: every episode (an untaped Kilobot, the suite's hardest variant at 32 robots; "table" draws its mobility from 0-1)
 RANDOMISATIONS: dict[str, Randomisation] = {
     "none": Randomisation(),
     "table": _TABLE,
-    "table-free-beacon": dataclasses.replace(_TABLE, emitter_mobility=(1.0, 1.0)),
+    FREE_EMITTER_RANDOMISATION: dataclasses.replace(_TABLE, emitter_mobility=(1.0, 1.0)),
 }
 
 
@@ -279,7 +281,7 @@ def robustness_suite(cfg: WorldConfig) -> dict[str, tuple[WorldConfig, Randomisa
         suite["centre pivot"] = (r(cfg, pivot_offset_mm=0.0), None)
     else:
         suite["leg pivot"] = (r(cfg, pivot_offset_mm=LEG_PIVOT_MM), None)
-    if cfg.collisions and cfg.emitter:  # a world without a beacon has no beacon to tape or free
-        suite["beacon fixed" if cfg.emitter_mobility > 0 else "beacon pushed"] = (
+    if cfg.collisions and cfg.emitter:  # a world without an emitter has none to tape or free
+        suite[EMITTER_FIXED_VARIANT if cfg.emitter_mobility > 0 else EMITTER_PUSHED_VARIANT] = (
             r(cfg, emitter_mobility=0.0 if cfg.emitter_mobility > 0 else 1.0), None)
     return suite

@@ -13,7 +13,7 @@ from sim.tasks import ceiling, get_task
 from sim.config import KILOBOT, THESIS
 from sim.env import SwarmEnv
 from sim.baselines import make_policy
-from sim.metrics import final_coverage
+from sim.tasks.localisation_metrics import final_coverage
 from sim.rollout import rollout
 from tests.fixtures import init_policy
 
@@ -119,11 +119,11 @@ def test_rollout_ceiling_from_beacons():
     world = dataclasses.replace(KILOBOT, episode_steps=8)
     r = rollout(SwarmEnv(world, 3, M, seed=0), make_policy("baseline", world), 3, seed=4)
     m = r.metrics(ceiling=True)
-    cap = ceiling.capacity(world, r.beacon)
+    cap = ceiling.capacity(world, r.emitter)
     assert np.all(cap < M)  # the ceiling binds at 32 robots
     np.testing.assert_array_equal(m.ceiling, np.minimum(M, cap) / M)
     frac = m.summary()["of_ceiling"].mean
-    assert frac == pytest.approx(np.mean(final_coverage(r.coverage) * M / cap))
+    assert frac == pytest.approx(np.mean(final_coverage(r.success) * M / cap))
 
 
 def test_evaluation_reports_ceiling(tmp_path):
@@ -139,13 +139,13 @@ def test_evaluation_reports_ceiling(tmp_path):
     row = saved["robots"]["32"]
     world = dataclasses.replace(KILOBOT, episode_steps=8)
     r = rollout(SwarmEnv(world, 2, 32, seed=3), make_policy("baseline", world), 2, seed=3)
-    want = ceiling.episode_ceiling(world, 32, r.beacon)
+    want = ceiling.episode_ceiling(world, 32, r.emitter)
     assert np.all(want < 1.0)
     for name in ("tiny", "hand-written", "hand-written pusher", "random"):  # a taped-down beacon: the same episodes, the same ceilings
         np.testing.assert_allclose(row["ceiling"][name], want, atol=1e-6)
         assert "of_ceiling" in row["metrics"][name]["summary"]
     got = row["metrics"]["hand-written"]["summary"]["of_ceiling"]["mean"]
-    assert got == pytest.approx(np.mean(final_coverage(r.coverage) / want))
+    assert got == pytest.approx(np.mean(final_coverage(r.success) / want))
     assert saved["packing"]["open_capacity"] == ceiling.open_capacity(KILOBOT)
     assert res["packing"]["mean_capacity"] == pytest.approx(ceiling.mean_capacity(KILOBOT))
 

@@ -70,11 +70,11 @@ def test_lossless_policy_gives_identical_trajectories(name, M):
     np.testing.assert_array_equal(q.positions, f.positions)
     np.testing.assert_array_equal(q.headings, f.headings)
     np.testing.assert_array_equal(q.rewards, f.rewards)
-    np.testing.assert_array_equal(q.coverage, f.coverage)
+    np.testing.assert_array_equal(q.success, f.success)
     # the case is not trivial: robots moved, several distinct commands, some robots found the target
     assert np.abs(np.diff(f.positions, axis=1)).max() > 1.0
     assert len({tuple(c) for c in q.commands.reshape(-1, 2).tolist()}) >= 3
-    assert q.coverage.max() > 0
+    assert q.success.max() > 0
 
 
 def test_lossless_needs_exact_plumbing():
@@ -123,7 +123,7 @@ def test_float_run_equals_sim_rollout():
     r = rollout(SwarmEnv(THESIS, 3, 6), HistoryActor(p.act, p.t_prev, THESIS), episodes=5, seed=7)
     f = run_float(p, 6, 5, seed=7, n_envs=3)
     np.testing.assert_array_equal(f.rewards, r.rewards)
-    np.testing.assert_array_equal(f.coverage, r.coverage)
+    np.testing.assert_array_equal(f.success, r.success)
     assert batch_env_seeds(7, 2) == batch_env_seeds(7, 5)[:2]
 
 

@@ -62,7 +62,7 @@ def _final_in_spot(exe: Path, work: Path, cfg, episodes: int, steps: int) -> flo
     """Mean final fraction in the spot of the program in Kilombo over ``episodes`` of export verify's starts."""
     from tests.bench.bench_kilombo_phototaxis import in_spot_curve, starts
     from tests.bench.bench_kilombo import log_positions
-    from sim.metrics import final_coverage
+    from sim.metrics import final_success
 
     finals = []
     for e, (pos, heading) in enumerate(starts(cfg, 16, episodes, seed=0)):
@@ -70,7 +70,7 @@ def _final_in_spot(exe: Path, work: Path, cfg, episodes: int, steps: int) -> flo
         params["kfUidOffset"] = 1
         _run(exe, work, params, pos, heading)
         xy = log_positions((work / "log.txt").read_text(), 16, cfg.period_ticks, steps)
-        finals.append(final_coverage(in_spot_curve(xy, cfg)[None])[0])
+        finals.append(final_success(in_spot_curve(xy, cfg)[None])[0])
     return float(np.mean(finals))
 
 

@@ -15,7 +15,7 @@ from tests.signal_delivery import deliver  # noqa: E402
 from sim.config import preset  # noqa: E402
 from sim.env import SwarmEnv  # noqa: E402
 from sim.history import History  # noqa: E402
-from sim.metrics import final_coverage  # noqa: E402
+from sim.metrics import final_success  # noqa: E402
 
 #: a run of a few seconds
 TINY = dict(n_robots=(2, 3), t_prev=2, actor_hidden=(8,), episode_steps=20, demo_robot_episodes=6, bc_updates=20,
@@ -65,7 +65,7 @@ def test_population_members_meet_the_same_episodes():
         cov[:, t] = info["coverage"]
         ret += r[0]
         h = hist.push(a.numpy(), obs)
-    assert final_coverage(cov)[0] == res.final_success[2, 1]
+    assert final_success(cov)[0] == res.final_success[2, 1]
     assert ret == pytest.approx(res.returns[2, 1], rel=1e-12)
 
 

@@ -8,7 +8,9 @@ from PIL import Image
 from sim.baselines import HandWrittenSearcher, RandomPolicy, SearcherParams, make_policy
 from sim.config import OBS_NBR_SENSING, OBS_TARGET, OBS_WALL, preset
 from sim.env import SwarmEnv
-from sim.metrics import compare, episode_metrics, final_coverage, summarise, time_to_find
+from sim.metrics import compare, summarise
+from sim.tasks.localisation_metrics import episode_metrics, final_coverage, time_to_find
+from sim.tasks import get_task
 from sim.rollout import HistoryActor, SwarmPolicy, rollout
 from sim import render
 
@@ -147,9 +149,9 @@ def test_rollout_is_deterministic_per_seed():
     rollout(env, make_policy("random", cfg), 2, seed=99)  # disturb the env's state in between
     b = rollout(SwarmEnv(cfg, 2, 4, seed=7), make_policy("baseline", cfg), 3, seed=5, record=True)
     c = rollout(env, make_policy("baseline", cfg), 3, seed=6)
-    assert a.rewards.shape == (3, 30) and a.coverage.shape == (3, 30)
+    assert a.rewards.shape == (3, 30) and a.success.shape == (3, 30)
     np.testing.assert_array_equal(a.rewards, b.rewards)
-    np.testing.assert_array_equal(a.coverage, b.coverage)
+    np.testing.assert_array_equal(a.success, b.success)
     np.testing.assert_array_equal(a.trajectories.positions, b.trajectories.positions)
     assert not np.array_equal(a.trajectories.positions[:, 0], rollout(
         env, make_policy("baseline", cfg), 3, seed=6, record=True).trajectories.positions[:, 0])
@@ -165,7 +167,7 @@ def test_rollout_records_consistent_trajectories():
     clear = np.abs(d - cfg.comm_radius_mm) > 1e-3  # float32 positions: skip exact-boundary cases
     np.testing.assert_array_equal(tr.in_range[clear], (d <= cfg.comm_radius_mm)[clear])
     assert tr.in_range.any() and not tr.in_range.all()
-    np.testing.assert_allclose(res.coverage, tr.in_range[:, 1:].mean(-1))
+    np.testing.assert_allclose(res.success, tr.in_range[:, 1:].mean(-1))
     assert np.all(np.abs(tr.positions) <= cfg.arena_half_mm + 1e-3)
 
 
@@ -233,7 +235,8 @@ def test_episode_metrics_and_summary():
 def test_compare_table_lists_every_policy():
     """compare() prints a header and one row per policy with its final coverage."""
     c = np.array([[0.0, 1.0, 1.0, 1.0]])
-    t = compare({"alpha": episode_metrics(np.zeros((1, 4)), c), "beta": episode_metrics(np.zeros((1, 4)), 0 * c)})
+    t = compare({"alpha": episode_metrics(np.zeros((1, 4)), c), "beta": episode_metrics(np.zeros((1, 4)), 0 * c)},
+                get_task("localisation").columns)
     lines = t.splitlines()
     assert len(lines) == 3 and "final cov" in lines[0]
     assert lines[1].startswith("alpha") and "1.000" in lines[1]
@@ -250,7 +253,7 @@ def test_renders_are_valid_png_and_gif(tmp_path, name):
     tr = res.trajectories
     assert tr.positions.shape == (1, 26, 3, 2)
     p1 = render.plot_trajectories(tr.positions[0], tr.target[0], cfg, tmp_path / "t.png")
-    p2 = render.plot_coverage({"baseline": res.coverage, "zero": 0 * res.coverage}, tmp_path / "c.png")
+    p2 = render.plot_success({"baseline": res.success, "zero": 0 * res.success}, tmp_path / "c.png")
     p3 = render.animate_episode(tr.positions[0], tr.headings[0], tr.target[0], tr.in_range[0], cfg,
                                 tmp_path / "e.gif", max_frames=10)
     for p in (p1, p2):

@@ -62,7 +62,7 @@ def test_one_or_two_robots_never_move_the_object(robots):
     for policy in ("shadow_pusher", "random"):
         env = SwarmEnv(dataclasses.replace(WORLD, episode_steps=150), 8, robots, seed=0, task=TASK)
         res = rollout(env, TASK.make_baseline(policy, env.cfg), 8, seed=5)
-        np.testing.assert_array_equal(res.coverage, 0.0)
+        np.testing.assert_array_equal(res.success, 0.0)
         np.testing.assert_array_equal(env.target, env.body_start)
 
 

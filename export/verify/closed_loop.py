@@ -181,7 +181,7 @@ class LoopResult(TaskEpisodes):
     seed: int
     n_envs: int  #: envs per batch (the seeds depend on it; both runs of a comparison share it)
     rewards: np.ndarray  #: (E, T) team reward per step
-    coverage: np.ndarray  #: (E, T) the task's success after each step (localisation: coverage)
+    success: np.ndarray  #: (E, T) the task's success after each step
     wall_s: float  #: seconds the run took
     positions: np.ndarray | None = None  #: (E, T + 1, M, 2) float64 mm when recorded
     headings: np.ndarray | None = None  #: (E, T + 1, M) float64 rad when recorded

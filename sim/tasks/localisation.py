@@ -81,10 +81,10 @@ class Localisation(Task):
 
     def episode_metrics(self, cfg: WorldConfig, n_robots: int, rewards: np.ndarray, success: np.ndarray,
                         beacon: np.ndarray | None, ceiling: bool = False) -> Any:
-        """:class:`sim.metrics.EpisodeMetrics`; with ``ceiling`` also final coverage as a fraction of each
+        """:class:`sim.tasks.localisation_metrics.EpisodeMetrics`; with ``ceiling`` also final coverage as a fraction of each
         episode's packing ceiling (:mod:`sim.tasks.ceiling`, at the final beacon position)."""
         from .ceiling import episode_ceiling
-        from ..metrics import episode_metrics
+        from .localisation_metrics import episode_metrics
 
         return episode_metrics(rewards, success, episode_ceiling(cfg, n_robots, beacon) if ceiling else None)
 

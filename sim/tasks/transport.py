@@ -73,7 +73,7 @@ class TransportMetrics(SuccessMetrics):
 
     def per_episode(self, key: str) -> np.ndarray:
         if key == "success_rate":
-            return (self.coverage[:, -1] >= 1.0).astype(np.float64)
+            return (self.success[:, -1] >= 1.0).astype(np.float64)
         return super().per_episode(key)
 
     def summary(self) -> dict[str, Summary]:
@@ -188,10 +188,10 @@ class Transport(Task):
 
     def episode_metrics(self, cfg: WorldConfig, n_robots: int, rewards: np.ndarray, success: np.ndarray,
                         beacon: np.ndarray | None, ceiling: bool = False) -> TransportMetrics:
-        from ..metrics import final_coverage
+        from ..metrics import final_success
 
         r, c = np.asarray(rewards, np.float64), np.asarray(success, np.float64)
-        return TransportMetrics(c, r.sum(axis=1), final_coverage(c), self.primary_metric, self.mean_metric)
+        return TransportMetrics(c, r.sum(axis=1), final_success(c), self.primary_metric, self.mean_metric)
 
 
 # ------------------------------------------------------------------------------------------------

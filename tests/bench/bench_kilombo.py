@@ -61,7 +61,8 @@ import numpy as np
 from export.errors import ExportError
 from kiloforge.errors import KiloforgeError, one_line
 from sim.config import KILO_TICK_HZ, WorldConfig
-from sim.metrics import episode_metrics, summarise, time_to_find
+from sim.metrics import summarise
+from sim.tasks.localisation_metrics import episode_metrics, time_to_find
 
 HERE = Path(__file__).resolve().parent / "kilombo"
 ADAPTER_C = HERE / "kilombo_adapter.c"

@@ -39,7 +39,7 @@ from export.errors import ExportError
 from kiloforge.errors import KiloforgeError
 from sim.config import WorldConfig
 from sim.light import draw_sensors
-from sim.metrics import final_coverage, summarise
+from sim.metrics import final_success, summarise
 from sim.tasks.phototaxis import spot_of
 from tests.bench.bench_kilombo import (_die, _fmt_ratio, _kilombo_prefix, build, kilombo_bots, kilombo_lamps,
                                        kilombo_params, log_positions, run_episode)
@@ -91,7 +91,7 @@ def run_kilombo(binary: Path, cfg: WorldConfig, eps: list, steps: int, seed: int
                 params.update(kilombo_lamps(dataclasses.replace(cfg, light_noise=0.0)))
             run_episode(binary, work, params, kilombo_bots(None, pos, heading), f"episode {e}")
             xy = log_positions((work / "log.txt").read_text(), M, cfg.period_ticks, steps)
-            finals.append(final_coverage(in_spot_curve(xy, cfg)[None])[0])
+            finals.append(final_success(in_spot_curve(xy, cfg)[None])[0])
     return np.array(finals)
 
 

@@ -104,6 +104,7 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
     from sim.baselines import make_policy
     from sim.env import SwarmEnv
     from sim.metrics import compare
+    from sim.tasks import get_task
     from sim.rollout import rollout
 
     out.mkdir(parents=True, exist_ok=True)
@@ -140,7 +141,7 @@ def report(gru_run: Path, mlp_run: Path, episodes: int, out: Path, robots_loop: 
         contenders["GRU-32 after behaviour cloning"] = swarm_policy(load_policy(guided_run / "policy_bc.npz"))
         contenders["demonstrator (searcher, left turns)"] = demonstrator(world)
     metrics = {k: rollout(env, pol, episodes, seed=FRESH_SEED).metrics() for k, pol in contenders.items()}
-    print(compare(metrics))
+    print(compare(metrics, get_task("localisation").columns))
     res["fresh"] = {k: m.to_dict(per_episode=False) for k, m in metrics.items()}
 
     print("\n== 3. recurrent export")
