@@ -1,5 +1,6 @@
 """The hot loops of the kilobot world compiled with Numba, bit-identical to their NumPy versions.
 
+* :func:`motor_schedule`: the motor schedule of the uint8 commands and the headings after the pivots, in one pass.
 * :func:`closed_form`: the collision-free part of :func:`sim.kinematics.tick_move` for straight runs: every
   tick's displacement (straight ticks and arcs about the pivot legs), the path clipped to the walls, the
   path lengths. The complex exponentials stay NumPy's (they are computed before, once per robot and period).
@@ -10,6 +11,8 @@
   of a few dozen discs, so interpreter overhead is most of its cost. Here it runs env by env in machine code.
 * :func:`radio_messages`: who hears whom at which tick in :func:`sim.radio.tick_radio` (before loss and
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
+* :func:`radio_receive`: the received messages of :func:`sim.radio.tick_radio` after the envs' draws, measured and
+  split by sender role.
 * :func:`neighbour_tables`: the neighbour tables of :func:`sim.radio.observe_fast` (one entry per sender, the
   table's overflow, the sensing-neighbour flag and the RBF sums), one receiver after the other instead of
   NumPy passes over all messages; distances in integer mm, so ψ comes from a table NumPy computed.
@@ -40,6 +43,8 @@ import functools
 import os
 
 import numpy as np
+
+from .motion import schedule_constants
 
 ENV_SWITCH = "KILOFORGE_JIT"  #: "0" turns the compiled code off (the NumPy code runs)
 
@@ -164,6 +169,37 @@ def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_
                              int(rbf_col))
 
 
+def motor_schedule(q, heading, P, turn_left, turn_right):
+    """:func:`sim.motion.schedule` and the pivots of :func:`sim.kinematics.tick_move`, compiled: (t, s, left, θ, φ_s,
+    φ_0, any pivots) for uint8 commands ``q`` (B, M, 2); ``heading`` (B, M) C-contiguous float64 becomes
+    wrap(φ_s) in place. ``turn_left`` / ``turn_right``: a left / right pivot tick's turn, scalar or (B, M)."""
+    k_turn, k_straight = schedule_constants(P)
+    tl, tr = (np.full((1, 1), x) if np.ndim(x) == 0 else np.ascontiguousarray(x, np.float64)
+              for x in (turn_left, turn_right))
+    t, s, left, theta, phi_s, phi0, turned = _need().motor_schedule(np.ascontiguousarray(q), heading, int(P), k_turn,
+                                                                    k_straight, tl, tr)
+    return t, s, left, theta, phi_s, phi0, bool(turned)
+
+
+def radio_receive(e, rx, snd, k, d, u, z, loss_p, sigma, integer, lo, hi, flags, M):
+    """What :func:`sim.radio.tick_radio` does after the loss and noise draws (``u``, ``z``: None when not drawn),
+    compiled: the received messages, measured and split into the searchers' and the emitter's
+    (s_env, s_rx, s_snd, s_tick, s_dist, s_flag, t_env, t_rx, t_tick, t_dist). ``loss_p``, ``sigma`` (B,): each env's
+    loss probability and noise σ."""
+    none = np.zeros(0)
+    return _need().radio_receive(e, rx, snd, k, d, none if u is None else u, none if z is None else z, u is not None,
+                                 z is not None, np.ascontiguousarray(loss_p, np.float64),
+                                 np.ascontiguousarray(sigma, np.float64), bool(integer), float(lo), float(hi),
+                                 np.ascontiguousarray(flags, np.uint8), int(M))
+
+
+def _per_robot(x, B: int, M: int) -> np.ndarray:
+    """A scalar or (B, M) value as a C-contiguous (B, M) float64 array."""
+    if np.ndim(x) == 0:
+        return np.full((B, M), x, np.float64)
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), (B, M)))
+
+
 def closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel) -> None:
     """The collision-free path of :func:`sim.kinematics.tick_move` (straight runs, no curve), compiled: fills
     ``zk`` (P, B, M) (the clipped positions after each tick), ``disp`` (the unclipped displacements) and
@@ -176,12 +212,12 @@ def closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, 
     c0 = np.zeros((1, 1), np.complex128)
     kernel(np.ascontiguousarray(z0), np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
            np.ascontiguousarray(left, np.bool_), np.ascontiguousarray(e, np.complex128),
-           np.ascontiguousarray(np.broadcast_to(np.asarray(step, np.float64), (B, M))), bool(leg),
+           _per_robot(step, B, M), bool(leg),
            np.ascontiguousarray(c, np.complex128) if leg else c0,
            np.ascontiguousarray(table, np.complex128) if table is not None else np.zeros(1, np.complex128),
            np.ascontiguousarray(rot, np.complex128) if rot is not None else np.zeros((1, 1, 1), np.complex128),
            table is not None,
-           np.ascontiguousarray(np.broadcast_to(np.asarray(R, np.float64), (B, M))),
+           _per_robot(R, B, M),
            np.ascontiguousarray(theta, np.float64), float(lim), zk, disp, travel)
 
 

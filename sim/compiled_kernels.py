@@ -569,3 +569,76 @@ def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_
         for c in range(nr):
             obs[r, rbf_col + c] = acc[c]
         a = b
+
+
+@jit
+def motor_schedule(q, heading, P, k_turn, k_straight, turn_left, turn_right):
+    """sim.motion.schedule of the uint8 commands ``q`` (B, M, 2), then tick_move's pivots: per robot the pivot and
+    straight ticks t, s, whether it pivots left, its turn per pivot tick θ (``turn_left``, or minus ``turn_right``;
+    (B, M) or (1, 1)), the heading φ + t θ when the straight ticks start, and the heading before (returned) and after
+    wrapping to (-π, π] (written into ``heading``); and whether any robot pivots."""
+    B, M = heading.shape
+    t = np.empty((B, M), np.int64)
+    s = np.empty((B, M), np.int64)
+    left = np.empty((B, M), np.bool_)
+    theta = np.empty((B, M))
+    phi_s = np.empty((B, M))
+    phi0 = np.empty((B, M))
+    half = 1 << 15
+    two_pi = 2.0 * math.pi
+    lb, lm, rb, rm = turn_left.shape[0], turn_left.shape[1], turn_right.shape[0], turn_right.shape[1]
+    turned = False
+    for b in range(B):
+        for i in range(M):
+            ul, ur = np.int64(q[b, i, 0]), np.int64(q[b, i, 1])
+            turn = min((abs(ul - ur) * k_turn + half) >> 16, P)
+            straight = min(((ul + ur) * k_straight + half) >> 16, P - turn)
+            lft = ul > ur
+            th = turn_left[b % lb, i % lm] if lft else -turn_right[b % rb, i % rm]
+            phi = heading[b, i]
+            ps = phi + turn * th
+            w = ps - two_pi * np.rint(ps / two_pi)
+            if w <= -math.pi:
+                w = w + two_pi
+            t[b, i], s[b, i], left[b, i], theta[b, i] = turn, straight, lft, th
+            phi_s[b, i], phi0[b, i], heading[b, i] = ps, phi, w
+            turned = turned or turn > 0
+    return t, s, left, theta, phi_s, phi0, turned
+
+
+@jit
+def radio_receive(e, rx, snd, k, d, u, z, loss, noise, loss_p, sigma, integer, lo, hi, flags, M):
+    """The rest of sim.radio.tick_radio after the draws: drop the lost messages (uniform ``u`` below the env's
+    ``loss_p``), measure the distance (true + σ z, rounded half up when ``integer``, clipped to [lo, hi]: sim.radio.measure)
+    and split the messages into the searchers' (with the sender's flag) and the emitter's (sender M), in order."""
+    n = e.size
+    ok = np.empty(n, np.bool_)
+    ns = nt = 0
+    for j in range(n):
+        ok[j] = not loss or u[j] >= loss_p[e[j]]
+        if ok[j]:
+            if snd[j] == M:
+                nt += 1
+            else:
+                ns += 1
+    s_env, s_rx, s_snd, s_tick = np.empty(ns, np.int64), np.empty(ns, np.int64), np.empty(ns, np.int64), np.empty(ns, np.int64)
+    s_dist, s_flag = np.empty(ns), np.empty(ns, np.uint8)
+    t_env, t_rx, t_tick, t_dist = np.empty(nt, np.int64), np.empty(nt, np.int64), np.empty(nt, np.int64), np.empty(nt)
+    a = c = 0
+    for j in range(n):
+        if not ok[j]:
+            continue
+        dm = d[j]
+        if noise:
+            dm = dm + sigma[e[j]] * z[j]
+        if integer:
+            dm = np.floor(dm + 0.5)
+        dm = min(max(dm, lo), hi)
+        if snd[j] == M:
+            t_env[c], t_rx[c], t_tick[c], t_dist[c] = e[j], rx[j], k[j], dm
+            c += 1
+        else:
+            s_env[a], s_rx[a], s_snd[a], s_tick[a], s_dist[a] = e[j], rx[j], snd[j], k[j], dm
+            s_flag[a] = flags[e[j], snd[j]]
+            a += 1
+    return s_env, s_rx, s_snd, s_tick, s_dist, s_flag, t_env, t_rx, t_tick, t_dist

@@ -321,30 +321,41 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     B, M = heading.shape
     P = cfg.period_ticks
     lim = cfg.arena_half_mm - cfg.robot_radius_mm
-    turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)
-    t, s = turn.astype(np.int64), straight.astype(np.int64)
     dphi, dl = cfg.omega_max_rad_s * cfg.tick_s, cfg.v_max_mm_s * cfg.tick_s
-    left = tmode == MODE_LEFT
+    jit = compiled.available()
     kappa = None
     if motion is None:
-        theta, step = np.where(left, dphi, -dphi), dl
+        step = dl
     else:
-        theta = np.where(left, dphi * motion.turn_left, -dphi * motion.turn_right)
         step = dl * motion.speed
         if motion.curve is not None and np.any(motion.curve != 0):
             kappa = motion.curve
     R = cfg.pivot_offset_mm if motion is None or motion.pivot_mm is None else motion.pivot_mm
-    leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
-    phi0 = heading.copy() if leg else None
-    phi_s = heading + t * theta  # heading when the straight ticks start
+    if jit and kappa is None and heading.dtype == np.float64 and heading.flags.c_contiguous:
+        # the schedule, the pivots' headings and the wrap in one compiled pass (the same integer and float operations)
+        turns = (dphi, dphi) if motion is None else (dphi * motion.turn_left, dphi * motion.turn_right)
+        t, s, left, theta, phi_s, phi0, turned = compiled.motor_schedule(q, heading, P, *turns)
+        leg = bool(np.any(R > 0)) and turned  # pivots move the centre
+    else:
+        turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)
+        t, s = turn.astype(np.int64), straight.astype(np.int64)
+        left = tmode == MODE_LEFT
+        if motion is None:
+            theta = np.where(left, dphi, -dphi)
+        else:
+            theta = np.where(left, dphi * motion.turn_left, -dphi * motion.turn_right)
+        leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
+        phi0 = heading.copy() if leg else None
+        phi_s = heading + t * theta  # heading when the straight ticks start
+        if kappa is None:
+            heading[...] = wrap_angle(phi_s)
     u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
     inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
     into_record = record is not None and record.dtype == np.float64 and record.flags.c_contiguous
     if kappa is None:
         e = step * u_s  # (B, M) displacement of one straight tick
-        heading[...] = wrap_angle(phi_s)
-    if kappa is None and compiled.available():  # everything down to the clipped path, compiled (bit-identical)
+    if kappa is None and jit:  # everything down to the clipped path, compiled (bit-identical)
         zk = record.view(np.complex128).reshape(P, B, M) if into_record else np.empty((P, B, M), np.complex128)
         disp, travel = np.empty((P, B, M), np.complex128), np.empty((B, M))
         c = table = rot = None
@@ -385,8 +396,11 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     has_emitter = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_emitter else None
-    mobility = np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)) if has_emitter else None
-    if collider is not None and compiled.available():  # all of the else branch, compiled (bit-identical)
+    mobility = None
+    if has_emitter:
+        mobility = (np.full(B, emitter_mobility, np.float64) if np.ndim(emitter_mobility) == 0
+                    else np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)))
+    if collider is not None and jit:  # all of the else branch, compiled (bit-identical)
         if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
                                         mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,
                                         RELAX_OMEGA, OVERLAP_TOL_MM, TICK_OVERLAP_TOL_MM, TICK_SWEEPS,

@@ -228,13 +228,21 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray | None, phases: np.ndar
     P, B, M, _ = pos_ticks.shape
     R = cfg.comm_radius_mm
     periods = np.full((B, M + 1), cfg.msg_period_ticks, np.int64) if msg_period is None else msg_period
-    if target is not None and compiled.available() and M + 1 <= compiled.RADIO_MAX_N:  # the same, compiled (bit-identical)
+    jit = compiled.available()
+    if target is not None and jit and M + 1 <= compiled.RADIO_MAX_N:  # the same, compiled (bit-identical)
         e, rx, snd, k, d, single = compiled.radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R)
     else:
         e, rx, snd, k, d, single = _messages(pos_ticks, target, target_ticks, phases, tick0, periods, R, cfg, method)
     loss = cfg.msg_loss > 0 if msg_loss is None else bool(np.any(msg_loss > 0))
     noise = cfg.dist_noise_mm > 0 if dist_noise_mm is None else bool(np.any(dist_noise_mm > 0))
     u, z = _per_env_draws(rngs, np.bincount(e, minlength=B), loss, noise)
+    if jit:  # the rest, compiled (the same comparisons and float operations)
+        received = compiled.radio_receive(
+            e, rx, snd, k, d, u if loss else None, z if noise else None,
+            np.full(B, cfg.msg_loss) if msg_loss is None else msg_loss,
+            np.full(B, cfg.dist_noise_mm) if dist_noise_mm is None else dist_noise_mm,
+            cfg.dist_integer, cfg.dist_min_mm, cfg.dist_max_mm, flags, M)
+        return RadioPeriod(B, M, P, *received, single=single)
     if loss:
         ok = np.flatnonzero(u >= (cfg.msg_loss if msg_loss is None else msg_loss.take(e)))
         e, rx, snd, k, d = e.take(ok), rx.take(ok), snd.take(ok), k.take(ok), d.take(ok)

@@ -60,7 +60,7 @@ def test_compiled_loop_gives_the_numpy_episode(monkeypatch, M, B, policy, random
 @needs_jit
 @pytest.mark.parametrize("moving_beacon,varied_periods,noise", [(False, False, False), (True, True, True)])
 def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, varied_periods, noise):
-    """tick_radio's messages (senders, receivers, ticks, distances, loss and noise draws, single) are bit-identical."""
+    """tick_radio's messages (senders, receivers, ticks, distances, per-env loss and noise draws, single) are bit-identical."""
     cfg = preset("kilobot", msg_loss=0.2 if noise else 0.0, dist_noise_mm=3.0 if noise else 0.0)
     rng = np.random.default_rng(5)
     P, B, M = cfg.period_ticks, 6, 24
@@ -69,6 +69,8 @@ def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, var
     target = rng.uniform(-60, 60, (B, 2))
     tticks = target + np.cumsum(rng.normal(0, 0.5, (P, B, 2)), axis=0) if moving_beacon else None
     periods = rng.integers(15, 18, (B, M + 1)) if varied_periods else None
+    loss = rng.uniform(0.0, 0.3, B) if varied_periods else None  # per-env loss and noise (domain randomisation)
+    sigma = rng.uniform(0.0, 4.0, B) if varied_periods else None
     flags = rng.integers(0, 2, (B, M)).astype(np.uint8)
     out = []
     for jit in (True, False):
@@ -76,7 +78,7 @@ def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, var
         rngs = [np.random.default_rng(100 + e) for e in range(B)]
         phases = draw_phases([np.random.default_rng(e) for e in range(B)], M, cfg, periods)
         out.append(tick_radio(pos, target, phases, 62, flags, cfg, rngs,
-                              target_ticks=tticks, msg_period=periods))
+                              target_ticks=tticks, msg_period=periods, msg_loss=loss, dist_noise_mm=sigma))
     a, b = out
     assert a.s_env.size > 50 and a.t_env.size > 0
     for f in ("s_env", "s_rx", "s_snd", "s_tick", "s_dist", "s_flag", "t_env", "t_rx", "t_tick", "t_dist"):
