@@ -64,9 +64,9 @@ class ConfigError(ValueError):
 ACTION_GRADIENTS = ("invert", "clip")  #: values of ``action_gradient``
 PRECISIONS = ("fp32", "bf16")  #: values of ``precision`` (the arithmetic of the updates)
 ACTOR_OTHERS = ("policy", "replay")  #: values of ``actor_others``
-CRITICS = ("concat", "mean")  #: values of ``critic``
+CRITICS = ("concat", "mean", "robot")  #: values of ``critic``
 CRITIC_POOLS = ("mean", "meanmax")  #: values of ``critic_pool``
-REWARDS = ("team", "linear", "potential")  #: values of ``reward`` (learn.rewards)
+REWARDS = ("team", "linear", "potential", "local")  #: values of ``reward`` (learn.rewards)
 SIZE_MIXES = ("equal", "robots")  #: values of ``size_mix``
 DEVICES = ("auto", "cpu", "cuda")  #: values of ``device``
 DEMO_POLICIES = ("none", "searcher", "pusher")  #: values of ``demo_policy`` (learn.demos)
@@ -177,10 +177,10 @@ class ExperimentConfig(ConfigBase):
     episode_steps: int = 0  #: control steps per episode; 0 = the world's (kilobot: 300, thesis: 200)
     randomise: Randomise = "none"  #: domain randomisation of the training envs (a name in sim.variants.RANDOMISATIONS)
     randomise_eval: bool = False  #: also randomise the evaluation envs
-    reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (the task's success, not squared), potential (team + shaping)
+    reward: choice(REWARDS) = "team"  #: learning reward: team (the world's), linear (the task's success, not squared), potential (team + shaping), local (each robot's own success; needs --critic robot)
     shaping_weight: float = 1.0  #: weight of the potential-based shaping term (reward potential)
     # --- critic ------------------------------------------------------------------------------
-    critic: choice(CRITICS) = "concat"  #: centralised critic: concat (thesis: full state + joint action) or mean (mean embedding, any swarm size)
+    critic: choice(CRITICS) = "concat"  #: centralised critic: concat (thesis: full state + joint action), mean (mean embedding, any swarm size) or robot (the mean critic with one value per robot: its own features beside the mean embedding)
     critic_hidden: tuple[int, ...] = (256, 128, 64)  #: critic hidden widths (ELU); the mean critic's head after pooling
     critic_embed: tuple[int, ...] = (64, 64)  #: mean critic: per-robot encoder widths (ELU)
     critic_pool: choice(CRITIC_POOLS) = "mean"  #: mean critic pooling over robots: mean or meanmax
@@ -249,13 +249,17 @@ class ExperimentConfig(ConfigBase):
         need(len(self.n_robots) >= 1 and all(isinstance(m, int) and 1 <= m <= MAX_ROBOTS for m in self.n_robots),
              f"n_robots must be in 1..{MAX_ROBOTS}, got {_show(self.n_robots)}")
         need(len(set(self.n_robots)) == len(self.n_robots), f"n_robots lists a size twice: {_show(self.n_robots)}")
-        need(len(self.n_robots) == 1 or self.critic == "mean",
-             f"training on several swarm sizes ({_show(self.n_robots)}) needs --critic mean "
+        need(len(self.n_robots) == 1 or self.critic != "concat",
+             f"training on several swarm sizes ({_show(self.n_robots)}) needs --critic mean or robot "
              "(the concatenating critic's input depends on the robot count)")
         need(self.episode_steps >= 0, f"episode_steps must be >= 0 (0 = the world's), got {self.episode_steps}")
         need(self.reward in REWARDS, f"reward must be one of {', '.join(REWARDS)}, got '{self.reward}'")
         need(math.isfinite(self.shaping_weight), f"shaping_weight must be finite, got {self.shaping_weight}")
         need(self.critic in CRITICS, f"critic must be one of {', '.join(CRITICS)}, got '{self.critic}'")
+        need(self.reward != "local" or self.critic == "robot",
+             "--reward local pays each robot its own reward and needs the per-robot critic (--critic robot)")
+        need(self.reward != "local" or self.demo_policy == "none",
+             "--reward local learns from scratch: demonstrations store the team reward (use --demo-policy none)")
         need(self.critic_pool in CRITIC_POOLS, f"critic_pool must be one of {', '.join(CRITIC_POOLS)}, got '{self.critic_pool}'")
         for name in (f for f in self._tuple_fields() if f != "n_robots"):
             widths = getattr(self, name)

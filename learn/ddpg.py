@@ -7,6 +7,9 @@ changes: how a part becomes per-transition rows, and the target and online actor
 
 * Critic: y = r + γ Q'(s', clip(μ'(·))) regressed by mean squared error over every row of every
   part. Episodes end by time limit only (truncated, never terminal), so every target bootstraps.
+  The per-robot critic (``--critic robot``) regresses one value per robot, y_i = r_i + γ Q'_i, on the
+  robots' own rewards (``--reward local``; a team reward is every robot's r_i), and the actor ascends
+  the sum of the robots' values.
 * Actor (thesis eqs. 3.1/3.2): ascend (1/N) Σ_j Σ_i g_j^i · μ(·_j^i), g = ∇_{a^i} Q(s_j, μ(·_j)) passed
   through ``invert`` (inverting gradients, thesis §4.3.1, Hausknecht & Stone 2016) or ``clip`` (the
   gradient of Q(s, clip(a)): zero beyond a bound). With ``actor_robots = K`` the sum over robots is
@@ -165,12 +168,15 @@ class CentralisedDDPG:
         for (p, _), r in zip(parts, rows):
             with torch.no_grad():
                 a2 = self.target_actions(p).clamp(A_MIN, A_MAX)
-                y = self.reward_scale * r.r + self.gamma * self.q(self.critic_target, r.s2, a2, r.o2)
+                q2 = self.q(self.critic_target, r.s2, a2, r.o2)
+                rew = r.r if r.r.dim() == q2.dim() else r.r[:, None]  # a team reward for every robot's value
+                y = self.reward_scale * rew + self.gamma * q2
             q = self.q(self.critic, r.s, r.a, r.o)
-            loss = torch.sum((q - y) ** 2) / total
+            width = q[0].numel()  # values per row: 1, or M for the per-robot critic
+            loss = torch.sum((q - y) ** 2) / (total * width)
             loss.backward()
             loss_sum += float(loss.detach())
-            q_sum += float(q.detach().sum())
+            q_sum += float(q.detach().sum()) / width
         self.critic_opt.step()
         stats = UpdateStats(critic_loss=loss_sum, q_mean=q_sum / total)
         if train_actor:
@@ -202,7 +208,7 @@ class CentralisedDDPG:
             objective = torch.sum(a_pol * (-g)) * (scale / total)  # minimise −(1/N) Σ g · μ
             if is_demo and bc_weight > 0:
                 with torch.no_grad():
-                    keep = (self.q(self.critic, r.s, r.a, r.o) > q_pol.detach()).to(a_pol.dtype)  # (N',) Q-filter
+                    keep = (team_value(self.q(self.critic, r.s, r.a, r.o)) > team_value(q_pol.detach())).to(a_pol.dtype)
                 err = torch.sum((a_pol - r.a) ** 2, dim=(1, 2))  # (N',) over robots and motors
                 objective = objective + bc_weight * scale * torch.sum(keep * err) / (demo_rows * m)
                 kept.append(keep)
@@ -224,6 +230,11 @@ class CentralisedDDPG:
     def load_state_dict(self, d: dict) -> None:
         for name in ("actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt"):
             getattr(self, name).load_state_dict(d[name])
+
+
+def team_value(q: torch.Tensor) -> torch.Tensor:
+    """(N',) the team's value of the rows: Q itself, or the sum of the per-robot critic's (N', M) values."""
+    return q if q.dim() == 1 else q.sum(dim=1)
 
 
 def np_float64(t: torch.Tensor) -> np.ndarray:

@@ -61,7 +61,7 @@ class EnvGroup:
         self.n_envs, self.n_robots, self.world = B, M, world
         self.env = make_env(world, B, M, int(env_rng.integers(2 ** 31)), cfg.randomise, cfg.task_spec())
         self.replay = EpisodeReplay(cfg.replay_size, T, M, world.tuple_dim, world.state_dim(M), algo.replay_t_prev,
-                                    algo.device, with_obs=cfg.critic_obs)
+                                    algo.device, with_obs=cfg.critic_obs, per_robot_rewards=cfg.reward == "local")
         self.noise = OUNoise((B, M, ACTION_DIM), cfg.noise_theta, cfg.noise_sigma, cfg.noise_mu, noise_rng)
         self.phantoms = PhantomNeighbours(world, cfg.phantom_neighbours, aug_rng)
         self.reward = LearningReward(cfg.reward, world, cfg.gamma, cfg.shaping_weight, cfg.extra_action_penalty)

@@ -96,11 +96,11 @@ class MAGRDPG(CentralisedDDPG):
     # --- rows and actions of a minibatch of windows ---------------------------------------------
     def rows(self, w: Windows) -> Rows:
         t = self.tensor
-        N, U = w.r.shape
+        N, U = w.r.shape[:2]
         M = w.a.shape[2]
         o = None if w.o is None else t(w.o).reshape(N * U, M, -1)
         o2 = None if w.o2 is None else t(w.o2).reshape(N * U, M, -1)
-        return Rows(s=t(w.s).reshape(N * U, -1), a=t(w.a).reshape(N * U, M, ACTION_DIM), r=t(w.r).reshape(N * U),
+        return Rows(s=t(w.s).reshape(N * U, -1), a=t(w.a).reshape(N * U, M, ACTION_DIM), r=t(w.r).reshape(N * U, *w.r.shape[2:]),
                     s2=t(w.s2).reshape(N * U, -1), o=o, o2=o2)
 
     def n_robots_of(self, w: Windows) -> int:

@@ -4,7 +4,8 @@
 * :class:`Critic` — the thesis's centralised critic: full state and joint action concatenated;
 * :class:`MeanCritic` — a mean-embedding (DeepSets) critic (Hüttenrauch, Šošić & Neumann, *Deep
   Reinforcement Learning for Swarm Systems*, JMLR 2019): the same encoder on every robot's features,
-  pooled over robots, so one set of weights evaluates any swarm size and any robot order.
+  pooled over robots, so one set of weights evaluates any swarm size and any robot order; with
+  ``per_robot`` it gives one value per robot, Q_i = ρ([φ(f_i), pool_j φ(f_j), g]), for per-robot rewards.
 
 All are fully connected with ELU hidden layers. Initialisation follows the thesis: every hidden
 layer's weights and biases from U(±1/√f) with f the layer's input width; the critic's output layer
@@ -109,12 +110,18 @@ class MeanCritic(nn.Module):
     its observation; φ is a shared ELU encoder, pooled by the mean over robots (``pool="meanmax"``:
     mean and element-wise max), and ρ an ELU MLP on the pooled embedding and the global features
     g = (target x, target y, 1/M).
+
+    ``per_robot``: Q (N, M), robot i's value from its own embedding φ(f_i) beside the pooled one and g (the
+    same head for every robot), learned from robot i's own reward (``--reward local``). A robot's own
+    features reach its value directly instead of with weight 1/M through the mean, which is what
+    credit assignment at 16+ robots needs.
     """
 
-    def __init__(self, embed: tuple[int, ...], hidden: tuple[int, ...], pool: str = "mean", obs_dim: int = 0) -> None:
+    def __init__(self, embed: tuple[int, ...], hidden: tuple[int, ...], pool: str = "mean", obs_dim: int = 0,
+                 per_robot: bool = False) -> None:
         super().__init__()
         assert len(embed) >= 1 and pool in ("mean", "meanmax"), f"bad mean critic {embed}, {pool}"
-        self.pool, self.obs_dim = pool, int(obs_dim)
+        self.pool, self.obs_dim, self.per_robot = pool, int(obs_dim), bool(per_robot)
         layers: list[nn.Module] = []
         width = ROBOT_FEATURES + self.obs_dim
         for h in embed:
@@ -125,7 +132,7 @@ class MeanCritic(nn.Module):
             layers += [lin, nn.ELU()]
             width = h
         self.encoder = nn.Sequential(*layers)
-        pooled = width * (2 if pool == "meanmax" else 1)
+        pooled = width * (2 if pool == "meanmax" else 1) + (width if self.per_robot else 0)
         self.head = mlp(pooled + 3, tuple(hidden), 1, CRITIC_OUT_INIT)
 
     def features(self, s: torch.Tensor, a: torch.Tensor, o: torch.Tensor | None = None) -> torch.Tensor:
@@ -142,20 +149,24 @@ class MeanCritic(nn.Module):
         return torch.cat(parts, dim=-1)
 
     def forward(self, s: torch.Tensor, a: torch.Tensor, o: torch.Tensor | None = None) -> torch.Tensor:
-        """s (N, 2 + 3M), a (N, M, 2)[, o (N, M, obs_dim)] → Q (N,), for any M."""
+        """s (N, 2 + 3M), a (N, M, 2)[, o (N, M, obs_dim)] → Q (N,), or (N, M) ``per_robot``, for any M."""
         e = self.encoder(self.features(s, a, o))  # (N, M, E)
         pooled = [e.mean(dim=1)] + ([e.amax(dim=1)] if self.pool == "meanmax" else [])
         g = torch.cat([s[:, :2], torch.full_like(s[:, :1], 1.0 / a.shape[1])], dim=1)
-        return self.head(torch.cat(pooled + [g], dim=1)).squeeze(1)
+        if not self.per_robot:
+            return self.head(torch.cat(pooled + [g], dim=1)).squeeze(1)
+        shared = torch.cat(pooled + [g], dim=1)[:, None, :].expand(-1, e.shape[1], -1)  # (N, M, ·)
+        return self.head(torch.cat([e, shared], dim=2)).squeeze(2)
 
 
 def make_critic(kind: str, state_dim: int, n_robots: int, hidden: tuple[int, ...], embed: tuple[int, ...] = (64, 64),
                 pool: str = "mean", obs_dim: int = 0) -> nn.Module:
-    """The critic a config names: ``concat`` (:class:`Critic`, one swarm size) or ``mean`` (:class:`MeanCritic`)."""
+    """The critic a config names: ``concat`` (:class:`Critic`, one swarm size), ``mean`` (:class:`MeanCritic`) or
+    ``robot`` (:class:`MeanCritic` with one value per robot)."""
     if kind == "concat":
         return Critic(state_dim, n_robots, hidden)
-    assert kind == "mean", f"unknown critic {kind!r}"
-    return MeanCritic(embed, hidden, pool, obs_dim)
+    assert kind in ("mean", "robot"), f"unknown critic {kind!r}"
+    return MeanCritic(embed, hidden, pool, obs_dim, per_robot=kind == "robot")
 
 
 def config_critic(cfg, world) -> nn.Module:

@@ -7,7 +7,8 @@ but one tuple, so the memory keeps each episode's tuples once and cuts what it s
 * ``tuples[e, i, k]`` (tuple_dim,): the tuple ``(a_{k-1}, o_k)`` robot i pushed at step k of episode
   slot e (k = 0 is ``(0, o_0)``, Algorithm 4's initial tuple); stored robot-major behind t_prev − 1
   copies of tuple 0, so every history of a robot is one contiguous run of memory;
-* ``states[e, k]``: the critic state s_k; ``rewards[e, k]``: r_k for the move from k to k+1.
+* ``states[e, k]``: the critic state s_k; ``rewards[e, k]``: r_k for the move from k to k+1 (the team's
+  reward, or with ``per_robot_rewards`` one per robot, (M,): ``--reward local``).
 
 Transition (e, t) is ``s = states[e, t]``, ``a = tuples[e, :, t+1, :2]``, ``r = rewards[e, t]``,
 ``s' = states[e, t+1]``, and ``h`` / ``h'`` are the t_prev tuples ending at k = t / t + 1, with indices
@@ -41,7 +42,7 @@ class Batch:
     s: torch.Tensor  #: (N, S)
     h: torch.Tensor  #: (N, M, t_prev * tuple_dim)
     a: torch.Tensor  #: (N, M, 2)
-    r: torch.Tensor  #: (N,)
+    r: torch.Tensor  #: (N,), or (N, M) per-robot rewards (``reward_width`` M)
     s2: torch.Tensor  #: (N, S)
     h2: torch.Tensor  #: (N, M, t_prev * tuple_dim)
     o: torch.Tensor | None = None  #: (N, M, obs_dim) observations o_t (the newest tuple of h)
@@ -64,7 +65,7 @@ class Windows:
     off: torch.Tensor  #: (N,) position of t_s in the window (burn-in steps actually replayed)
     s: torch.Tensor  #: (N, U, S) s_t for t = t_s .. t_s + U - 1
     a: torch.Tensor  #: (N, U, M, 2) executed actions a_t
-    r: torch.Tensor  #: (N, U) rewards r_t
+    r: torch.Tensor  #: (N, U) rewards r_t, or (N, U, M) per-robot rewards
     s2: torch.Tensor  #: (N, U, S) s_{t+1}
     o: torch.Tensor | None = None  #: (N, U, M, obs_dim) o_t
     o2: torch.Tensor | None = None  #: (N, U, M, obs_dim) o_{t+1}
@@ -91,7 +92,8 @@ class EpisodeReplay:
     """Ring of ``capacity // episode_steps`` episode slots of fixed length ``episode_steps``."""
 
     def __init__(self, capacity: int, episode_steps: int, n_robots: int, tuple_dim: int,
-                 state_dim: int, t_prev: int = 1, device: str | torch.device = "cpu", with_obs: bool = False) -> None:
+                 state_dim: int, t_prev: int = 1, device: str | torch.device = "cpu", with_obs: bool = False,
+                 per_robot_rewards: bool = False) -> None:
         assert episode_steps >= 1, f"episode_steps must be >= 1, got {episode_steps}"
         assert capacity >= episode_steps, f"capacity {capacity} < one episode ({episode_steps})"
         assert t_prev >= 1, f"t_prev must be >= 1, got {t_prev}"
@@ -105,13 +107,14 @@ class EpisodeReplay:
         self._store = torch.zeros((C, M, self.pad + T + 1, D), **z)
         self.tuples = self._store[:, :, self.pad:]  # (C, M, T + 1, D) view
         self.states = torch.zeros((C, T + 1, state_dim), **z)
-        self.rewards = torch.zeros((C, T), **z)
+        self.R = M if per_robot_rewards else 1  # rewards per transition: the team's, or one per robot
+        self.rewards = torch.zeros((C, T) + ((M,) if per_robot_rewards else ()), **z)
         self.filled = np.zeros(C, np.int64)  # transitions stored per slot, 0..T
         self.next_slot = 0  # ring position of the next episode to begin
         self.wrapped = False  # every slot has been used at least once
         self.active = np.zeros(0, np.int64)  # slots of the episodes being collected
         self.step = 0  # transitions stored so far in each active slot
-        slot_bytes = 4 * (M * (self.pad + T + 1) * D + (T + 1) * state_dim + T)
+        slot_bytes = 4 * (M * (self.pad + T + 1) * D + (T + 1) * state_dim + T * self.R)
         self.block_slots = max(1, BLOCK_BYTES // slot_bytes)
         self.dirty = np.zeros(self.n_blocks, bool)  # blocks written since the last checkpoint
         self._buffers: dict[tuple, torch.Tensor] = {}
@@ -229,10 +232,10 @@ class EpisodeReplay:
         x = self._gather(runs, starts, "x").view(N, M, P + 1, D)
         srow = e * (self.T + 1) + t
         st = self._gather(self.states, np.stack([srow, srow + 1], 1), "s")  # (N, 2, S)
-        r = self._gather(self.rewards.view(-1, 1), (e * self.T + t)[:, None], "r")  # (N, 1, 1)
+        r = self._gather(self.rewards.view(-1, self.R), (e * self.T + t)[:, None], "r")  # (N, 1, R)
         obs = (x[:, :, -2, ACTION_DIM:], x[:, :, -1, ACTION_DIM:]) if self.with_obs else (None, None)
         return Batch(s=st[:, 0], h=x[:, :, :-1].reshape(N, M, P * D), a=x[:, :, -1, :ACTION_DIM],
-                     r=r.view(N), s2=st[:, 1], h2=x[:, :, 1:].reshape(N, M, P * D), o=obs[0], o2=obs[1])
+                     r=r.view(N, *self.rewards.shape[2:]), s2=st[:, 1], h2=x[:, :, 1:].reshape(N, M, P * D), o=obs[0], o2=obs[1])
 
     def sample_windows(self, n: int, burn_in: int, unroll: int, rng: np.random.Generator) -> Windows:
         """N windows with start t_s uniform over every stored (episode, t_s <= filled - unroll)."""
@@ -245,7 +248,7 @@ class EpisodeReplay:
         off = ts - k0
         srow = (e * (self.T + 1) + ts)[:, None] + np.arange(unroll + 1)
         st = self._gather(self.states, srow, "ws")  # (N, U + 1, S)
-        r = self._gather(self.rewards.view(-1, 1), (e * self.T + ts)[:, None] + np.arange(unroll), "wr")
+        r = self._gather(self.rewards.view(-1, self.R), (e * self.T + ts)[:, None] + np.arange(unroll), "wr")
         # a_t (t = t_s + u) is the action of tuple t + 1: window position off + 1 + u
         pos = self._to_device(off[:, None] + 1 + np.arange(unroll), np.int64)  # (N, U)
         rows = torch.arange(n, device=self.device)[:, None]
@@ -253,7 +256,7 @@ class EpisodeReplay:
         nxt = xt[rows, pos]  # (N, U, M, D): tuples t + 1
         obs = (xt[rows, pos - 1][..., ACTION_DIM:], nxt[..., ACTION_DIM:]) if self.with_obs else (None, None)
         return Windows(x=x, off=self._to_device(off, np.int64).clone(), s=st[:, :-1], a=nxt[..., :ACTION_DIM],
-                       r=r.view(n, unroll), s2=st[:, 1:], o=obs[0], o2=obs[1])
+                       r=r.view(n, unroll, *self.rewards.shape[2:]), s2=st[:, 1:], o=obs[0], o2=obs[1])
 
     # --- checkpointing -------------------------------------------------------------------------
     def meta(self) -> dict:

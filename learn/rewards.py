@@ -12,6 +12,11 @@ evaluations always report the world's reward):
                it leaves the optimal policies unchanged), Φ(s) = (1/M) Σ_i δ_i · (1 − d_i / R), the
                closeness of each in-range robot to the target (d_i its true distance, R the comm radius).
 
+``local``      per robot (B, M): scale · (δ_i − penalty · ||a_i||²), robot i's own success (the task's
+               ``robot_success``: in range, in the cluster, …) and effort, what robot i controls. Their mean
+               is ``linear``. It needs the per-robot critic (``--critic robot``), which learns each robot's
+               own value Q_i.
+
 ``extra_action_penalty`` (any option) subtracts scale · p · (1/M) Σ_i ||a_i||² more.
 """
 from __future__ import annotations
@@ -19,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from sim.config import WorldConfig
+from sim.motion import action_to_u8
+from sim.rollout import robot_success
 
 
 def potential(env) -> np.ndarray:
@@ -33,7 +40,7 @@ class LearningReward:
 
     def __init__(self, kind: str, world: WorldConfig, gamma: float, shaping_weight: float = 1.0,
                  extra_action_penalty: float = 0.0) -> None:
-        assert kind in ("team", "linear", "potential"), f"unknown reward {kind!r}"
+        assert kind in ("team", "linear", "potential", "local"), f"unknown reward {kind!r}"
         self.kind, self.world, self.gamma = kind, world, float(gamma)
         self.w, self.extra = float(shaping_weight), float(extra_action_penalty)
         self.phi: np.ndarray | None = None
@@ -44,8 +51,14 @@ class LearningReward:
             self.phi = potential(env)
 
     def __call__(self, env, reward: np.ndarray, info, action: np.ndarray) -> np.ndarray:
-        """The learning reward (B,) float32 after one step with ``action`` (B, M, 2)."""
+        """The learning reward (B,) float32 after one step with ``action`` (B, M, 2); (B, M) for ``local``."""
         scale = self.world.reward_scale
+        if self.kind == "local":
+            B, M = action.shape[:2]
+            u = action_to_u8(action) / 255.0 if env.cfg.tick_level else np.asarray(action, np.float64)  # as executed
+            effort = np.sum(u * u, axis=-1)  # (B, M) ||a_i||², as in the world's reward
+            ok = robot_success(info, B, M).astype(np.float64)
+            return (scale * (ok - (self.world.action_penalty + self.extra) * effort)).astype(np.float32)
         r = np.asarray(reward, np.float64)
         if self.kind == "linear":
             s = np.asarray(info["success"], np.float64)

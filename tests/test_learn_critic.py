@@ -1,4 +1,6 @@
 """The mean-embedding critic (order and count invariant), training across swarm sizes, and the learning rewards."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -132,3 +134,60 @@ def test_randomise_reaches_training_envs_only(tmp_path, monkeypatch):
     seen.clear()
     train(TrainConfig(**base, randomise_eval=True), tmp_path / "b", progress=False, log=lambda m: None)
     assert seen == [marker, marker]
+
+
+def test_per_robot_critic_gives_each_robot_its_own_value():
+    """critic robot: Q is (N, M), follows a permutation of the robots, and a robot's own action moves its value most."""
+    torch.manual_seed(0)
+    critic = MeanCritic((16, 16), (32, 16), per_robot=True)
+    with torch.no_grad():
+        critic.head[-1].weight.mul_(1000.0)
+    gen = torch.Generator().manual_seed(1)
+    N, M = 6, 7
+    s, a, _ = _state_action(N, M, gen)
+    q = critic(s, a)
+    assert q.shape == (N, M) and q.std() > 1e-3
+    perm = torch.randperm(M, generator=gen)
+    s_p = torch.cat([s[:, :2], s[:, 2:].reshape(N, M, 3)[:, perm].reshape(N, 3 * M)], dim=1)
+    torch.testing.assert_close(critic(s_p, a[:, perm]), q[:, perm], rtol=1e-5, atol=1e-6)
+    jac = torch.autograd.functional.jacobian(lambda x: critic(s[:1], x)[0], a[:1])  # (M, 1, M, 2): ∂Q_i/∂a_j
+    own = jac[torch.arange(M), 0, torch.arange(M)].abs().sum(-1)  # (M,)
+    cross = jac[:, 0].abs().sum(-1).sum(1) - own  # (M,) summed over the M - 1 others
+    assert torch.all(own > cross / (M - 1))  # the own action's direct path is stronger than any other robot's on average
+
+
+def test_local_reward_pays_each_robot_its_own_success():
+    """reward local: (B, M) scale (in range_i - penalty ||a_i||²), whose robot mean is the linear reward; it needs critic robot."""
+    world = preset("kilobot")
+    env = SwarmEnv(world, 3, 5, seed=0)
+    env.reset(seed=2)
+    a = np.random.default_rng(0).uniform(0, 1, (3, 5, 2))
+    _, r, _, _, info = env.step(a)
+    local, linear = LearningReward("local", world, 0.9), LearningReward("linear", world, 0.9)
+    r_i = local(env, r, info, a)
+    assert r_i.shape == (3, 5) and r_i.dtype == np.float32
+    u = np.floor(a * 255 + 0.5) / 255  # the kilobot world executes uint8 commands
+    expect = world.reward_scale * (info["in_range"] - world.action_penalty * np.sum(u * u, axis=-1))
+    np.testing.assert_allclose(r_i, expect, rtol=1e-6)
+    np.testing.assert_allclose(r_i.mean(axis=1), linear(env, r, info, a), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ConfigError, match="critic robot"):
+        TrainConfig(reward="local", critic="mean").validate()
+    with pytest.raises(ConfigError, match="demo-policy none"):
+        TrainConfig(reward="local", critic="robot", demo_policy="searcher").validate()
+
+
+def test_local_reward_trains_and_resumes(tmp_path):
+    """--reward local --critic robot: the replay holds (N, M) rewards, updates run, and a resumed run equals the whole one."""
+    cfg = TrainConfig(world="thesis", n_robots=(3,), critic="robot", reward="local", critic_embed=(8,), critic_hidden=(16,),
+                      t_prev=2, episode_steps=20, actor_hidden=(8,), n_envs=2, warmup_episodes=2, episodes=6, batch_size=8,
+                      replay_size=400, updates_per_step=0.5, eval_every=40, eval_episodes=2, checkpoint_every=1, seed=3)
+    whole = train(cfg, tmp_path / "whole", progress=False, log=lambda m: None)
+    assert whole.counters.updates > 0 and np.isfinite(whole.counters.rows[-1]["critic_loss"])
+    half = dataclasses.replace(cfg, episodes=4)
+    train(half, tmp_path / "part", progress=False, log=lambda m: None)
+    resumed = train(cfg, tmp_path / "part", resume=True, progress=False, log=lambda m: None)
+    from kiloforge.policies import load_policy
+    w1, w2 = load_policy(tmp_path / "whole" / "policy_last.npz"), load_policy(tmp_path / "part" / "policy_last.npz")
+    for x, y in zip(w1.weights, w2.weights):
+        np.testing.assert_array_equal(x, y)
+    assert resumed.counters.updates == whole.counters.updates

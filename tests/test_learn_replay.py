@@ -143,3 +143,20 @@ def test_windows_and_blocks_round_trip():
     w1, w2 = rp.sample_windows(20, 2, 2, np.random.default_rng(12)), rp2.sample_windows(20, 2, 2, np.random.default_rng(12))
     for f in ("x", "off", "s", "a", "r", "s2"):
         torch.testing.assert_close(getattr(w1, f), getattr(w2, f), rtol=0, atol=0)
+
+
+def test_per_robot_rewards_are_sampled_per_robot():
+    """per_robot_rewards: the replay stores (B, M) rewards and returns each transition's row of them, (N, M) and windows (N, U, M)."""
+    T, M, D = 6, 3, 4
+    rep = EpisodeReplay(4 * T, T, M, D, 2 + 3 * M, t_prev=2, per_robot_rewards=True)
+    rep.begin(np.zeros((2, M, D), np.float32), np.zeros((2, 2 + 3 * M), np.float32))
+    for t in range(T):
+        r = (100 * np.arange(2)[:, None] + 10 * t + np.arange(M)).astype(np.float32)  # env, step, robot
+        rep.add(np.full((2, M, D), t, np.float32), np.full((2, 2 + 3 * M), t, np.float32), r)
+    b = rep.sample(16, np.random.default_rng(0))
+    assert b.r.shape == (16, M)
+    t = b.s[:, 0].numpy()  # the state holds its step
+    np.testing.assert_array_equal(b.r.numpy() % 100, 10 * t[:, None] + np.arange(M))
+    w = rep.sample_windows(5, burn_in=1, unroll=2, rng=np.random.default_rng(1))
+    assert w.r.shape == (5, 2, M)
+    np.testing.assert_array_equal(w.r.numpy() % 100, 10 * w.s[:, :, 0].numpy()[..., None] + np.arange(M))
