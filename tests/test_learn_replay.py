@@ -152,7 +152,7 @@ def test_per_robot_rewards_are_sampled_per_robot():
     rep.begin(np.zeros((2, M, D), np.float32), np.zeros((2, 2 + 3 * M), np.float32))
     for t in range(T):
         r = (100 * np.arange(2)[:, None] + 10 * t + np.arange(M)).astype(np.float32)  # env, step, robot
-        rep.add(np.full((2, M, D), t, np.float32), np.full((2, 2 + 3 * M), t, np.float32), r)
+        rep.add(np.full((2, M, D), t, np.float32), np.full((2, 2 + 3 * M), t + 1, np.float32), r)  # s_{t+1} holds t + 1
     b = rep.sample(16, np.random.default_rng(0))
     assert b.r.shape == (16, M)
     t = b.s[:, 0].numpy()  # the state holds its step
