@@ -13,9 +13,10 @@
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
 * :func:`radio_receive`: the received messages of :func:`sim.radio.tick_radio` after the envs' draws, measured and
   split by sender role.
-* :func:`neighbour_tables`: the neighbour tables of :func:`sim.radio.observe_fast` (one entry per sender, the
-  table's overflow, the sensing-neighbour flag and the RBF sums), one receiver after the other instead of
-  NumPy passes over all messages; distances in integer mm, so ψ comes from a table NumPy computed.
+* :func:`observe_messages`: the message part of :func:`sim.radio.observe_fast` (the emitter's distance, the neighbour
+  tables: one entry per sender, the table's overflow, the sensing-neighbour flag and the RBF sums), one receiver
+  after the other instead of NumPy passes over all messages; distances in integer mm, so ψ comes from a table
+  NumPy computed.
 
 Both compute exactly what the NumPy code does, float operation for float operation:
 
@@ -139,7 +140,8 @@ def why_not() -> str:
 
 
 def _need():
-    k = _kernels()
+    """The kernels, for callers that asked :func:`available` (which reads ``KILOFORGE_JIT``) first."""
+    k = _checked()
     assert k is not None, why_not()
     return k
 
@@ -160,13 +162,16 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
     return e, rx, snd, k, d, bool(single)
 
 
-def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_col, rbf_col) -> None:
-    """The neighbour tables of :func:`sim.radio.observe_fast` (integer distances: ``table`` holds ψ of 0..255),
-    compiled: writes the sensing-neighbour column ``nbr_col`` (-1: none) and the RBF sums from ``rbf_col`` into
-    ``obs`` (B·M, obs_dim) in place."""
+def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, obs, heard, target_col, nbr_col,
+                     rbf_col) -> None:
+    """The message part of :func:`sim.radio.observe_fast` (integer distances: ``table`` holds ψ of 0..255), compiled:
+    writes the emitter's column ``target_col``, the sensing-neighbour column ``nbr_col`` and the RBF sums from
+    ``rbf_col`` (-1: not observed) into ``obs`` (B·M, obs_dim) float32, and who heard the emitter into ``heard``
+    (B·M,) uint8, in place."""
     assert obs.flags.c_contiguous and obs.dtype == np.float32, "obs must be C-contiguous float32 (written in place)"
-    _need().neighbour_tables(g, snd, tick, f, d, bool(single), int(M), int(table_size), table, obs, int(nbr_col),
-                             int(rbf_col))
+    assert heard.dtype == np.uint8, "heard must be uint8 (written in place)"
+    _need().observe_messages(g, snd, tick, f, d, bool(single), int(M), int(table_size), table, tg, t_dist, float(R),
+                             obs, heard, int(target_col), int(nbr_col), int(rbf_col))
 
 
 def motor_schedule(q, heading, P, turn_left, turn_right):

@@ -517,12 +517,25 @@ def closed_form(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta
 
 
 @jit
-def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_col, rbf_col):
-    """The neighbour-table part of sim.radio.observe_fast for integer distances: per receiver ``g`` (non-decreasing,
-    messages in (receiver, sender, tick) order) one entry per sender (its first tick and flag, its last distance),
-    the table's first ``table_size`` entries by (first tick, sender) when it overflows; writes the flag column
-    ``nbr_col`` (any kept sender sensing; -1: none) and the RBF sums from column ``rbf_col`` of ``obs``
-    (B·M, obs_dim), adding ``table`` rows (ψ of the integer distance) in sender order from 0."""
+def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, obs, heard, target_col, nbr_col,
+                     rbf_col):
+    """The message part of sim.radio.observe_fast for integer distances. The emitter: its latest message to each
+    receiver of ``tg`` gives ``min(distance / R, 1)`` in column ``target_col`` of ``obs`` (B·M, obs_dim), -1 where none
+    came, and ``heard``. The neighbour tables: per receiver ``g`` (non-decreasing, messages in (receiver, sender, tick)
+    order) one entry per sender (its first tick and flag, its last distance), the table's first ``table_size``
+    entries by (first tick, sender) when it overflows; they give the flag column ``nbr_col`` (any kept sender
+    sensing) and the RBF sums from column ``rbf_col``, adding ``table`` rows (ψ of the integer distance) in
+    sender order from 0. A column -1 is not written."""
+    if target_col >= 0:
+        tdist = np.zeros(heard.size)
+        for j in range(tg.size):
+            heard[tg[j]] = 1
+            tdist[tg[j]] = t_dist[j]
+        for r in range(heard.size):
+            obs[r, target_col] = min(tdist[r] / R, 1.0) if heard[r] else -1.0
+    else:
+        for j in range(tg.size):
+            heard[tg[j]] = 1
     n = g.size
     nr = table.shape[1]
     eg = np.empty(n, np.int64)
@@ -566,8 +579,9 @@ def neighbour_tables(g, snd, tick, f, d, single, M, table_size, table, obs, nbr_
                 acc[c] += table[ed[x], c]
         if nbr_col >= 0:
             obs[r, nbr_col] = 1.0 if flag else 0.0
-        for c in range(nr):
-            obs[r, rbf_col + c] = acc[c]
+        if rbf_col >= 0:
+            for c in range(nr):
+                obs[r, rbf_col + c] = acc[c]
         a = b
 
 

@@ -335,7 +335,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         # the schedule, the pivots' headings and the wrap in one compiled pass (the same integer and float operations)
         turns = (dphi, dphi) if motion is None else (dphi * motion.turn_left, dphi * motion.turn_right)
         t, s, left, theta, phi_s, phi0, turned = compiled.motor_schedule(q, heading, P, *turns)
-        leg = bool(np.any(R > 0)) and turned  # pivots move the centre
+        leg = (R > 0 if np.ndim(R) == 0 else bool(np.any(R > 0))) and turned  # pivots move the centre
     else:
         turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)
         t, s = turn.astype(np.int64), straight.astype(np.int64)

@@ -46,7 +46,8 @@ def action_to_u8(u: np.ndarray) -> np.ndarray:
     >>> action_to_u8(np.array([0.0, 0.5, 1.0, 1.2])).tolist()
     [0, 128, 255, 255]
     """
-    return np.clip(np.floor(np.asarray(u, np.float64) * 255.0 + 0.5), 0, 255).astype(np.uint8)
+    q = np.floor(np.asarray(u, np.float64) * 255.0 + 0.5)
+    return np.minimum(np.maximum(q, 0.0), 255.0).astype(np.uint8)  # np.clip's wrapper costs more than the work
 
 
 def schedule(ul: np.ndarray, ur: np.ndarray, period_ticks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -135,14 +135,16 @@ def _per_env_draws(rngs: Sequence[np.random.Generator], counts: np.ndarray, loss
     """
     u = z = None
     if loss or noise:
-        us, zs = [], []
-        for rng, n in zip(rngs, counts.tolist()):
+        total = int(counts.sum())
+        u = np.empty(total) if loss else None
+        z = np.empty(total) if noise else None
+        i = 0
+        for rng, n in zip(rngs, counts.tolist()):  # each env's draws straight into its slice (the same values)
             if loss:
-                us.append(rng.random(n))
+                rng.random(out=u[i:i + n])
             if noise:
-                zs.append(rng.standard_normal(n))
-        u = np.concatenate(us) if loss else None
-        z = np.concatenate(zs) if noise else None
+                rng.standard_normal(out=z[i:i + n])
+            i += n
     return u, z
 
 
@@ -320,7 +322,9 @@ def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.G
                                 d.lamp_brightness, d.lamp_shift_mm, d.light_noise, body)
     if cfg.light_dropout > 0:
         M = pos.shape[1]
-        u = np.stack([rng.random(M) for rng in rngs])  # (B, M), one draw per robot per env
+        u = np.empty((len(rngs), M))  # (B, M), one draw per robot per env
+        for row, rng in zip(u, rngs):
+            rng.random(out=row)
         light[u < cfg.light_dropout] = -1
     return light
 
@@ -427,6 +431,11 @@ def _table_features(cfg: WorldConfig) -> tuple[str, ...]:
     return tuple(n for n in cfg.features if feature(n).table is not None)
 
 
+def _column(cfg: WorldConfig, name: str) -> int:
+    """The first observation column of feature ``name``; -1 when the world does not observe it."""
+    return cfg.obs_index(name) if cfg.has_feature(name) else -1
+
+
 def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
                  prev_light: np.ndarray | None = None, rand_word: np.ndarray | None = None,
                  prev_object_light: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -440,7 +449,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     P = period.period_ticks
     g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing
     d, f, ui, snd, tick = period.s_dist, period.s_flag, period.s_uidx, period.s_snd, period.s_tick
-    # the tables compiled (sim.compiled.neighbour_tables) where distances are integer mm and asymmetric
+    # the messages compiled (sim.compiled.observe_messages) where distances are integer mm and asymmetric
     own = _table_features(cfg) if TASK_FEATURES else ()  # a task's own features need the entries themselves
     tables = ui is None and _integer_mm(cfg) and compiled.available() and not own
     if not tables:
@@ -457,16 +466,19 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if cfg.has_feature("random"):
         assert rand_word is not None, "the random feature needs the robots' xorshift32 words"
         obs[..., cfg.obs_slice("random")] = random_feature(rand_word)
-    heard = np.zeros(B * M, bool)
-    tdist = np.zeros(B * M)
     tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
-    if tg.size:
-        _, t_last = _run_ends(tg) if not period.single else (None, np.arange(tg.size))
-        heard[tg] = True
-        tdist[tg.take(t_last)] = period.t_dist.take(t_last)
-    if cfg.has_feature("target"):
-        obs[..., cfg.obs_index("target")] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0),
-                                                     -1.0).reshape(B, M)
+    if tables:
+        heard = np.zeros(B * M, np.uint8)
+    else:
+        heard = np.zeros(B * M, bool)
+        tdist = np.zeros(B * M)
+        if tg.size:
+            _, t_last = _run_ends(tg) if not period.single else (None, np.arange(tg.size))
+            heard[tg] = True
+            tdist[tg.take(t_last)] = period.t_dist.take(t_last)
+        if cfg.has_feature("target"):
+            obs[..., cfg.obs_index("target")] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0),
+                                                         -1.0).reshape(B, M)
     if cfg.has_feature("object_light"):
         t_light = np.full(B * M, -1, np.int64)  # the latest target message's reading that carries one
         if tg.size and period.t_light is not None:
@@ -475,11 +487,12 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         prev = np.full((B, M), -1) if prev_object_light is None else prev_object_light
         obs[..., cfg.obs_slice("object_light")] = object_light_feature(held_object_light(t_light.reshape(B, M), prev))
     if tables:
-        compiled.neighbour_tables(g, snd, tick, f, d, period.single, M, cfg.neighbour_table_size,
-                                  _rbf_table(cfg) if cfg.has_feature("rbf") else _NO_RBF, obs.reshape(B * M, -1),
-                                  cfg.obs_index("nbr_sensing") if cfg.has_feature("nbr_sensing") else -1,
-                                  cfg.obs_index("rbf") if cfg.has_feature("rbf") else 0)
-    elif d.size:
+        compiled.observe_messages(g, snd, tick, f, d, period.single, M, cfg.neighbour_table_size,
+                                  _rbf_table(cfg) if cfg.has_feature("rbf") else _NO_RBF, tg, period.t_dist,
+                                  cfg.comm_radius_mm, obs.reshape(B * M, -1), heard, _column(cfg, "target"),
+                                  _column(cfg, "nbr_sensing"), _column(cfg, "rbf"))
+        return obs, heard.reshape(B, M)
+    if d.size:
         rcv = np.flatnonzero(counts)  # receivers with table entries
         cnt = counts[rcv]
         starts = np.cumsum(cnt) - cnt  # their first entry (entries are grouped by receiver)

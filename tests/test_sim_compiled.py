@@ -88,8 +88,8 @@ def test_compiled_radio_gives_the_numpy_messages(monkeypatch, moving_beacon, var
 
 @needs_jit
 @pytest.mark.parametrize("msg_period,table", [(16, 3), (40, 5), (9, 16)])
-def test_compiled_neighbour_tables_give_the_numpy_observation(monkeypatch, msg_period, table):
-    """observe_fast's compiled neighbour tables (repeat senders, full tables, sensing flags, RBF sums) equal NumPy's."""
+def test_compiled_messages_give_the_numpy_observation(monkeypatch, msg_period, table):
+    """observe_fast's compiled message part (emitter distance, repeat senders, full tables, sensing flags, RBF sums) equals NumPy's."""
     from sim.events import observe
     from sim.radio import observe_fast
 
