@@ -105,7 +105,7 @@ class PopulationResult:
     returns: np.ndarray  # (K, E)
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def rollout_population(pop: PopulationMLP, theta: torch.Tensor, world: WorldConfig, n_robots: int,
                        episode_seeds: Sequence[np.random.SeedSequence], t_prev: int,
                        randomise=None, task=None) -> PopulationResult:

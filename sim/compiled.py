@@ -13,7 +13,8 @@
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
 * :func:`radio_receive`: the received messages of :func:`sim.radio.tick_radio` after the envs' draws, measured and
   split by sender role.
-* :func:`observe_messages`: the message part of :func:`sim.radio.observe_fast` (the emitter's distance, the neighbour
+* :func:`wall_light`: the light readings of worlds with plain wall light (who is near a wall, dropouts).
+* :func:`observe_messages`: the message part of :func:`sim.radio.observe_fast` (the wall, the emitter's distance, the neighbour
   tables: one entry per sender, the table's overflow, the sensing-neighbour flag and the RBF sums), one receiver
   after the other instead of NumPy passes over all messages; distances in integer mm, so ψ comes from a table
   NumPy computed.
@@ -162,16 +163,29 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
     return e, rx, snd, k, d, bool(single)
 
 
-def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, obs, heard, target_col, nbr_col,
-                     rbf_col) -> None:
-    """The message part of :func:`sim.radio.observe_fast` (integer distances: ``table`` holds ψ of 0..255), compiled:
-    writes the emitter's column ``target_col``, the sensing-neighbour column ``nbr_col`` and the RBF sums from
-    ``rbf_col`` (-1: not observed) into ``obs`` (B·M, obs_dim) float32, and who heard the emitter into ``heard``
-    (B·M,) uint8, in place."""
+def wall_light(pos, a, sense_mm, floor, wall, u, dropout) -> np.ndarray:
+    """:func:`sim.radio.light_readings` of worlds with even wall light and no sensor model, compiled: (B, M) int16,
+    ``wall`` within ``sense_mm`` of a wall of the arena of half side ``a``, else ``floor``; -1 where the uniform ``u``
+    (B, M) is below ``dropout`` (``u`` None: no dropout)."""
+    pos = np.ascontiguousarray(pos, np.float64)
+    out = np.empty(pos.shape[:2], np.int16)
+    _need().wall_light(pos, float(a), float(sense_mm), int(floor), int(wall),
+                       np.zeros((1, 1)) if u is None else u, u is not None, float(dropout), out)
+    return out
+
+
+def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, light, prev_wall, threshold,
+                     held, obs, heard, wall_col, target_col, nbr_col, rbf_col) -> None:
+    """The message part of :func:`sim.radio.observe_fast` and its wall feature (integer distances: ``table`` holds ψ of
+    0..255), compiled: writes the wall column ``wall_col`` (light (B, M) at or above ``threshold``; where it dropped
+    out and ``held``, ``prev_wall``), the emitter's column ``target_col``, the sensing-neighbour column ``nbr_col`` and
+    the RBF sums from ``rbf_col`` (-1: not observed) into ``obs`` (B·M, obs_dim) float32, and who heard the emitter
+    into ``heard`` (B·M,) uint8, in place."""
     assert obs.flags.c_contiguous and obs.dtype == np.float32, "obs must be C-contiguous float32 (written in place)"
     assert heard.dtype == np.uint8, "heard must be uint8 (written in place)"
     _need().observe_messages(g, snd, tick, f, d, bool(single), int(M), int(table_size), table, tg, t_dist, float(R),
-                             obs, heard, int(target_col), int(nbr_col), int(rbf_col))
+                             np.ravel(light), np.ravel(prev_wall), int(threshold), bool(held), obs, heard,
+                             int(wall_col), int(target_col), int(nbr_col), int(rbf_col))
 
 
 def motor_schedule(q, heading, P, turn_left, turn_right):

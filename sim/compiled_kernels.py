@@ -517,15 +517,22 @@ def closed_form(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta
 
 
 @jit
-def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, obs, heard, target_col, nbr_col,
-                     rbf_col):
+def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dist, R, light, prev_wall, threshold,
+                     held, obs, heard, wall_col, target_col, nbr_col, rbf_col):
     """The message part of sim.radio.observe_fast for integer distances. The emitter: its latest message to each
     receiver of ``tg`` gives ``min(distance / R, 1)`` in column ``target_col`` of ``obs`` (B·M, obs_dim), -1 where none
     came, and ``heard``. The neighbour tables: per receiver ``g`` (non-decreasing, messages in (receiver, sender, tick)
     order) one entry per sender (its first tick and flag, its last distance), the table's first ``table_size``
     entries by (first tick, sender) when it overflows; they give the flag column ``nbr_col`` (any kept sender
     sensing) and the RBF sums from column ``rbf_col``, adding ``table`` rows (ψ of the integer distance) in
-    sender order from 0. A column -1 is not written."""
+    sender order from 0. The wall column ``wall_col``: 1 where the light reading is at least ``threshold``, else 0;
+    where the reading dropped out (-1) and ``held``, ``prev_wall``. A column -1 is not written."""
+    if wall_col >= 0:
+        for r in range(light.size):
+            if held and light[r] < 0:
+                obs[r, wall_col] = prev_wall[r]
+            else:
+                obs[r, wall_col] = 1.0 if light[r] >= threshold else 0.0
     if target_col >= 0:
         tdist = np.zeros(heard.size)
         for j in range(tg.size):
@@ -656,3 +663,16 @@ def radio_receive(e, rx, snd, k, d, u, z, loss, noise, loss_p, sigma, integer, l
             s_flag[a] = flags[e[j], snd[j]]
             a += 1
     return s_env, s_rx, s_snd, s_tick, s_dist, s_flag, t_env, t_rx, t_tick, t_dist
+
+
+@jit
+def wall_light(pos, a, sense_mm, floor, wall, u, drops, dropout, out):
+    """sim.radio.light_readings for even wall light without a sensor model: ``wall`` where the distance to the
+    nearest wall, a - max(|x|, |y|), is at most ``sense_mm``, else ``floor``; -1 where ``u`` < ``dropout``."""
+    B, M = out.shape
+    for b in range(B):
+        for i in range(M):
+            v = wall if a - max(abs(pos[b, i, 0]), abs(pos[b, i, 1])) <= sense_mm else floor
+            if drops and u[b, i] < dropout:
+                v = -1
+            out[b, i] = v

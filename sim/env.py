@@ -362,8 +362,8 @@ class SwarmEnv:
         if a.dtype.kind not in "fiu":  # floats or integers
             raise ValueError(f"actions must be floats in [0, 1], got dtype {a.dtype}")
         a = np.asarray(a, np.float64)  # no copy for float64 input (never written to)
-        lo, hi = a.min(), a.max()  # NaN propagates through min / max
-        if not (np.isfinite(lo) and np.isfinite(hi)):
+        lo, hi = float(np.minimum.reduce(a, axis=None)), float(np.maximum.reduce(a, axis=None))  # NaN propagates
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             raise ValueError(f"actions contain {int(np.size(a) - np.isfinite(a).sum())} NaN/inf entries")
         if lo < -ACTION_TOL or hi > 1.0 + ACTION_TOL:
             raise ValueError(f"actions must lie in [0, 1], got min {lo:.6g}, max {hi:.6g}")

@@ -308,6 +308,9 @@ def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.G
     the heavy body's centre, which shades the side lamps (:func:`sim.light.lamp_field`).
     """
     a = cfg.arena_half_mm
+    if wall_zone_mm is None and not cfg.graded_light and compiled.available():  # the same, compiled
+        u = _dropout_draws(rngs, pos.shape[1]) if cfg.light_dropout > 0 else None
+        return compiled.wall_light(pos, a, cfg.wall_sense_mm, cfg.light_floor, cfg.light_wall, u, cfg.light_dropout)
     if wall_zone_mm is None:
         wall_d = a - np.maximum(np.abs(pos[..., 0]), np.abs(pos[..., 1]))  # (B, M)
         lit = wall_d <= cfg.wall_sense_mm
@@ -321,12 +324,16 @@ def light_readings(pos: np.ndarray, cfg: WorldConfig, rngs: Sequence[np.random.G
         light = sensor_readings(light.astype(np.float64), pos, cfg, cfg.lamp_list, rngs, sensors,
                                 d.lamp_brightness, d.lamp_shift_mm, d.light_noise, body)
     if cfg.light_dropout > 0:
-        M = pos.shape[1]
-        u = np.empty((len(rngs), M))  # (B, M), one draw per robot per env
-        for row, rng in zip(u, rngs):
-            rng.random(out=row)
-        light[u < cfg.light_dropout] = -1
+        light[_dropout_draws(rngs, pos.shape[1]) < cfg.light_dropout] = -1
     return light
+
+
+def _dropout_draws(rngs: Sequence[np.random.Generator], M: int) -> np.ndarray:
+    """(B, M) uniforms, one per robot from its env's light stream: below ``light_dropout``, a reading drops out."""
+    u = np.empty((len(rngs), M))
+    for row, rng in zip(u, rngs):
+        rng.random(out=row)
+    return u
 
 
 @functools.lru_cache(maxsize=16)
@@ -458,7 +465,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     for name in own:
         obs.reshape(B * M, cfg.obs_dim)[:, cfg.obs_slice(name)] = feature(name).table.float_values(
             NeighbourTable.of(g, d, B * M), cfg)
-    if cfg.has_feature("wall"):
+    if cfg.has_feature("wall") and not tables:
         wall = (light >= cfg.light_threshold).astype(np.float64)
         obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
     if cfg.has_feature("light"):
@@ -489,7 +496,8 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if tables:
         compiled.observe_messages(g, snd, tick, f, d, period.single, M, cfg.neighbour_table_size,
                                   _rbf_table(cfg) if cfg.has_feature("rbf") else _NO_RBF, tg, period.t_dist,
-                                  cfg.comm_radius_mm, obs.reshape(B * M, -1), heard, _column(cfg, "target"),
+                                  cfg.comm_radius_mm, light, prev_wall, cfg.light_threshold, cfg.light_dropout > 0,
+                                  obs.reshape(B * M, -1), heard, _column(cfg, "wall"), _column(cfg, "target"),
                                   _column(cfg, "nbr_sensing"), _column(cfg, "rbf"))
         return obs, heard.reshape(B, M)
     if d.size:
