@@ -9,6 +9,8 @@
   the envs that have one (``_per_tick``: move, walls, over-relaxed Jacobi sweeps of
   :class:`sim.kinematics._Contacts`). In NumPy the loop is a Python loop over ticks and sweeps on arrays
   of a few dozen discs, so interpreter overhead is most of its cost. Here it runs env by env in machine code.
+* :func:`straight_period`: :func:`closed_form` then :func:`period_contacts` in one call, writing the period's
+  end back into the env's arrays.
 * :func:`radio_messages`: who hears whom at which tick in :func:`sim.radio.tick_radio` (before loss and
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
 * :func:`radio_receive`: the received messages of :func:`sim.radio.tick_radio` after the envs' draws, measured and
@@ -219,25 +221,37 @@ def _per_robot(x, B: int, M: int) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), (B, M)))
 
 
+def _closed_form_args(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel) -> tuple:
+    B, M = t.shape
+    for a in (zk, disp, travel):
+        assert a.flags.c_contiguous, "closed_form writes zk, disp and travel in place: they must be C-contiguous"
+    return (np.ascontiguousarray(z0), np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
+            np.ascontiguousarray(left, np.bool_), np.ascontiguousarray(e, np.complex128), _per_robot(step, B, M),
+            bool(leg), np.ascontiguousarray(c, np.complex128) if leg else np.zeros((1, 1), np.complex128),
+            np.ascontiguousarray(table, np.complex128) if table is not None else np.zeros(1, np.complex128),
+            np.ascontiguousarray(rot, np.complex128) if rot is not None else np.zeros((1, 1, 1), np.complex128),
+            table is not None, _per_robot(R, B, M), np.ascontiguousarray(theta, np.float64), float(lim), zk, disp, travel)
+
+
+def _contact_args(zb, mobility, target_record, diam, skin, margin, omega, tol_end, tol_tick, cap, max_iters) -> tuple:
+    """period_contacts' kernel arguments from ``zb`` on, but ``lim``."""
+    has_emitter = zb is not None
+    want = has_emitter and target_record is not None
+    if want:
+        assert target_record.flags.c_contiguous and target_record.dtype == np.float64
+    return (zb if has_emitter else np.zeros(1, np.complex128), has_emitter,
+            np.ascontiguousarray(mobility, np.float64) if has_emitter else np.zeros(1),
+            target_record if want else np.zeros((1, 1, 2)), want,
+            float(skin), float(diam), float(diam - tol_end), float(diam - tol_tick), float(diam + skin),
+            float(diam + margin), float(0.5 * omega), float((diam + skin) * (diam + skin)), int(cap), int(max_iters))
+
+
 def closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel) -> None:
     """The collision-free path of :func:`sim.kinematics.tick_move` (straight runs, no curve), compiled: fills
     ``zk`` (P, B, M) (the clipped positions after each tick), ``disp`` (the unclipped displacements) and
     ``travel`` (B, M). With ``leg``: ``c`` the legs (B, M) and either ``table`` (exp(i j dphi), j = -P..P,
     nominal turn rates) or ``rot`` (T, B, M) their rotations."""
-    kernel = _need().closed_form
-    B, M = t.shape
-    for a in (zk, disp, travel):
-        assert a.flags.c_contiguous, "closed_form writes zk, disp and travel in place: they must be C-contiguous"
-    c0 = np.zeros((1, 1), np.complex128)
-    kernel(np.ascontiguousarray(z0), np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
-           np.ascontiguousarray(left, np.bool_), np.ascontiguousarray(e, np.complex128),
-           _per_robot(step, B, M), bool(leg),
-           np.ascontiguousarray(c, np.complex128) if leg else c0,
-           np.ascontiguousarray(table, np.complex128) if table is not None else np.zeros(1, np.complex128),
-           np.ascontiguousarray(rot, np.complex128) if rot is not None else np.zeros((1, 1, 1), np.complex128),
-           table is not None,
-           _per_robot(R, B, M),
-           np.ascontiguousarray(theta, np.float64), float(lim), zk, disp, travel)
+    _need().closed_form(*_closed_form_args(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel))
 
 
 def period_contacts(zk, z0, zb, travel, leg, disp, inc, e, t, s, mobility, target_record, diam, skin, lim, margin,
@@ -247,19 +261,26 @@ def period_contacts(zk, z0, zb, travel, leg, disp, inc, e, t, s, mobility, targe
     and ``target_record`` (P, B, 2) in place. ``inc`` (P, B, M) the per-tick steps of curved runs, else
     ``e`` (B, M) the step of every straight tick. Returns whether any env had a contact (when none,
     ``target_record`` is not written)."""
-    kernel = _need().period_contacts
     assert zk.flags.c_contiguous and zk.dtype == np.complex128, "zk must be C-contiguous complex128 (written in place)"
-    has_emitter = zb is not None
-    want = has_emitter and target_record is not None
-    if want:
-        assert target_record.flags.c_contiguous and target_record.dtype == np.float64
-    c0 = np.zeros(1, np.complex128)
-    return bool(kernel(
-        zk, np.ascontiguousarray(z0), zb if has_emitter else c0, has_emitter, np.ascontiguousarray(travel, np.float64),
-        bool(leg), np.ascontiguousarray(disp), np.ascontiguousarray(inc) if inc is not None else np.zeros((1, 1, 1), np.complex128),
+    (zb, has_emitter, mobility, trec, want, skin, diam, lim_end, lim_tick, diam_skin, target, gain, r2, cap,
+     max_iters) = _contact_args(zb, mobility, target_record, diam, skin, margin, omega, tol_end, tol_tick, cap, max_iters)
+    return bool(_need().period_contacts(
+        zk, np.ascontiguousarray(z0), zb, has_emitter, np.ascontiguousarray(travel, np.float64), bool(leg),
+        np.ascontiguousarray(disp), np.ascontiguousarray(inc) if inc is not None else np.zeros((1, 1, 1), np.complex128),
         inc is not None, np.ascontiguousarray(e, np.complex128) if e is not None else np.zeros((1, 1), np.complex128),
-        np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64),
-        np.ascontiguousarray(mobility, np.float64) if has_emitter else np.zeros(1),
-        target_record if want else np.zeros((1, 1, 2)), want,
-        float(skin), float(diam), float(diam - tol_end), float(diam - tol_tick), float(diam + skin), float(lim),
-        float(diam + margin), float(0.5 * omega), float((diam + skin) * (diam + skin)), int(cap), int(max_iters)))
+        np.ascontiguousarray(t, np.int64), np.ascontiguousarray(s, np.int64), mobility, trec, want, skin, diam,
+        lim_end, lim_tick, diam_skin, float(lim), target, gain, r2, cap, max_iters))
+
+
+def straight_period(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel, zb, mobility,
+                    target_record, diam, skin, margin, omega, tol_end, tol_tick, cap, max_iters, pos, emitter) -> None:
+    """:func:`closed_form`, then :func:`period_contacts` (straight runs), in one call, and the period's end written
+    back: the last positions into ``pos`` (B, M, 2), the emitter's into ``emitter`` (B, 2) (None: no emitter disc),
+    both C-contiguous float64; ``target_record`` holds the emitter still where nothing touched it."""
+    assert pos.flags.c_contiguous and pos.dtype == np.float64, "pos must be C-contiguous float64 (written in place)"
+    if emitter is not None:
+        assert emitter.flags.c_contiguous and emitter.dtype == np.float64, "the emitter must be C-contiguous float64"
+    _need().straight_period(
+        *_closed_form_args(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel),
+        *_contact_args(zb, mobility, target_record, diam, skin, margin, omega, tol_end, tol_tick, cap, max_iters),
+        pos, np.zeros((1, 2)) if emitter is None else emitter)

@@ -676,3 +676,27 @@ def wall_light(pos, a, sense_mm, floor, wall, u, drops, dropout, out):
             if drops and u[b, i] < dropout:
                 v = -1
             out[b, i] = v
+
+
+@jit
+def straight_period(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta, lim, zk, disp, travel, zb,
+                    has_emitter, mobility, trec, want_trec, skin, diam, lim_end, lim_tick, diam_skin, target, gain,
+                    r2_rebuild, cap, max_iters, pos, emitter):
+    """closed_form, then period_contacts (straight runs), then what sim.kinematics.tick_move does with them: the
+    emitter's record stays at ``emitter`` (B, 2) where nothing touched it, and the period's last positions go to
+    ``pos`` (B, M, 2) and the emitter's to ``emitter``, in place."""
+    closed_form(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, theta, lim, zk, disp, travel)
+    touched = period_contacts(zk, z0, zb, has_emitter, travel, leg, disp, np.zeros((1, 1, 1), np.complex128), False, e,
+                              t, s, mobility, trec, want_trec, skin, diam, lim_end, lim_tick, diam_skin, lim, target,
+                              gain, r2_rebuild, cap, max_iters)
+    P, B, M = zk.shape
+    if want_trec and not touched:
+        for k in range(P):
+            for b in range(B):
+                trec[k, b, 0], trec[k, b, 1] = emitter[b, 0], emitter[b, 1]
+    for b in range(B):
+        for i in range(M):
+            pos[b, i, 0], pos[b, i, 1] = zk[P - 1, b, i].real, zk[P - 1, b, i].imag
+    if has_emitter:
+        for b in range(B):
+            emitter[b, 0], emitter[b, 1] = zb[b].real, zb[b].imag

@@ -365,6 +365,15 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
                 table = _rotation_table(dphi, P)
             else:
                 rot = np.exp(1j * (theta * _pivots_done(t)))
+        if collider is not None and _plain(pos) and (target is None or _plain(target)):  # the rest in the same call
+            zb = None if target is None else target[:, 0] + 1j * target[:, 1]
+            compiled.straight_period(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel, zb,
+                                     _per_env(emitter_mobility, B) if zb is not None else None, target_record,
+                                     collider.diam, collider.skin, RELAX_MARGIN_MM, RELAX_OMEGA, OVERLAP_TOL_MM,
+                                     TICK_OVERLAP_TOL_MM, TICK_SWEEPS, MAX_RELAX_ITERS, pos, target)
+            if record is not None and not into_record:
+                record[...] = zk.view(np.float64).reshape(P, B, M, 2)
+            return
         compiled.closed_form(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel)
     else:
         k = np.arange(P).reshape(P, 1, 1)
@@ -396,10 +405,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
 
     has_emitter = collider is not None and target is not None
     zb = target[:, 0] + 1j * target[:, 1] if has_emitter else None
-    mobility = None
-    if has_emitter:
-        mobility = (np.full(B, emitter_mobility, np.float64) if np.ndim(emitter_mobility) == 0
-                    else np.broadcast_to(np.asarray(emitter_mobility, np.float64), (B,)))
+    mobility = _per_env(emitter_mobility, B) if has_emitter else None
     if collider is not None and jit:  # all of the else branch, compiled (bit-identical)
         if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
                                         mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,
@@ -425,6 +431,16 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         target[:, 0], target[:, 1] = zb.real, zb.imag
     if record is not None and not np.shares_memory(record, zk):
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
+
+
+def _plain(a: np.ndarray) -> bool:
+    """Whether ``a`` is a C-contiguous float64 array (compiled code writes such arrays in place)."""
+    return a.dtype == np.float64 and a.flags.c_contiguous
+
+
+def _per_env(x: float | np.ndarray, B: int) -> np.ndarray:
+    """A scalar or (B,) value as a (B,) float64 array."""
+    return np.full(B, x, np.float64) if np.ndim(x) == 0 else np.broadcast_to(np.asarray(x, np.float64), (B,))
 
 
 def _scaled(n: np.ndarray, e: np.ndarray) -> np.ndarray:

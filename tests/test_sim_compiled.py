@@ -150,7 +150,7 @@ def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
     tiny = dict(n_robots=(4, 16), t_prev=2, actor_hidden=(8,), episode_steps=40, demo_robot_episodes=6, bc_updates=20,
                 bc_batch=64, generations=2, pairs=2, eval_every=2, eval_episodes=2, eval_steps=40, threads=1, seed=4)
     theta, rows = [], []
-    calls = {"period_contacts": 0, "radio_messages": 0}
+    calls = {"period_contacts": 0, "straight_period": 0, "radio_messages": 0}
     for name in calls:
         def counted(*a, _f=getattr(compiled, name), _n=name, **k):
             calls[_n] += 1
@@ -165,7 +165,7 @@ def test_es_training_learns_the_same_weights(monkeypatch, tmp_path):
         timing = ("wall_s", "env_steps_per_s", "updates_per_s")  # NaNs compare equal in JSON text
         rows.append(json.dumps([{k: v for k, v in r.items() if k not in timing} for r in run.counters.rows],
                                sort_keys=True))
-    assert calls["period_contacts"] > 0 and calls["radio_messages"] > 0, calls  # the compiled run used both
+    assert calls["period_contacts"] + calls["straight_period"] > 0 and calls["radio_messages"] > 0, calls  # compiled
     assert torch.equal(theta[0], theta[1])
     assert rows[0] == rows[1]
 
