@@ -195,11 +195,16 @@ def motor_schedule(q, heading, P, turn_left, turn_right):
     φ_0, any pivots) for uint8 commands ``q`` (B, M, 2); ``heading`` (B, M) C-contiguous float64 becomes
     wrap(φ_s) in place. ``turn_left`` / ``turn_right``: a left / right pivot tick's turn, scalar or (B, M)."""
     k_turn, k_straight = schedule_constants(P)
-    tl, tr = (np.full((1, 1), x) if np.ndim(x) == 0 else np.ascontiguousarray(x, np.float64)
-              for x in (turn_left, turn_right))
-    t, s, left, theta, phi_s, phi0, turned = _need().motor_schedule(np.ascontiguousarray(q), heading, int(P), k_turn,
-                                                                    k_straight, tl, tr)
-    return t, s, left, theta, phi_s, phi0, bool(turned)
+    shape = heading.shape
+    ts, left, angles = np.empty((2,) + shape, np.int64), np.empty(shape, np.bool_), np.empty((3,) + shape)
+    turned = _need().motor_schedule(np.ascontiguousarray(q), heading, int(P), k_turn, k_straight, _turn(turn_left),
+                                    _turn(turn_right), ts[0], ts[1], left, angles[0], angles[1], angles[2])
+    return ts[0], ts[1], left, angles[0], angles[1], angles[2], bool(turned)
+
+
+def _turn(x) -> np.ndarray:
+    """A pivot tick's turn, scalar or (B, M), as a C-contiguous float64 array ((1, 1) for a scalar)."""
+    return np.full((1, 1), x, np.float64) if np.ndim(x) == 0 else np.ascontiguousarray(x, np.float64)
 
 
 def radio_receive(e, rx, snd, k, d, u, z, loss_p, sigma, integer, lo, hi, flags, M):

@@ -593,18 +593,13 @@ def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dis
 
 
 @jit
-def motor_schedule(q, heading, P, k_turn, k_straight, turn_left, turn_right):
-    """sim.motion.schedule of the uint8 commands ``q`` (B, M, 2), then tick_move's pivots: per robot the pivot and
-    straight ticks t, s, whether it pivots left, its turn per pivot tick θ (``turn_left``, or minus ``turn_right``;
-    (B, M) or (1, 1)), the heading φ + t θ when the straight ticks start, and the heading before (returned) and after
-    wrapping to (-π, π] (written into ``heading``); and whether any robot pivots."""
+def motor_schedule(q, heading, P, k_turn, k_straight, turn_left, turn_right, t, s, left, theta, phi_s, phi0):
+    """sim.motion.schedule of the uint8 commands ``q`` (B, M, 2), then tick_move's pivots, into the (B, M) arrays
+    given: per robot the pivot and straight ticks t, s, whether it pivots left, its turn per pivot tick θ
+    (``turn_left``, or minus ``turn_right``; (B, M) or (1, 1)), the heading φ + t θ when the straight ticks start,
+    and the heading before (``phi0``) and after wrapping to (-π, π] (written into ``heading``). Returns whether any
+    robot pivots."""
     B, M = heading.shape
-    t = np.empty((B, M), np.int64)
-    s = np.empty((B, M), np.int64)
-    left = np.empty((B, M), np.bool_)
-    theta = np.empty((B, M))
-    phi_s = np.empty((B, M))
-    phi0 = np.empty((B, M))
     half = 1 << 15
     two_pi = 2.0 * math.pi
     lb, lm, rb, rm = turn_left.shape[0], turn_left.shape[1], turn_right.shape[0], turn_right.shape[1]
@@ -624,7 +619,7 @@ def motor_schedule(q, heading, P, k_turn, k_straight, turn_left, turn_right):
             t[b, i], s[b, i], left[b, i], theta[b, i] = turn, straight, lft, th
             phi_s[b, i], phi0[b, i], heading[b, i] = ps, phi, w
             turned = turned or turn > 0
-    return t, s, left, theta, phi_s, phi0, turned
+    return turned
 
 
 @jit
