@@ -1,5 +1,6 @@
 """The hot loops of the kilobot world compiled with Numba, bit-identical to their NumPy versions.
 
+* :func:`command_bytes`: the env's check of float actions and their uint8 motor commands, in one pass.
 * :func:`motor_schedule`: the motor schedule of the uint8 commands and the headings after the pivots, in one pass.
 * :func:`closed_form`: the collision-free part of :func:`sim.kinematics.tick_move` for straight runs: every
   tick's displacement (straight ticks and arcs about the pivot legs), the path clipped to the walls, the
@@ -188,6 +189,17 @@ def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dis
     _need().observe_messages(g, snd, tick, f, d, bool(single), int(M), int(table_size), table, tg, t_dist, float(R),
                              np.ravel(light), np.ravel(prev_wall), int(threshold), bool(held), obs, heard,
                              int(wall_col), int(target_col), int(nbr_col), int(rbf_col))
+
+
+def command_bytes(actions, shape, lo, hi) -> np.ndarray | None:
+    """:func:`sim.motion.action_to_u8` of float64 actions of ``shape`` that all lie in [lo, hi] (the env's check, and
+    its clip to [0, 1], which changes no command byte), compiled; None when the actions are anything else (NaN, out of
+    range, another dtype or shape): the NumPy check then says what is wrong."""
+    if not (type(actions) is np.ndarray and actions.dtype == np.float64 and actions.shape == shape
+            and actions.flags.c_contiguous):
+        return None
+    q = np.empty(shape, np.uint8)
+    return q if _need().command_bytes(actions, float(lo), float(hi), q) else None
 
 
 def motor_schedule(q, heading, P, turn_left, turn_right):

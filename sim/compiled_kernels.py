@@ -695,3 +695,16 @@ def straight_period(z0, t, s, left, e, step, leg, c, table, rot, use_table, R, t
     if has_emitter:
         for b in range(B):
             emitter[b, 0], emitter[b, 1] = zb[b].real, zb[b].imag
+
+
+@jit
+def command_bytes(a, lo, hi, q):
+    """round-half-up(255 a) clipped to 0..255 into ``q`` (sim.motion.action_to_u8), if every action lies in [lo, hi]
+    (NaN does not); returns whether they all do."""
+    fa, fq = a.ravel(), q.ravel()
+    for j in range(fa.size):
+        x = fa[j]
+        if not (x >= lo and x <= hi):
+            return False
+        fq[j] = np.uint8(min(max(np.floor(x * 255.0 + 0.5), 0.0), 255.0))
+    return True

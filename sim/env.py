@@ -37,6 +37,7 @@ import numpy as np
 from kiloforge.errors import InputError
 from kiloforge.xorshift import rng_seed, xorshift32
 
+from . import compiled
 from .config import WorldConfig
 from .body import body_depth, push_body
 from .kinematics import Collider, thesis_move, tick_move
@@ -333,6 +334,10 @@ class SwarmEnv:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
         """Advance one control period with float actions (B, M, 2) in [0, 1]."""
+        if self.cfg.tick_level and compiled.available():  # checked and quantised in one compiled pass
+            q = compiled.command_bytes(actions, (self.n_envs, self.n_robots, 2), -ACTION_TOL, 1.0 + ACTION_TOL)
+            if q is not None:
+                return self._advance(q / 255.0, q)
         a = self._check_actions(actions)
         if self.cfg.tick_level:
             q = action_to_u8(a)  # valid uint8 commands: step_u8's checks would pass

@@ -116,6 +116,24 @@ def test_compiled_messages_give_the_numpy_observation(monkeypatch, msg_period, t
 
 
 @needs_jit
+def test_compiled_command_bytes_equal_action_to_u8():
+    """The compiled check-and-quantise gives action_to_u8's bytes (half steps, the tolerance at both ends) or None."""
+    from sim.env import ACTION_TOL
+    from sim.motion import action_to_u8
+
+    rng = np.random.default_rng(3)
+    edges = np.array([0.0, -0.0, 1.0, -ACTION_TOL, 1.0 + ACTION_TOL, 0.5 / 255, 1.5 / 255, 254.5 / 255, 0.5, 1e-300])
+    a = np.concatenate([edges, (np.arange(255) + 0.5) / 255, rng.random(8 * 32 * 2 - edges.size - 255)]).reshape(8, 32, 2)
+    lo, hi = -ACTION_TOL, 1.0 + ACTION_TOL
+    np.testing.assert_array_equal(compiled.command_bytes(a, a.shape, lo, hi), action_to_u8(np.clip(a, 0.0, 1.0)))
+    for bad in (np.nan, np.inf, -2 * ACTION_TOL, 1.0 + 2 * ACTION_TOL):
+        b = a.copy()
+        b[7, 31, 1] = bad
+        assert compiled.command_bytes(b, b.shape, lo, hi) is None
+    assert compiled.command_bytes(a.astype(np.float32), a.shape, lo, hi) is None
+
+
+@needs_jit
 def test_compiled_loop_in_a_crowded_small_arena(monkeypatch):
     """A dense jam against the walls of a small arena (many sweeps and pair-list rebuilds) stays bit-identical."""
     cfg = preset("kilobot", arena_half_mm=150.0, episode_steps=80)
