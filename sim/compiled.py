@@ -16,6 +16,7 @@
   noise, which stay with the envs' NumPy generators), without the ordered pair search and its sort.
 * :func:`radio_receive`: the received messages of :func:`sim.radio.tick_radio` after the envs' draws, measured and
   split by sender role.
+* :func:`target_distance`: the robots' distances to the emitter.
 * :func:`wall_light`: the light readings of worlds with plain wall light (who is near a wall, dropouts).
 * :func:`observe_messages`: the message part of :func:`sim.radio.observe_fast` (the wall, the emitter's distance, the neighbour
   tables: one entry per sender, the table's overflow, the sensing-neighbour flag and the RBF sums), one receiver
@@ -164,6 +165,14 @@ def radio_messages(pos_ticks, target, target_ticks, phases, tick0, periods, R):
         np.ascontiguousarray(pos_ticks, np.float64), np.ascontiguousarray(target, np.float64), tt, moves,
         np.ascontiguousarray(phases, np.int64), int(tick0), np.ascontiguousarray(periods, np.int64), float(R))
     return e, rx, snd, k, d, bool(single)
+
+
+def target_distance(pos, target) -> np.ndarray:
+    """:func:`sim.radio.target_distance`, compiled: (B, M) sqrt(dx² + dy²) from the robots (B, M, 2) to ``target``
+    (B, 2)."""
+    out = np.empty(pos.shape[:2])
+    _need().target_distance(np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(target, np.float64), out)
+    return out
 
 
 def wall_light(pos, a, sense_mm, floor, wall, u, dropout) -> np.ndarray:

@@ -708,3 +708,13 @@ def command_bytes(a, lo, hi, q):
             return False
         fq[j] = np.uint8(min(max(np.floor(x * 255.0 + 0.5), 0.0), 255.0))
     return True
+
+
+@jit
+def target_distance(pos, target, out):
+    """sim.radio.target_distance: sqrt(dx * dx + dy * dy) per robot (B, M) to its env's ``target``."""
+    B, M = out.shape
+    for b in range(B):
+        for i in range(M):
+            dx, dy = pos[b, i, 0] - target[b, 0], pos[b, i, 1] - target[b, 1]
+            out[b, i] = math.sqrt(dx * dx + dy * dy)
