@@ -18,6 +18,11 @@ this process through :mod:`learn.es_pool` for each worker count, with the CPU se
 one, or each Ray worker) spent per generation. The busiest process's CPU seconds bound a generation's
 wall time on idle cores; their ratio to one worker's is the ratio an idle machine would show at most
 (Ray's own processes and the dispatch not counted), and the total shows what splitting the batch costs.
+
+A third table (``--rollout-repeats``, 0 = none) splits a block's cost: the CPU seconds of this process evaluating
+a block of 1, pairs and 2·pairs members (one rollout batch each), the least of several rounds; their differences
+give the cost per member and the fixed cost per block (per step of the episode, whatever the batch size), and
+2·pairs over pairs members is what two workers can gain at most, before Ray's own costs.
 """
 from __future__ import annotations
 
@@ -97,6 +102,36 @@ def cpu_table(args: argparse.Namespace) -> dict[int, tuple[float, float, float]]
     return out
 
 
+def rollout_table(args: argparse.Namespace) -> dict[int, float]:
+    """Per block size k (1, pairs, 2·pairs members): the least CPU seconds, over ``--rollout-repeats`` alternating
+    rounds, of this process evaluating members 0..k of a generation on the first swarm size (what a worker does
+    with a block of k members)."""
+    from learn.config import ESConfig
+    from learn.es import PopulationMLP
+    from learn.es_pool import members, noise
+    from learn.es_train import actor_algo, get_theta, task_fitness
+    from learn.speed import set_threads
+
+    set_threads(1)
+    cfg = ESConfig(n_robots=tuple(args.robots), demo_policy="none", pairs=args.pairs, seed=args.seed)
+    world = cfg.world_config()
+    algo = actor_algo(cfg, world)
+    fitness = task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(args.robots))
+    theta = get_theta(algo)
+    sizes = (1, args.pairs, 2 * args.pairs)
+    best = {k: float("inf") for k in sizes}
+    for r in range(args.rollout_repeats + 1):  # round 0 warms up (compiles, allocates)
+        seed = np.random.SeedSequence([args.seed, r])
+        eps = noise(seed, args.pairs, theta.numel())
+        for k in sizes:
+            block = members(theta, cfg.sigma, eps, 0, k)
+            c0 = time.process_time()
+            fitness(block, 0, seed)
+            if r:
+                best[k] = min(best[k], time.process_time() - c0)
+    return best
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="worker counts; the first is the baseline")
@@ -106,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--rounds", type=int, default=2, help="paired train-es rounds (0: only the CPU table)")
     p.add_argument("--cpu-generations", type=int, default=6, help="generations of the CPU-seconds table (0: none)")
+    p.add_argument("--rollout-repeats", type=int, default=0,
+                   help="rounds of the rollout table: one block of 1, pairs and 2·pairs members in this process (0: none)")
     args = p.parse_args(argv)
     base = args.workers[0]
     rates: dict[int, list[float]] = {w: [] for w in args.workers}
@@ -151,6 +188,18 @@ def main(argv: list[str] | None = None) -> int:
         for w in args.workers:
             wall, busy, tot = cpu[w]
             print(f"{w:>7} | {wall:>7.3f} | {busy:>21.3f} | {tot:>17.3f} | {b / busy:.2f}")
+    if args.rollout_repeats:
+        t = rollout_table(args)
+        P = args.pairs
+        v = (t[2 * P] - t[P]) / P
+        print(f"\nOne block's CPU seconds in this process (least of {args.rollout_repeats} rounds; "
+              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+        print(f"{'members':>7} | {'CPU s':>6}")
+        print("-" * 7 + "-+-" + "-" * 6)
+        for k, c in t.items():
+            print(f"{k:>7} | {c:>6.3f}")
+        print(f"per member {v:.4f} s, fixed per block {t[P] - P * v:.3f} s; "
+              f"{2 * P} members / {P} members = {t[2 * P] / t[P]:.2f} (2 workers' bound before Ray's own costs)")
     return 0 if same else 1
 
 
