@@ -57,6 +57,10 @@ RECIPES: dict[str, dict[str, list[dict]]] = {
         # anchor's larger arena, Task.world_for) from the first stage's best, with half the population
         "sizes": [dict(n_robots=(16,), init_bias=0.5, max_minutes=30),
                   dict(n_robots=(16, 32, 64), generations=100, pairs=8, max_minutes=50)],
+        # ``sizes`` with twice the first stage's population: near its plateau a 16-pair gradient from one episode
+        # per generation is mostly noise (sizes_s1's fitness swung +-0.06 while its evaluation stayed at 0.86)
+        "pairs32": [dict(n_robots=(16,), init_bias=0.5, pairs=32, max_minutes=60),
+                    dict(n_robots=(16, 32, 64), generations=100, pairs=8, max_minutes=50)],
     },
     "transport": {
         # random start driving (output bias 0.5), 16 robots: three are needed to move the object
