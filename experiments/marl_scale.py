@@ -1,6 +1,7 @@
 """Can MAGDDPG learn localisation at 16 robots from scratch (issue 45 item 3)?
 
     python -m experiments.marl_scale train --variant linear --seeds 1 2 3 --minutes 50 --out runs/marl
+    python -m experiments.marl_scale train --variant local --seeds 1 2 3 --minutes 20 --out runs/marl
     python -m experiments.marl_scale evaluate runs/marl/linear_s1 runs/marl/linear_s2 runs/marl/linear_s3 --out runs/marl/eval
     python -m experiments.marl_scale plot runs/marl/linear_s1 runs/marl/linear_s2 runs/marl/linear_s3 --out curves.png
 
@@ -13,7 +14,7 @@ depends on the machine and what else runs on it (its ``summary.json`` records th
 ``python -m learn evaluate`` on held-out episodes (``sim.config.HELD_OUT_SEED``, never used for training or
 selection; 16 robots, 500 steps) beside the random walk and the hand-written searchers, and prints the per-seed
 table with each run's final coverage as a multiple of the random walk's.
-``plot`` draws the runs' learning curves (mean ± 2 std over seeds, ``python -m learn plot``).
+``plot`` draws the runs' learning curves, one per variant (mean ± 2 std over seeds).
 Results: docs/results/marl.md.
 """
 from __future__ import annotations
@@ -30,9 +31,11 @@ COMMON = ["--preset", "fast", "--robots", "16", "--world", "kilobot", "--eval-ev
           "--quiet"]
 #: variant -> the flags it adds to COMMON
 VARIANTS: dict[str, list[str]] = {
-    "team": ["--critic", "mean"],  # the thesis's squared team reward: the configuration measured at the random walk's level
+    "concat": ["--critic", "concat"],  # the thesis's critic and squared team reward (fast's defaults)
+    "team": ["--critic", "mean"],  # the thesis's squared team reward, the mean-embedding critic
     "linear": ["--critic", "mean", "--reward", "linear"],  # the team's coverage, not squared
-    "local": ["--critic", "robot", "--reward", "local"],  # each robot's own success, one value per robot
+    # each robot's own success, one value per robot; the head runs once per robot, so it is narrower (64, 64)
+    "local": ["--critic", "robot", "--reward", "local", "--critic-hidden", "64", "64"],
 }
 ROBOTS = 16
 EPISODES = 50
@@ -75,6 +78,25 @@ def evaluate(runs: list[Path], out: Path) -> None:
         print(f"| {name} | | {m:.3f} ± {ci:.3f} | {m / walk:.1f} |")
 
 
+def plot(runs: list[str], out: str) -> None:
+    """One curve (mean ± 2 std over seeds) per variant: the run directory's name without ``_sSEED``.
+    (``python -m learn plot`` labels runs by experiment name, swarm size and T_prev alone, so it would pool the
+    variants, which differ only in ``reward`` and ``critic``.)"""
+    from learn.evaluate import success_panel
+    from learn.plots import plot_learning_curves
+    from learn.runfiles import read_metrics
+    from sim.tasks import get_task
+
+    groups: dict[str, list] = {}
+    for run in runs:
+        variant = Path(run).name.rsplit("_s", 1)[0]
+        label = f"{variant}: {' '.join(VARIANTS.get(variant, []))}"
+        groups.setdefault(label, []).append(read_metrics(run))
+    plot_learning_curves(groups, out, success=success_panel(get_task("localisation")),
+                         title=f"MAGDDPG from scratch, {ROBOTS} robots, kilobot world (mean ± 2 std over seeds)")
+    print(f"wrote {out}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(prog="python -m experiments.marl_scale", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -95,7 +117,7 @@ def main() -> None:
     elif a.command == "evaluate":
         evaluate(a.runs, a.out)
     else:
-        subprocess.run([sys.executable, "-m", "learn", "plot", *a.runs, "--out", a.out], check=True)
+        plot(a.runs, a.out)
 
 
 if __name__ == "__main__":
