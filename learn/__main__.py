@@ -112,7 +112,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
     from .evaluate import primary_column, success_panel
     from .plots import plot_learning_curves
-    from .runfiles import ALGORITHM_NAMES, read_config, read_metrics
+    from .runfiles import ALGORITHM_NAMES, experiment_groups, read_config, read_metrics
 
     check_writable([args.out or "learning_curves.png"])  # before reading the runs
 
@@ -124,11 +124,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
         raise InputError(f"the runs train different tasks ({', '.join(sorted(tasks))}); plot each task's runs apart")
     # the user's --task, or the one the configs name, by name only: a run folder never makes us import its code
     task = get_task(args.task) if args.task else recorded_task(tasks.pop(), "the runs' config.json", "--task")
-    for run, cfg in configs:
-        rows = read_metrics(run, ("env_steps", "eval_return", primary_column(task)))
+    base = []
+    for _, cfg in configs:
         sizes = cfg.get("n_robots", "?")
         sizes = "/".join(map(str, sizes)) if isinstance(sizes, list) else sizes
-        label = f"{cfg.get('exp_name', '?')}: {sizes} robots, T_prev {cfg.get('t_prev', '?')}"
+        base.append(f"{cfg.get('exp_name', '?')}: {sizes} robots, T_prev {cfg.get('t_prev', '?')}")
+    for (run, cfg), label in zip(configs, experiment_groups([c for _, c in configs], base)):
+        rows = read_metrics(run, ("env_steps", "eval_return", primary_column(task)))
         groups.setdefault(label, []).append(rows)
         name = ALGORITHM_NAMES.get(cfg.get("algorithm", "magddpg"), str(cfg.get("algorithm")))
         algorithms += [name] if name not in algorithms else []

@@ -33,6 +33,7 @@ from sim.tasks import Task, get_task
 
 from .checkpoint import Checkpointer
 from .config import ConfigError, ExperimentConfig, flag_name
+from .runfiles import RESUME_MAY_CHANGE
 
 _COUNTER_COLUMNS = ("env_steps", "episodes", "updates", "wall_s", "eval_return", "eval_return_std")
 _TRAIN_COLUMNS = ("train_return", "critic_loss", "q_mean", "env_steps_per_s", "updates_per_s")
@@ -50,9 +51,6 @@ RUN_FILES = ("config.json", "world.json", "metrics.csv", "learning_curve.png", "
              "policy_last.npz", "policy_bc.npz", "demos.json", "summary.json")
 KEPT_DIR = "generations"  #: train-es --keep-evaluated: every evaluated generation's policy
 RUN_DIRS = ("replay", "tensorboard", KEPT_DIR)
-#: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
-RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
-                     "keep_evaluated", "workers", "ray_address")
 
 
 def result_policy(cfg: object) -> str:

@@ -26,6 +26,33 @@ MAX_CSV_LINE = 64 * 1024  #: characters of one metrics.csv line (checked before 
 PLOTTED_COLUMNS = ("env_steps", "eval_return")  #: what every trainer writes, whatever its task
 
 
+#: fields that may differ between a checkpoint and a resumed run (budgets, speed and logging knobs)
+RESUME_MAY_CHANGE = ("episodes", "generations", "max_minutes", "threads", "checkpoint_every", "device", "tensorboard",
+                     "keep_evaluated", "workers", "ray_address")
+#: config fields that do not make two runs different experiments: the seed, and what a resume may change
+NOT_THE_EXPERIMENT = ("seed", *RESUME_MAY_CHANGE)
+
+
+def experiment_groups(configs: list[dict[str, Any]], base: list[str]) -> list[str]:
+    """A label per run for ``learn plot``: ``base[i]`` (what the runs show), followed by the config fields in which
+    the runs sharing that base label differ (``reward=local, critic=robot``), so that only runs differing in
+    :data:`NOT_THE_EXPERIMENT` share a label and are averaged."""
+    labels = []
+    for i, cfg in enumerate(configs):
+        peers = [c for c, b in zip(configs, base) if b == base[i]]
+        keys = sorted({k for c in peers for k in c} - set(NOT_THE_EXPERIMENT))
+        differ = [k for k in keys if any(c.get(k) != cfg.get(k) for c in peers)]
+        extra = ", ".join(f"{k}={_short(cfg.get(k))}" for k in differ)
+        labels.append(f"{base[i]}, {extra}" if extra else base[i])
+    return labels
+
+
+def _short(value: Any) -> str:
+    """A config value as a legend shows it: text as is, lists joined by '-', at most 40 characters."""
+    text = "-".join(map(str, value)) if isinstance(value, list) else str(value)
+    return text if len(text) <= 40 else text[:39] + "…"
+
+
 def read_json(path: str | os.PathLike, what: str = "run file") -> dict:
     """A JSON object from a file (:func:`kiloforge.validate.read_json_file`); one-line InputError otherwise."""
     doc = read_json_file(path, what)

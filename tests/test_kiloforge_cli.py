@@ -227,6 +227,26 @@ def test_learn_plot_without_learn_extra(tmp_path, monkeypatch):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "missing_run" in r.stderr
 
 
+def test_learn_plot_averages_only_runs_that_differ_in_seed(tmp_path, monkeypatch):
+    """Runs differing only in seed and budget share a curve; a run with another --reward gets its own, labelled."""
+    import learn.plots
+    from learn.__main__ import build_parser, cmd_plot
+
+    cfgs = {"a1": {"seed": 1, "reward": "team"}, "a2": {"seed": 2, "reward": "team", "max_minutes": 9.0},
+            "b1": {"seed": 1, "reward": "local"}}
+    for name, extra in cfgs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.json").write_text(json.dumps({"algorithm": "magddpg", "exp_name": "x", "n_robots": 16,
+                                                                 "t_prev": 1, **extra}))
+        (tmp_path / name / "metrics.csv").write_text("env_steps,eval_return,eval_final_coverage\n100,1.0,0.5\n")
+    seen = {}
+    monkeypatch.setattr(learn.plots, "plot_learning_curves", lambda groups, out, title, **kw: seen.update(groups))
+    monkeypatch.chdir(tmp_path)
+    cmd_plot(build_parser().parse_args(["plot", "a1", "a2", "b1", "--out", "t.png"]))
+    assert {k: len(v) for k, v in seen.items()} == {"x: 16 robots, T_prev 1, reward=team": 2,
+                                                     "x: 16 robots, T_prev 1, reward=local": 1}
+
+
 def test_export_onnx_without_learn_extra(tmp_path):
     """`python -m learn export-onnx` of the shipped .npz policy runs with torch, tyro and tensorboard unimportable."""
     pytest.importorskip("onnx")
