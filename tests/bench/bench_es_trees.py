@@ -8,7 +8,8 @@ COMMIT | tar -x -C DIR``). Each round runs ``python -m learn train-es --robots M
 --generations G --pairs P --seed S`` once in each tree (``PYTHONPATH`` and the working directory set to it), the
 order alternating from round to round so a change of load hits both alike. generations/s is each run's
 summary.json ``generations`` over ``generation_s`` (wall seconds in generations: start-up, evaluations and
-checkpoints excluded); the CPU seconds are the run's user + system time. The table gives per tree the median
+checkpoints excluded; a tree that predates ``generation_s`` gives ``env_steps / env_s``, its seconds in the
+generations' member evaluations, turned into generations); the CPU seconds are the run's user + system time. The table gives per tree the median
 generations/s and CPU seconds, and the median and range of the per-round ratios (this tree / base). Both trees
 must end with the same weights (the script checks ``policy_last.npz`` and says so): the ratio compares equal work.
 """
@@ -41,6 +42,8 @@ def run(args: argparse.Namespace, tree: Path, out: Path) -> tuple[float, float]:
         raise SystemExit(f"{' '.join(cmd)} in {tree} failed:\n{res.stderr[-2000:]}")
     s = json.loads((out / "summary.json").read_text())
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    if "generation_s" not in s:  # trees older than generation_s (b95249b): the seconds spent evaluating members
+        return args.generations * s["env_steps_per_s"] / s["env_steps"], cpu
     return s["generations"] / s["generation_s"], cpu
 
 
