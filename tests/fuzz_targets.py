@@ -42,6 +42,7 @@ from tests.bad_inputs import crafted, nested_json, small_policy
 from kiloforge.artifact import META, canonical_json, npz_bytes, policy_hash
 from kiloforge.errors import PolicyError
 from kiloforge.validate import read_npz
+from sim.compat import world_from_file
 from sim.config import WorldConfig, preset
 
 OUTCOMES = ("accepted", "rejected", "traceback", "hang", "partial_output", "accepted_corrupt", "bad_message")
@@ -395,6 +396,7 @@ def world_exactly_as_given(world: WorldConfig, t_prev: int, doc: Any, in_dim: in
     if isinstance(given, str):
         given = {"preset": given}
     base = preset(given["preset"]) if "preset" in given else WorldConfig()
+    given = world_from_file(given, "the given world")  # world JSON keys -> WorldConfig attributes (sim.compat)
     for k, v in given.items():
         if k == "preset":
             continue
