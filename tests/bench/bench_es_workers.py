@@ -66,24 +66,29 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def cpu_table(args: argparse.Namespace) -> dict[int, tuple[float, float, float]]:
-    """Per worker count: (median wall s, median busiest-process CPU s, median total CPU s) per generation."""
+def _population(args: argparse.Namespace):
+    """(config, fitness, weights) of the benchmark's train-es config, evaluated in this process on one thread."""
     from learn.config import ESConfig
     from learn.es import PopulationMLP
-    from learn.es_pool import worker_pool
     from learn.es_train import actor_algo, get_theta, task_fitness
     from learn.speed import set_threads
-
-    class NoStop:
-        def check(self) -> None:
-            pass
 
     set_threads(1)
     cfg = ESConfig(n_robots=tuple(args.robots), demo_policy="none", pairs=args.pairs, seed=args.seed)
     world = cfg.world_config()
     algo = actor_algo(cfg, world)
-    fitness = task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(args.robots))
-    theta = get_theta(algo)
+    return cfg, task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(args.robots)), get_theta(algo)
+
+
+def cpu_table(args: argparse.Namespace) -> dict[int, tuple[float, float, float]]:
+    """Per worker count: (median wall s, median busiest-process CPU s, median total CPU s) per generation."""
+    from learn.es_pool import worker_pool
+
+    class NoStop:
+        def check(self) -> None:
+            pass
+
+    cfg, fitness, theta = _population(args)
     out = {}
     for w in args.workers:
         with worker_pool(w, log=lambda _m: None) as pool:
@@ -106,18 +111,9 @@ def rollout_table(args: argparse.Namespace) -> dict[int, float]:
     """Per block size k (1, pairs, 2·pairs members): the least CPU seconds, over ``--rollout-repeats`` alternating
     rounds, of this process evaluating members 0..k of a generation on the first swarm size (what a worker does
     with a block of k members)."""
-    from learn.config import ESConfig
-    from learn.es import PopulationMLP
     from learn.es_pool import members, noise
-    from learn.es_train import actor_algo, get_theta, task_fitness
-    from learn.speed import set_threads
 
-    set_threads(1)
-    cfg = ESConfig(n_robots=tuple(args.robots), demo_policy="none", pairs=args.pairs, seed=args.seed)
-    world = cfg.world_config()
-    algo = actor_algo(cfg, world)
-    fitness = task_fitness(cfg, world, PopulationMLP.of(algo.actor.net), [None] * len(args.robots))
-    theta = get_theta(algo)
+    cfg, fitness, theta = _population(args)
     sizes = (1, args.pairs, 2 * args.pairs)
     best = {k: float("inf") for k in sizes}
     for r in range(args.rollout_repeats + 1):  # round 0 warms up (compiles, allocates)
