@@ -464,9 +464,10 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     if not tables:
         g, d, f, ui, counts = _table_entries(g, d, f, ui, snd, tick, period.single, B, M, P, cfg.neighbour_table_size)
     obs = np.zeros((B, M, cfg.obs_dim), np.float32)
-    for name in own:
-        obs.reshape(B * M, cfg.obs_dim)[:, cfg.obs_slice(name)] = feature(name).table.float_values(
-            NeighbourTable.of(g, d, B * M), cfg)
+    if own:  # one table (sorted once) for all of them
+        table, flat = NeighbourTable.of(g, d, B * M), obs.reshape(B * M, cfg.obs_dim)
+        for name in own:
+            flat[:, cfg.obs_slice(name)] = feature(name).table.float_values(table, cfg)
     if cfg.has_feature("wall") and not tables:
         wall = (light >= cfg.light_threshold).astype(np.float64)
         obs[..., cfg.obs_index("wall")] = np.where(light < 0, prev_wall, wall) if cfg.light_dropout > 0 else wall
