@@ -133,19 +133,29 @@ class LocalPool:
 
 
 class _Worker:
-    """A Ray actor: one CPU, torch on ``threads`` threads, evaluating blocks of members."""
+    """A Ray actor: one CPU, torch on ``threads`` threads, evaluating blocks of members.
+
+    The fitness comes as its object reference in a list, which Ray hands over unresolved: the actor fetches it on
+    its first block (and after a restart) and keeps it, so a block does not unpickle the fitness again, and the
+    fitness keeps what it caches (its resolved task)."""
 
     def __init__(self, threads: int) -> None:
         torch.set_num_threads(max(1, threads))
+        self._fitness: tuple[str, Fitness] | None = None  # (its object id, the fitness)
 
     def ready(self) -> int:
         import os
 
         return os.getpid()
 
-    def evaluate(self, fitness: Fitness, theta: torch.Tensor, sigma: float, pairs: int, seed: np.random.SeedSequence,
+    def evaluate(self, fitness_ref: list, theta: torch.Tensor, sigma: float, pairs: int, seed: np.random.SeedSequence,
                  part: int, start: int, stop: int) -> np.ndarray:
-        return _evaluate_block(fitness, theta, sigma, pairs, seed, part, start, stop)
+        ref = fitness_ref[0]
+        if self._fitness is None or self._fitness[0] != ref.hex():
+            import ray
+
+            self._fitness = (ref.hex(), ray.get(ref))
+        return _evaluate_block(self._fitness[1], theta, sigma, pairs, seed, part, start, stop)
 
 
 def import_ray():
@@ -232,7 +242,7 @@ class RayPool:
         t0 = time.perf_counter()
         self._fitness, self._fitness_ref = fitness, self.ray.put(fitness)
         theta_ref, seed = self.ray.put(theta), np.random.SeedSequence(0)
-        calls = [(a, a.evaluate.remote(self._fitness_ref, theta_ref, 0.0, 1, seed, part, 0, 1))
+        calls = [(a, a.evaluate.remote([self._fitness_ref], theta_ref, 0.0, 1, seed, part, 0, 1))
                  for a in self.actors for part in range(fitness.parts)]
         for actor, ref in calls:
             try:
@@ -266,7 +276,7 @@ class RayPool:
                     running[actor.ready.remote()] = (actor, None)
             while todo and idle:
                 item, actor = todo.popleft(), idle.pop(0)
-                running[actor.evaluate.remote(self._fitness_ref, theta_ref, sigma, pairs, seed, *item)] = (actor, item)
+                running[actor.evaluate.remote([self._fitness_ref], theta_ref, sigma, pairs, seed, *item)] = (actor, item)
             if not running:  # every actor restarting, none due for a probe yet
                 time.sleep(POLL_S)
                 stop.check()
