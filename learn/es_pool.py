@@ -12,8 +12,9 @@ process played it, and a run learns the same weights bit for bit with any number
 * :class:`RayPool` (``--workers N`` starts a private local Ray with N CPUs; ``--ray-address`` joins a
   cluster): N actors, one CPU each, warmed before the first generation (:meth:`RayPool.warm`). Each
   part's members are cut into N contiguous blocks and every (part, block) goes to the next idle actor.
-  What travels per generation is θ (one ``ray.put``), σ, the generation's seed and the block bounds;
-  every actor draws ε itself from the seed, and the fitness object travels once per run. A block whose
+  What travels with each block is θ, σ, the generation's seed and the block bounds (θ as the call's argument: Ray
+  sends one under 100 KB inside the call, cheaper than a ``ray.put`` and a fetch from its object store, and a
+  larger one through the store); every actor draws ε itself from the seed, and fetches the fitness once. A block whose
   actor dies is given again, to the next idle actor (Ray restarts the dead one, which is probed until it
   answers), at most :data:`MAX_TRIES` times. A stop request is looked at every :data:`POLL_S` seconds
   and abandons the generation. Ray starts quietly (no dashboard, workers' output not forwarded) and is
@@ -241,8 +242,8 @@ class RayPool:
         and torch's kernels, seconds that belong to the start-up, not to a generation); the results are dropped."""
         t0 = time.perf_counter()
         self._fitness, self._fitness_ref = fitness, self.ray.put(fitness)
-        theta_ref, seed = self.ray.put(theta), np.random.SeedSequence(0)
-        calls = [(a, a.evaluate.remote([self._fitness_ref], theta_ref, 0.0, 1, seed, part, 0, 1))
+        seed = np.random.SeedSequence(0)
+        calls = [(a, a.evaluate.remote([self._fitness_ref], theta, 0.0, 1, seed, part, 0, 1))
                  for a in self.actors for part in range(fitness.parts)]
         for actor, ref in calls:
             try:
@@ -259,7 +260,6 @@ class RayPool:
         ray = self.ray
         if fitness != self._fitness:  # the same fitness (equal fields) travels once
             self._fitness, self._fitness_ref = fitness, ray.put(fitness)
-        theta_ref = ray.put(theta)
         out = np.full((2 * pairs, fitness.parts), np.nan)
         todo = deque((part, a, b) for part in range(fitness.parts) for a, b in blocks(2 * pairs, self.workers))
         deaths = {item: 0 for item in todo}
@@ -276,7 +276,7 @@ class RayPool:
                     running[actor.ready.remote()] = (actor, None)
             while todo and idle:
                 item, actor = todo.popleft(), idle.pop(0)
-                running[actor.evaluate.remote([self._fitness_ref], theta_ref, sigma, pairs, seed, *item)] = (actor, item)
+                running[actor.evaluate.remote([self._fitness_ref], theta, sigma, pairs, seed, *item)] = (actor, item)
             if not running:  # every actor restarting, none due for a probe yet
                 time.sleep(POLL_S)
                 stop.check()

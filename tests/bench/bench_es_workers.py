@@ -23,6 +23,11 @@ A third table (``--rollout-repeats``, 0 = none) splits a block's cost: the CPU s
 a block of 1, pairs and 2·pairs members (one rollout batch each), the least of several rounds; their differences
 give the cost per member and the fixed cost per block (per step of the episode, whatever the batch size), and
 2·pairs over pairs members is what two workers can gain at most, before Ray's own costs.
+
+A fourth (``--side-by-side``, 0 = none) reads what the machine itself gives: the wall seconds of a block of pairs
+members in one process alone, and in each of two processes running at once (no Ray). On a machine whose two cores
+slow each other (shared caches, a virtual machine's host), the second number is the larger, and two workers' ratio
+is at most the third table's 16/8-member ratio times their quotient.
 """
 from __future__ import annotations
 
@@ -128,6 +133,41 @@ def rollout_table(args: argparse.Namespace) -> dict[int, float]:
     return best
 
 
+def _time_blocks(args: argparse.Namespace, n: int) -> list[float]:
+    """Wall seconds of each of ``n`` evaluations of a block of ``pairs`` members (one worker's share at 2 workers)
+    in this process, after one unmeasured evaluation (a process of the side-by-side table)."""
+    from learn.es_pool import members, noise
+
+    cfg, fitness, theta = _population(args)
+    seed = np.random.SeedSequence([args.seed, 0])
+    block = members(theta, cfg.sigma, noise(seed, args.pairs, theta.numel()), 0, args.pairs)
+    fitness(block, 0, seed)
+    walls = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fitness(block, 0, seed)
+        walls.append(time.perf_counter() - t0)
+    return walls
+
+
+def side_by_side_table(args: argparse.Namespace) -> tuple[float, float]:
+    """Median wall seconds of a block of ``pairs`` members in one process alone, and in each of two processes running
+    at once (no Ray), over ``--side-by-side`` rounds of 3 blocks, alone and together alternating: what two cores of
+    this machine give for this work by themselves."""
+    import concurrent.futures
+    import multiprocessing
+
+    alone, together = [], []
+    ctx = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(2, mp_context=ctx) as ex:
+        list(ex.map(_time_blocks, [args, args], [0, 0]))  # both processes started and imported
+        for _ in range(args.side_by_side):
+            alone += ex.submit(_time_blocks, args, 3).result()
+            for f in [ex.submit(_time_blocks, args, 3) for _ in range(2)]:
+                together += f.result()
+    return statistics.median(alone), statistics.median(together)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="worker counts; the first is the baseline")
@@ -139,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cpu-generations", type=int, default=6, help="generations of the CPU-seconds table (0: none)")
     p.add_argument("--rollout-repeats", type=int, default=0,
                    help="rounds of the rollout table: one block of 1, pairs and 2·pairs members in this process (0: none)")
+    p.add_argument("--side-by-side", type=int, default=0,
+                   help="rounds of the side-by-side table: a block of pairs members in one process alone, then in two "
+                        "processes at once, no Ray (0: none)")
     args = p.parse_args(argv)
     base = args.workers[0]
     rates: dict[int, list[float]] = {w: [] for w in args.workers}
@@ -196,6 +239,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{k:>7} | {c:>6.3f}")
         print(f"per member {v:.4f} s, fixed per block {t[P] - P * v:.3f} s; "
               f"{2 * P} members / {P} members = {t[2 * P] / t[P]:.2f} (2 workers' bound before Ray's own costs)")
+    if args.side_by_side:
+        alone, together = side_by_side_table(args)
+        print(f"\nA block of {args.pairs} members, wall s (median of {3 * args.side_by_side} per column; no Ray; "
+              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+        print(f"one process alone {alone:.3f}, each of two processes at once {together:.3f}: two cores run this work "
+              f"at {alone / together:.2f} of one core's speed each (two workers' ratio is at most 16/8-member time "
+              f"× this, before Ray's own costs)")
     return 0 if same else 1
 
 
