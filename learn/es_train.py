@@ -36,7 +36,7 @@ from .config import ConfigError, ESConfig, TrainConfig, randomisation
 from .demos import bc_pretrain, collect_demos, demonstrator
 from .es import Adam, PopulationMLP, centred_ranks, es_direction, rollout_population
 from .es_pool import child as _child
-from .es_pool import noise, worker_pool
+from .es_pool import blocks, noise, worker_pool
 from .evaluate import Evaluator, LearnerPolicy, evaluate_sizes, metrics_row, success_panel
 from .interrupt import Interrupted, StopRequest
 from .magddpg import MAGDDPG
@@ -73,8 +73,10 @@ def train_es(cfg: ESConfig, run_dir: str | os.PathLike, resume: bool = False, pr
     cfg.validate()
     with worker_pool(cfg.workers, cfg.ray_address, cfg.threads, log) as pool:
         if pool.workers > 1 or cfg.ray_address:
+            sizes = sorted({b - a for a, b in blocks(2 * cfg.pairs, pool.workers)})
             log(f"evaluating the population on {pool.workers} Ray workers"
-                + (f" of the cluster at {cfg.ray_address}" if cfg.ray_address else ""))
+                + (f" of the cluster at {cfg.ray_address}" if cfg.ray_address else "")
+                + f", in blocks of {'–'.join(map(str, sizes))} members (docs/distributed.md: how large a block pays)")
         return _train_es(cfg, run_dir, resume, progress, log, pool)
 
 

@@ -60,10 +60,12 @@ def test_members_and_blocks_cover_the_population():
 
 
 def test_two_workers_learn_the_same_weights(ray_session, reference, tmp_path):
-    """--workers 2 ends with exactly the weights of --workers 1 (the weights moved), and the summary has the
-    generations and their seconds."""
+    """--workers 2 ends with exactly the weights of --workers 1 (the weights moved), says its block size, and the
+    summary has the generations and their seconds."""
     first = train_es(ESConfig(**{**SMALL, "generations": 1}), tmp_path / "first", progress=False, log=_quiet)
-    res = train_es(ESConfig(**SMALL, workers=2), tmp_path / "two", progress=False, log=_quiet)
+    said: list[str] = []
+    res = train_es(ESConfig(**SMALL, workers=2), tmp_path / "two", progress=False, log=said.append)
+    assert any(m.startswith("evaluating the population on 2 Ray workers, in blocks of 3 members") for m in said), said
     assert res.stopped == "done"
     want = _theta(reference)
     assert torch.equal(_theta(tmp_path / "two"), want)
