@@ -107,7 +107,8 @@ def test_a_killed_worker_has_its_members_run_again(ray_session, reference, tmp_p
         warmed.wait(240)
         seen: dict[int, int] = {}
         while not done.is_set() and not killed:
-            for pid in _worker_pids(b"ray::_Worker.evaluate"):
+            ours = _descendants(os.getpid())  # this session's Ray only, not another job's on the same machine
+            for pid in (p for p in _worker_pids(b"ray::_Worker.evaluate") if p in ours):
                 seen[pid] = seen.get(pid, 0) + 1
                 if seen[pid] >= 3:  # busy for a few polls: inside a block, not finishing one
                     os.kill(pid, signal.SIGKILL)
