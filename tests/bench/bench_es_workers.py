@@ -27,7 +27,7 @@ give the cost per member and the fixed cost per block (per step of the episode, 
 A fourth (``--side-by-side``, 0 = none) reads what the machine itself gives: the wall seconds of a block of pairs
 members in one process alone, and in each of two processes running at once (no Ray). On a machine whose two cores
 slow each other (shared caches, a virtual machine's host), the second number is the larger, and two workers' ratio
-is at most the third table's 16/8-member ratio times their quotient.
+is at most the third table's ratio (2·pairs over pairs members) times their quotient.
 """
 from __future__ import annotations
 
@@ -244,8 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nA block of {args.pairs} members, wall s (median of {3 * args.side_by_side} per column; no Ray; "
               f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
         print(f"one process alone {alone:.3f}, each of two processes at once {together:.3f}: two cores run this work "
-              f"at {alone / together:.2f} of one core's speed each (two workers' ratio is at most 16/8-member time "
-              f"× this, before Ray's own costs)")
+              f"at {alone / together:.2f} of one core's speed each (two workers' ratio is at most the time of "
+              f"{2 * args.pairs} members over {args.pairs} × this, before Ray's own costs)")
     return 0 if same else 1
 
 
