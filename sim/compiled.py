@@ -50,7 +50,7 @@ import os
 
 import numpy as np
 
-from .motion import schedule_constants
+from .motion import SCHEDULE_SHIFT, schedule_constants
 
 ENV_SWITCH = "KILOFORGE_JIT"  #: "0" turns the compiled code off (the NumPy code runs)
 
@@ -218,8 +218,8 @@ def motor_schedule(q, heading, P, turn_left, turn_right):
     k_turn, k_straight = schedule_constants(P)
     shape = heading.shape
     ts, left, angles = np.empty((2,) + shape, np.int64), np.empty(shape, np.bool_), np.empty((3,) + shape)
-    turned = _need().motor_schedule(np.ascontiguousarray(q), heading, int(P), k_turn, k_straight, _turn(turn_left),
-                                    _turn(turn_right), ts[0], ts[1], left, angles[0], angles[1], angles[2])
+    turned = _need().motor_schedule(np.ascontiguousarray(q), heading, int(P), k_turn, k_straight, SCHEDULE_SHIFT,
+                                    _turn(turn_left), _turn(turn_right), ts[0], ts[1], left, angles[0], angles[1], angles[2])
     return ts[0], ts[1], left, angles[0], angles[1], angles[2], bool(turned)
 
 

@@ -533,16 +533,13 @@ def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dis
                 obs[r, wall_col] = prev_wall[r]
             else:
                 obs[r, wall_col] = 1.0 if light[r] >= threshold else 0.0
+    tdist = np.zeros(heard.size)
+    for j in range(tg.size):
+        heard[tg[j]] = 1
+        tdist[tg[j]] = t_dist[j]
     if target_col >= 0:
-        tdist = np.zeros(heard.size)
-        for j in range(tg.size):
-            heard[tg[j]] = 1
-            tdist[tg[j]] = t_dist[j]
         for r in range(heard.size):
             obs[r, target_col] = min(tdist[r] / R, 1.0) if heard[r] else -1.0
-    else:
-        for j in range(tg.size):
-            heard[tg[j]] = 1
     n = g.size
     nr = table.shape[1]
     eg = np.empty(n, np.int64)
@@ -593,22 +590,22 @@ def observe_messages(g, snd, tick, f, d, single, M, table_size, table, tg, t_dis
 
 
 @jit
-def motor_schedule(q, heading, P, k_turn, k_straight, turn_left, turn_right, t, s, left, theta, phi_s, phi0):
-    """sim.motion.schedule of the uint8 commands ``q`` (B, M, 2), then tick_move's pivots, into the (B, M) arrays
-    given: per robot the pivot and straight ticks t, s, whether it pivots left, its turn per pivot tick θ
+def motor_schedule(q, heading, P, k_turn, k_straight, shift, turn_left, turn_right, t, s, left, theta, phi_s, phi0):
+    """sim.motion.schedule of the uint8 commands ``q`` (B, M, 2) (``shift`` fraction bits), then tick_move's pivots, into
+    the (B, M) arrays given: per robot the pivot and straight ticks t, s, whether it pivots left, its turn per pivot tick θ
     (``turn_left``, or minus ``turn_right``; (B, M) or (1, 1)), the heading φ + t θ when the straight ticks start,
     and the heading before (``phi0``) and after wrapping to (-π, π] (written into ``heading``). Returns whether any
     robot pivots."""
     B, M = heading.shape
-    half = 1 << 15
+    half = 1 << (shift - 1)
     two_pi = 2.0 * math.pi
     lb, lm, rb, rm = turn_left.shape[0], turn_left.shape[1], turn_right.shape[0], turn_right.shape[1]
     turned = False
     for b in range(B):
         for i in range(M):
             ul, ur = np.int64(q[b, i, 0]), np.int64(q[b, i, 1])
-            turn = min((abs(ul - ur) * k_turn + half) >> 16, P)
-            straight = min(((ul + ur) * k_straight + half) >> 16, P - turn)
+            turn = min((abs(ul - ur) * k_turn + half) >> shift, P)
+            straight = min(((ul + ur) * k_straight + half) >> shift, P - turn)
             lft = ul > ur
             th = turn_left[b % lb, i % lm] if lft else -turn_right[b % rb, i % rm]
             phi = heading[b, i]

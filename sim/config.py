@@ -239,6 +239,7 @@ class WorldConfig:
             slices[n] = slice(i, i + w)
             i += w
         object.__setattr__(self, "_features", features)
+        object.__setattr__(self, "_table_features", tuple(n for n in features if feature(n).table is not None))
         object.__setattr__(self, "_obs_slices", slices)
         object.__setattr__(self, "_obs_dim", i)
 
@@ -247,6 +248,11 @@ class WorldConfig:
     def features(self) -> tuple[str, ...]:
         """The observation's feature names in input order (``obs_features``, parsed)."""
         return self._features  # type: ignore[attr-defined]
+
+    @property
+    def table_features(self) -> tuple[str, ...]:
+        """The features among them that a task brought (:mod:`sim.table_features`), in input order."""
+        return self._table_features  # type: ignore[attr-defined]
 
     @property
     def lamp_list(self) -> tuple:

@@ -334,15 +334,14 @@ class SwarmEnv:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
         """Advance one control period with float actions (B, M, 2) in [0, 1]."""
-        if self.cfg.tick_level and compiled.available():  # checked and quantised in one compiled pass
+        if not self.cfg.tick_level:
+            return self._advance(self._check_actions(actions), None)
+        q = None
+        if compiled.available():  # checked and quantised in one compiled pass (None: the NumPy check says what is wrong)
             q = compiled.command_bytes(actions, (self.n_envs, self.n_robots, 2), -ACTION_TOL, 1.0 + ACTION_TOL)
-            if q is not None:
-                return self._advance(q / 255.0, q)
-        a = self._check_actions(actions)
-        if self.cfg.tick_level:
-            q = action_to_u8(a)  # valid uint8 commands: step_u8's checks would pass
-            return self._advance(q / 255.0, q)
-        return self._advance(a, None)
+        if q is None:
+            q = action_to_u8(self._check_actions(actions))  # valid uint8 commands: step_u8's checks would pass
+        return self._advance(q / 255.0, q)
 
     def step_u8(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, StepInfo]:
         """Advance one control period with uint8 motor commands (B, M, 2); u = q / 255."""

@@ -45,7 +45,7 @@ import numpy as np
 from kiloforge.errors import InputError
 from kiloforge.xorshift import top_byte
 
-from .table_features import NeighbourTable
+from .table_features import NeighbourTable, check
 
 #: annotations only: sim.config imports this module, so it cannot import sim.config or sim.events
 WorldConfig = PeriodSummary = Any
@@ -95,18 +95,18 @@ def feature(name: str) -> Feature:
     return f if f is not None else TASK_FEATURES[name]
 
 
+def _origin(obj: Any) -> tuple[str, str]:
+    """Where ``obj``'s class is defined: a task file imported again defines the same class anew."""
+    return type(obj).__module__, type(obj).__qualname__
+
+
 def register(table_feature: Any, where: str) -> None:
     """Make a task's own feature (checked: :func:`sim.table_features.check`) known by its name; InputError when
     another task already brought a different feature of that name."""
-    from .table_features import check
-
     tf = check(table_feature, where, set(FEATURES))
     known = TASK_FEATURES.get(tf.name)
-    def origin(obj: Any) -> tuple[str, str]:  # a task file imported again defines the same class anew
-        return type(obj).__module__, type(obj).__qualname__
-
-    if known is not None and origin(known.table) != origin(tf):
-        raise InputError(f"{where}: feature {tf.name!r} is already defined by {'.'.join(origin(known.table))}; "
+    if known is not None and _origin(known.table) != _origin(tf):
+        raise InputError(f"{where}: feature {tf.name!r} is already defined by {'.'.join(_origin(known.table))}; "
                          "choose another name")
     parts = tuple(str(k) for k in range(tf.width)) if tf.width > 1 else ()
     TASK_FEATURES[tf.name] = Feature(tf.name, tf.doc, parts=parts, table=tf)

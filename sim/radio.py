@@ -49,7 +49,7 @@ import numpy as np
 from . import compiled, grid
 from .config import ROLE_SEARCHER, ROLE_TARGET, WorldConfig
 from .events import HeardEvents, observe
-from .features import TASK_FEATURES, feature, held_object_light, light_feature, object_light_feature, random_feature
+from .features import feature, held_object_light, light_feature, object_light_feature, random_feature
 from .light import SensorDraw, sensor_readings
 from .table_features import NeighbourTable
 from .variants import WorldDraw
@@ -242,7 +242,7 @@ def tick_radio(pos_ticks: np.ndarray, target: np.ndarray | None, phases: np.ndar
     u, z = _per_env_draws(rngs, np.bincount(e, minlength=B), loss, noise)
     if jit:  # the rest, compiled (the same comparisons and float operations)
         received = compiled.radio_receive(
-            e, rx, snd, k, d, u if loss else None, z if noise else None,
+            e, rx, snd, k, d, u, z,  # None where not drawn
             np.full(B, cfg.msg_loss) if msg_loss is None else msg_loss,
             np.full(B, cfg.dist_noise_mm) if dist_noise_mm is None else dist_noise_mm,
             cfg.dist_integer, cfg.dist_min_mm, cfg.dist_max_mm, flags, M)
@@ -434,12 +434,6 @@ def _table_entries(g: np.ndarray, d: np.ndarray, f: np.ndarray, ui: np.ndarray |
     return g, d, f, ui, counts
 
 
-@functools.lru_cache(maxsize=16)
-def _table_features(cfg: WorldConfig) -> tuple[str, ...]:
-    """The world's features that a task brought (:mod:`sim.table_features`), in input order."""
-    return tuple(n for n in cfg.features if feature(n).table is not None)
-
-
 def _column(cfg: WorldConfig, name: str) -> int:
     """The first observation column of feature ``name``; -1 when the world does not observe it."""
     return cfg.obs_index(name) if cfg.has_feature(name) else -1
@@ -459,7 +453,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
     g = period.s_env * M + period.s_rx  # (Ns,) receiver id, non-decreasing
     d, f, ui, snd, tick = period.s_dist, period.s_flag, period.s_uidx, period.s_snd, period.s_tick
     # the messages compiled (sim.compiled.observe_messages) where distances are integer mm and asymmetric
-    own = _table_features(cfg) if TASK_FEATURES else ()  # a task's own features need the entries themselves
+    own = cfg.table_features  # a task's own features need the entries themselves
     tables = ui is None and _integer_mm(cfg) and compiled.available() and not own
     if not tables:
         g, d, f, ui, counts = _table_entries(g, d, f, ui, snd, tick, period.single, B, M, P, cfg.neighbour_table_size)
@@ -477,14 +471,12 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
         assert rand_word is not None, "the random feature needs the robots' xorshift32 words"
         obs[..., cfg.obs_slice("random")] = random_feature(rand_word)
     tg = period.t_env * M + period.t_rx  # non-decreasing; the latest target message wins
-    if tables:
-        heard = np.zeros(B * M, np.uint8)
-    else:
-        heard = np.zeros(B * M, bool)
+    heard = np.zeros(B * M, np.uint8)  # who heard the emitter this period: the robots' new sensing flags
+    if not tables:
         tdist = np.zeros(B * M)
         if tg.size:
             _, t_last = _run_ends(tg) if not period.single else (None, np.arange(tg.size))
-            heard[tg] = True
+            heard[tg] = 1
             tdist[tg.take(t_last)] = period.t_dist.take(t_last)
         if cfg.has_feature("target"):
             obs[..., cfg.obs_index("target")] = np.where(heard, np.minimum(tdist / cfg.comm_radius_mm, 1.0),
@@ -518,7 +510,7 @@ def observe_fast(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, 
             else:  # symmetric distances: ψ once per unordered pair
                 hist, o = _segment_sums(rbf_rows(cfg, period.s_udist), starts, cnt, ui)
             flat[rcv.take(o), cfg.obs_slice("rbf")] = hist
-    return obs, heard.reshape(B, M).astype(np.uint8)
+    return obs, heard.reshape(B, M)
 
 
 def observe_period(period: RadioPeriod, light: np.ndarray, prev_wall: np.ndarray, cfg: WorldConfig,
