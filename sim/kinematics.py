@@ -331,20 +331,18 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         if motion.curve is not None and np.any(motion.curve != 0):
             kappa = motion.curve
     R = cfg.pivot_offset_mm if motion is None or motion.pivot_mm is None else motion.pivot_mm
-    if jit and kappa is None and heading.dtype == np.float64 and heading.flags.c_contiguous:
+    turn_l, turn_r = (dphi, dphi) if motion is None else (dphi * motion.turn_left, dphi * motion.turn_right)
+    legs = bool(R > 0) if np.ndim(R) == 0 else bool(np.any(R > 0))  # pivots move the centre (when a robot pivots)
+    if jit and kappa is None and _plain(heading):
         # the schedule, the pivots' headings and the wrap in one compiled pass (the same integer and float operations)
-        turns = (dphi, dphi) if motion is None else (dphi * motion.turn_left, dphi * motion.turn_right)
-        t, s, left, theta, phi_s, phi0, turned = compiled.motor_schedule(q, heading, P, *turns)
-        leg = (R > 0 if np.ndim(R) == 0 else bool(np.any(R > 0))) and turned  # pivots move the centre
+        t, s, left, theta, phi_s, phi0, turned = compiled.motor_schedule(q, heading, P, turn_l, turn_r)
+        leg = legs and turned
     else:
         turn, tmode, straight = schedule(q[..., 0], q[..., 1], P)
         t, s = turn.astype(np.int64), straight.astype(np.int64)
         left = tmode == MODE_LEFT
-        if motion is None:
-            theta = np.where(left, dphi, -dphi)
-        else:
-            theta = np.where(left, dphi * motion.turn_left, -dphi * motion.turn_right)
-        leg = bool(np.any(R > 0)) and bool(t.any())  # pivots move the centre
+        theta = np.where(left, turn_l, -turn_r)
+        leg = legs and bool(t.any())
         phi0 = heading.copy() if leg else None
         phi_s = heading + t * theta  # heading when the straight ticks start
         if kappa is None:
@@ -352,7 +350,10 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     u_s = np.exp(1j * phi_s)  # (B, M) unit vector along the straight run
     inc = None  # (P, B, M) each tick's move along the straight run, where it is needed
     z0 = pos[..., 0] + 1j * pos[..., 1]  # (B, M)
-    into_record = record is not None and record.dtype == np.float64 and record.flags.c_contiguous
+    into_record = record is not None and _plain(record)
+    has_emitter = collider is not None and target is not None
+    zb = target[:, 0] + 1j * target[:, 1] if has_emitter else None
+    mobility = _per_env(emitter_mobility, B) if has_emitter else None
     if kappa is None:
         e = step * u_s  # (B, M) displacement of one straight tick
     if kappa is None and jit:  # everything down to the clipped path, compiled (bit-identical)
@@ -366,9 +367,8 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
             else:
                 rot = np.exp(1j * (theta * _pivots_done(t)))
         if collider is not None and _plain(pos) and (target is None or _plain(target)):  # the rest in the same call
-            zb = None if target is None else target[:, 0] + 1j * target[:, 1]
             compiled.straight_period(z0, t, s, left, e, step, leg, c, table, rot, R, theta, lim, zk, disp, travel, zb,
-                                     _per_env(emitter_mobility, B) if zb is not None else None, target_record,
+                                     mobility, target_record,
                                      collider.diam, collider.skin, RELAX_MARGIN_MM, RELAX_OMEGA, OVERLAP_TOL_MM,
                                      TICK_OVERLAP_TOL_MM, TICK_SWEEPS, MAX_RELAX_ITERS, pos, target)
             if record is not None and not into_record:
@@ -402,10 +402,6 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
         np.minimum(zkf, lim, out=zkf)  # walls: clipping the path = clipping every tick, for monotone coordinates
         np.maximum(zkf, -lim, out=zkf)
     k0 = np.full(B, P, np.int64)  # per env: the tick from which it runs tick by tick (P: never)
-
-    has_emitter = collider is not None and target is not None
-    zb = target[:, 0] + 1j * target[:, 1] if has_emitter else None
-    mobility = _per_env(emitter_mobility, B) if has_emitter else None
     if collider is not None and jit:  # all of the else branch, compiled (bit-identical)
         if not compiled.period_contacts(zk, z0, zb, travel, leg, disp, inc, None if kappa is not None else e, t, s,
                                         mobility, target_record, collider.diam, collider.skin, lim, RELAX_MARGIN_MM,
@@ -429,7 +425,7 @@ def tick_move(pos: np.ndarray, heading: np.ndarray, q: np.ndarray, cfg: WorldCon
     pos[..., 0], pos[..., 1] = zk[-1].real, zk[-1].imag
     if has_emitter:
         target[:, 0], target[:, 1] = zb.real, zb.imag
-    if record is not None and not np.shares_memory(record, zk):
+    if record is not None and not into_record:
         record[...] = zk.view(np.float64).reshape(P, B, M, 2)
 
 
