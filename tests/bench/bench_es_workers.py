@@ -65,6 +65,11 @@ def weights(run_dir: Path) -> list[np.ndarray]:
     return [np.asarray(a) for a in (*p.weights, *p.biases)]
 
 
+def _uptime() -> str:
+    """The machine's load, as ``uptime`` prints it."""
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
 def _cpu_s(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -112,20 +117,24 @@ def cpu_table(args: argparse.Namespace) -> dict[int, tuple[float, float, float]]
     return out
 
 
+def _block(args: argparse.Namespace, cfg, theta, r: int, k: int):
+    """(members 0..k of generation ``r``'s population, the generation's seed)."""
+    from learn.es_pool import members, noise
+
+    seed = np.random.SeedSequence([args.seed, r])
+    return members(theta, cfg.sigma, noise(seed, args.pairs, theta.numel()), 0, k), seed
+
+
 def rollout_table(args: argparse.Namespace) -> dict[int, float]:
     """Per block size k (1, pairs, 2·pairs members): the least CPU seconds, over ``--rollout-repeats`` alternating
     rounds, of this process evaluating members 0..k of a generation on the first swarm size (what a worker does
     with a block of k members)."""
-    from learn.es_pool import members, noise
-
     cfg, fitness, theta = _population(args)
     sizes = (1, args.pairs, 2 * args.pairs)
     best = {k: float("inf") for k in sizes}
     for r in range(args.rollout_repeats + 1):  # round 0 warms up (compiles, allocates)
-        seed = np.random.SeedSequence([args.seed, r])
-        eps = noise(seed, args.pairs, theta.numel())
         for k in sizes:
-            block = members(theta, cfg.sigma, eps, 0, k)
+            block, seed = _block(args, cfg, theta, r, k)
             c0 = time.process_time()
             fitness(block, 0, seed)
             if r:
@@ -133,15 +142,20 @@ def rollout_table(args: argparse.Namespace) -> dict[int, float]:
     return best
 
 
+_WARM_BLOCK = None  # (fitness, block, seed) of a process of the side-by-side table, built and evaluated once
+
+
 def _time_blocks(args: argparse.Namespace, n: int) -> list[float]:
     """Wall seconds of each of ``n`` evaluations of a block of ``pairs`` members (one worker's share at 2 workers)
-    in this process, after one unmeasured evaluation (a process of the side-by-side table)."""
-    from learn.es_pool import members, noise
-
-    cfg, fitness, theta = _population(args)
-    seed = np.random.SeedSequence([args.seed, 0])
-    block = members(theta, cfg.sigma, noise(seed, args.pairs, theta.numel()), 0, args.pairs)
-    fitness(block, 0, seed)
+    in this process, after one unmeasured evaluation on the process's first call (a process of the side-by-side
+    table)."""
+    global _WARM_BLOCK
+    if _WARM_BLOCK is None:
+        cfg, fitness, theta = _population(args)
+        block, seed = _block(args, cfg, theta, 0, args.pairs)
+        fitness(block, 0, seed)
+        _WARM_BLOCK = fitness, block, seed
+    fitness, block, seed = _WARM_BLOCK
     walls = []
     for _ in range(n):
         t0 = time.perf_counter()
@@ -160,7 +174,7 @@ def side_by_side_table(args: argparse.Namespace) -> tuple[float, float]:
     alone, together = [], []
     ctx = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(2, mp_context=ctx) as ex:
-        list(ex.map(_time_blocks, [args, args], [0, 0]))  # both processes started and imported
+        list(ex.map(_time_blocks, [args, args], [0, 0]))  # both processes started, imported and warmed
         for _ in range(args.side_by_side):
             alone += ex.submit(_time_blocks, args, 3).result()
             for f in [ex.submit(_time_blocks, args, 3) for _ in range(2)]:
@@ -206,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
                 ratios[w].append(got[w] / got[base])
                 same &= all(np.array_equal(a, b) for a, b in zip(ref, weights(Path(tmp) / f"r{r}_w{w}"), strict=True))
     if args.rounds:
-        load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+        load = _uptime()
         print(f"\ntrain-es --robots {' '.join(map(str, args.robots))} --demo-policy none --generations {args.generations} "
               f"--pairs {args.pairs} --seed {args.seed}; {args.rounds} rounds; {os.cpu_count()} CPUs; {load}")
         print(f"{'workers':>7} | {'generations/s':>13} | {'member-episodes/s':>17} | {'ratio (median)':>14} | ratio range")
@@ -220,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         cpu = cpu_table(args)
         b = cpu[base][1]
         print(f"\nCPU seconds per generation (median of {args.cpu_generations}; "
-              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+              f"{_uptime()})")
         print(f"{'workers':>7} | {'wall s':>7} | {'busiest process CPU s':>21} | {'all workers CPU s':>17} | "
               "idle-core bound on the ratio")
         print("-" * 7 + "-+-" + "-" * 7 + "-+-" + "-" * 21 + "-+-" + "-" * 17 + "-+-" + "-" * 28)
@@ -232,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         P = args.pairs
         v = (t[2 * P] - t[P]) / P
         print(f"\nOne block's CPU seconds in this process (least of {args.rollout_repeats} rounds; "
-              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+              f"{_uptime()})")
         print(f"{'members':>7} | {'CPU s':>6}")
         print("-" * 7 + "-+-" + "-" * 6)
         for k, c in t.items():
@@ -242,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.side_by_side:
         alone, together = side_by_side_table(args)
         print(f"\nA block of {args.pairs} members, wall s (median of {3 * args.side_by_side} per column; no Ray; "
-              f"{subprocess.run(['uptime'], capture_output=True, text=True).stdout.strip()})")
+              f"{_uptime()})")
         print(f"one process alone {alone:.3f}, each of two processes at once {together:.3f}: two cores run this work "
               f"at {alone / together:.2f} of one core's speed each (two workers' ratio is at most the time of "
               f"{2 * args.pairs} members over {args.pairs} × this, before Ray's own costs)")
