@@ -25,6 +25,7 @@ those of the episodes being collected. Slots are grouped in blocks for increment
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -42,7 +43,7 @@ class Batch:
     s: torch.Tensor  #: (N, S)
     h: torch.Tensor  #: (N, M, t_prev * tuple_dim)
     a: torch.Tensor  #: (N, M, 2)
-    r: torch.Tensor  #: (N,), or (N, M) per-robot rewards (``reward_width`` M)
+    r: torch.Tensor  #: (N,), or (N, M) per-robot rewards (the replay's ``reward_shape``)
     s2: torch.Tensor  #: (N, S)
     h2: torch.Tensor  #: (N, M, t_prev * tuple_dim)
     o: torch.Tensor | None = None  #: (N, M, obs_dim) observations o_t (the newest tuple of h)
@@ -107,8 +108,9 @@ class EpisodeReplay:
         self._store = torch.zeros((C, M, self.pad + T + 1, D), **z)
         self.tuples = self._store[:, :, self.pad:]  # (C, M, T + 1, D) view
         self.states = torch.zeros((C, T + 1, state_dim), **z)
-        self.R = M if per_robot_rewards else 1  # rewards per transition: the team's, or one per robot
-        self.rewards = torch.zeros((C, T) + ((M,) if per_robot_rewards else ()), **z)
+        self.reward_shape = (M,) if per_robot_rewards else ()  # one transition's reward: the team's, or one per robot
+        self.R = math.prod(self.reward_shape)  # rewards per transition
+        self.rewards = torch.zeros((C, T) + self.reward_shape, **z)
         self.filled = np.zeros(C, np.int64)  # transitions stored per slot, 0..T
         self.next_slot = 0  # ring position of the next episode to begin
         self.wrapped = False  # every slot has been used at least once
@@ -235,7 +237,7 @@ class EpisodeReplay:
         r = self._gather(self.rewards.view(-1, self.R), (e * self.T + t)[:, None], "r")  # (N, 1, R)
         obs = (x[:, :, -2, ACTION_DIM:], x[:, :, -1, ACTION_DIM:]) if self.with_obs else (None, None)
         return Batch(s=st[:, 0], h=x[:, :, :-1].reshape(N, M, P * D), a=x[:, :, -1, :ACTION_DIM],
-                     r=r.view(N, *self.rewards.shape[2:]), s2=st[:, 1], h2=x[:, :, 1:].reshape(N, M, P * D), o=obs[0], o2=obs[1])
+                     r=r.view(N, *self.reward_shape), s2=st[:, 1], h2=x[:, :, 1:].reshape(N, M, P * D), o=obs[0], o2=obs[1])
 
     def sample_windows(self, n: int, burn_in: int, unroll: int, rng: np.random.Generator) -> Windows:
         """N windows with start t_s uniform over every stored (episode, t_s <= filled - unroll)."""
@@ -256,7 +258,7 @@ class EpisodeReplay:
         nxt = xt[rows, pos]  # (N, U, M, D): tuples t + 1
         obs = (xt[rows, pos - 1][..., ACTION_DIM:], nxt[..., ACTION_DIM:]) if self.with_obs else (None, None)
         return Windows(x=x, off=self._to_device(off, np.int64).clone(), s=st[:, :-1], a=nxt[..., :ACTION_DIM],
-                       r=r.view(n, unroll, *self.rewards.shape[2:]), s2=st[:, 1:], o=obs[0], o2=obs[1])
+                       r=r.view(n, unroll, *self.reward_shape), s2=st[:, 1:], o=obs[0], o2=obs[1])
 
     # --- checkpointing -------------------------------------------------------------------------
     def meta(self) -> dict:
