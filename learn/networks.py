@@ -153,9 +153,10 @@ class MeanCritic(nn.Module):
         e = self.encoder(self.features(s, a, o))  # (N, M, E)
         pooled = [e.mean(dim=1)] + ([e.amax(dim=1)] if self.pool == "meanmax" else [])
         g = torch.cat([s[:, :2], torch.full_like(s[:, :1], 1.0 / a.shape[1])], dim=1)
+        swarm = torch.cat(pooled + [g], dim=1)  # (N, ·)
         if not self.per_robot:
-            return self.head(torch.cat(pooled + [g], dim=1)).squeeze(1)
-        shared = torch.cat(pooled + [g], dim=1)[:, None, :].expand(-1, e.shape[1], -1)  # (N, M, ·)
+            return self.head(swarm).squeeze(1)
+        shared = swarm[:, None, :].expand(-1, e.shape[1], -1)  # (N, M, ·)
         return self.head(torch.cat([e, shared], dim=2)).squeeze(2)
 
 
