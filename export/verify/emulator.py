@@ -278,6 +278,8 @@ class FirmwareEmulator:
                                                     self.msg_type)], 1)  # (R, 2, 12)
         self.sends_light = emitter_sends_light(self.world)
         self.msg_emitter = self._emitter_message(np.full(R, fw.LIGHT_NONE))
+        # each observed feature's inputs and its integer twin, in the world's order
+        self._int_features = [(self.world.obs_slice(n), int_feature(n)) for n in self.world.features]
         self.led_codes = {name: fw.rgb(*c) for name, c in (
             ("off", fw.LED_OFF), ("emitter", fw.LED_EMITTER), ("sensing", fw.LED_SENSING),
             ("nbr", fw.LED_NBR_SENSING))}
@@ -381,8 +383,8 @@ class FirmwareEmulator:
             self.emitter_light = np.where(light >= 0, light, self.emitter_light)
             self.msg_emitter = self._emitter_message(self.emitter_light)
         obs = np.zeros((R, w.obs_dim), np.int64)
-        for name in w.features:
-            obs[:, w.obs_slice(name)] = int_feature(name)(self, summ)
+        for inputs, twin in self._int_features:
+            obs[:, inputs] = twin(self, summ)
 
         act = np.asarray(qp.action_table, np.int64)[self.q.astype(np.int64)]  # (R, 2) ACT[previous q], a_0 = ACT[0] = 0
         q, self.state = qp.step_int(np.concatenate([act, obs], 1), self.state)  # (R, 2) uint8
