@@ -65,6 +65,7 @@ class Feature:
     random: bool = False  #: reads the robot's xorshift32 word (stepped once per control step)
     emitter_light: bool = False  #: reads the emitter's light reading in its messages (the emitter reads and sends it)
     table: Any = None  #: a task's own feature (:class:`sim.table_features.TableFeature`): computed from the table
+    counters: tuple[str, ...] = ()  #: the loop counters (uint8_t) its firmware block uses in kf_observe
 
     def width(self, cfg: WorldConfig) -> int:
         return cfg.n_rbf if self.per_rbf else max(len(self.parts), 1)
@@ -79,10 +80,10 @@ FEATURES: dict[str, Feature] = {f.name: f for f in (
     Feature("object_light", "the emitter's broadcast light reading / 1024, the latest heard (held), else -1",
             needs_emitter=True, emitter_light=True),
     Feature("nbr_sensing", "1 when a heard robot's latest message says it senses the emitter, else 0",
-            needs_emitter=True, uses_flag=True),
+            needs_emitter=True, uses_flag=True, counters=("i",)),
     Feature("random", "a uniform draw in [-1, 1) from the robot's xorshift32 stream, new each control period",
             random=True),
-    Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True),
+    Feature("rbf", "the RBF histogram of the neighbours' distances (n_rbf bins)", per_rbf=True, counters=("i", "k")),
 )}
 
 #: the features tasks brought (:attr:`sim.tasks.Task.own_features`), registered when a task is resolved
@@ -109,7 +110,7 @@ def register(table_feature: Any, where: str) -> None:
         raise InputError(f"{where}: feature {tf.name!r} is already defined by {'.'.join(_origin(known.table))}; "
                          "choose another name")
     parts = tuple(str(k) for k in range(tf.width)) if tf.width > 1 else ()
-    TASK_FEATURES[tf.name] = Feature(tf.name, tf.doc, parts=parts, table=tf)
+    TASK_FEATURES[tf.name] = Feature(tf.name, tf.doc, parts=parts, table=tf, counters=("i",))
 
 
 #: localisation's layout (the thesis's 14 inputs), the layout of every world written before layouts were chosen

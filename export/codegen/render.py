@@ -59,8 +59,6 @@ TASK_PARTIALS = "tasks"  #: the folder of firmware_templates/ holding each task'
 RUNTIME_SOURCES = ("kf_runtime.h",)
 DENSE_SOURCES = ("kf_dense.h", "kf_dense.c")
 MAX_EMITTER_UIDS = 32
-#: the loop counters (uint8_t) each feature's firmware block uses in kf_observe
-FEATURE_COUNTERS: dict[str, tuple[str, ...]] = {"nbr_sensing": ("i",), "rbf": ("i", "k")}
 
 
 def _define(name: str, value: str, comment: str = "") -> dict[str, str]:
@@ -267,8 +265,7 @@ def _io_context(qp: QuantizedActor, uids: tuple[int, ...], spec: RenderSpec,
 def _layout_context(w: WorldConfig, emitter: EmitterFirmware | None) -> dict[str, Any]:
     """What the shared template renders from the world's roles and observation layout (``roles``: one robot of the
     task transmits with a role bit, the others track whether they heard it; ``emitter_partial``: the task's role)."""
-    counters = {c for f in w.features
-                for c in FEATURE_COUNTERS.get(f, ("i",) if feature(f).table is not None else ())}
+    counters = {c for f in w.features for c in feature(f).counters}
     return {"roles": emitter is not None, "emitter_partial": emitter.partial if emitter else "",
             "obs_features": list(w.features),
             "uses_flag": any(feature(f).uses_flag for f in w.features),
