@@ -27,8 +27,9 @@ from pathlib import Path
 
 from sim.config import HELD_OUT_SEED
 
-COMMON = ["--preset", "fast", "--robots", "16", "--world", "kilobot", "--eval-every", "25600", "--eval-episodes", "20",
-          "--quiet"]
+ROBOTS = 16
+COMMON = ["--preset", "fast", "--robots", str(ROBOTS), "--world", "kilobot", "--eval-every", "25600",
+          "--eval-episodes", "20", "--quiet"]
 #: variant -> the flags it adds to COMMON
 VARIANTS: dict[str, list[str]] = {
     "concat": ["--critic", "concat"],  # the thesis's critic and squared team reward (fast's defaults)
@@ -37,7 +38,6 @@ VARIANTS: dict[str, list[str]] = {
     # each robot's own success, one value per robot; the head runs once per robot, so it is narrower (64, 64)
     "local": ["--critic", "robot", "--reward", "local", "--critic-hidden", "64", "64"],
 }
-ROBOTS = 16
 EPISODES = 50
 
 
@@ -80,8 +80,9 @@ def evaluate(runs: list[Path], out: Path) -> None:
 
 def plot(runs: list[str], out: str) -> None:
     """One curve (mean ± 2 std over seeds) per variant: the run directory's name without ``_sSEED``.
-    (``python -m learn plot`` labels runs by experiment name, swarm size and T_prev alone, so it would pool the
-    variants, which differ only in ``reward`` and ``critic``.)"""
+    (``python -m learn plot`` separates the variants as well, labelling each by the config fields in which they
+    differ, ``reward=linear, critic=mean``; this one labels each curve by its variant name and flags, and titles the
+    figure with the experiment.)"""
     from learn.evaluate import success_panel
     from learn.plots import plot_learning_curves
     from learn.runfiles import read_metrics
