@@ -165,7 +165,7 @@ def kill_export(d: Path, old: dict, new: dict, sig: int, moment: str, rng: np.ra
         if rc not in (0, 130):
             problems.append(f"exit status {rc} after SIGINT")
         if "Traceback" in message:
-            problems.append("a traceback")
+            problems.append(f"a traceback: {message[-600:]}")  # its end, to see where the signal landed
         if rc == 130 and "nothing written" in message and after != "old":
             problems.append("said 'nothing written' but the new set was published")
         if rc == 130 and "interrupted after writing" in message and before != "new":
